@@ -1,0 +1,1 @@
+"""agilegs.client: torch-free client SDK (filled in by the service work)."""

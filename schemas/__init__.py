@@ -1,0 +1,1 @@
+"""agilegs.schemas: the wire contract (pydantic models and Zenoh key expressions)."""

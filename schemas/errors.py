@@ -1,0 +1,62 @@
+"""The error body every failed request gets, over HTTP and Zenoh alike.
+
+``{"error": {"status": 422, "code": "invalid", "message": "...", "field": "body.poses[3].matrix",
+"errors": [{"field": ..., "message": ...}, ...]}}``
+
+``field`` names the offending input as a path: ``body`` (the request body, over either
+transport), ``path.session``, ``query.<name>``, ``header.<name>``, followed by attribute
+names and ``[i]`` list indices. ``errors`` lists every problem found (``field`` and
+``message`` repeat the first). Codes:
+
+=====================  ======  ====================================================
+code                   status  meaning
+=====================  ======  ====================================================
+``bad_request``        400     the body could not be decoded (not JSON / msgpack)
+``unauthorized``       401     missing or wrong bearer token
+``not_found``          404     unknown session, candidate, view, or route
+``method_not_allowed`` 405     the route exists but not with this method
+``not_acceptable``     406     Accept names no type the server produces
+``conflict``           409     the session's state forbids it (id taken, empty pool, ...)
+``payload_too_large``  413     body over the ``max_body_bytes`` setting
+``unsupported_media``  415     Content-Type is neither JSON nor msgpack
+``invalid``            422     a value is malformed or out of range (the field says which)
+``limit_exceeded``     429     a server limit (sessions, pool size, pixels...) was reached
+``internal``           500     a server bug (bad input never yields it)
+``unavailable``        503     the server is shutting down or a dependency is missing
+=====================  ======  ====================================================
+"""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field
+
+__all__ = ["ErrorBody", "ErrorInfo", "ErrorItem"]
+
+
+class ErrorItem(BaseModel):
+    """One problem: where (``field``) and why (``message``)."""
+
+    model_config = ConfigDict(extra="ignore")
+
+    field: str | None = Field(default=None, description="path of the offending input")
+    message: str = Field(description="what is wrong with it")
+
+
+class ErrorInfo(BaseModel):
+    """What went wrong: HTTP status, a stable machine-readable code, and the field."""
+
+    model_config = ConfigDict(extra="ignore")
+
+    status: int = Field(description="HTTP status (also sent in Zenoh error replies)")
+    code: str = Field(description="stable error code, see the module documentation")
+    message: str = Field(description="human-readable reason")
+    field: str | None = Field(default=None, description="path of the offending input, if any")
+    errors: list[ErrorItem] = Field(default_factory=list, description="every problem found")
+
+
+class ErrorBody(BaseModel):
+    """The body of every error response and every Zenoh error reply."""
+
+    model_config = ConfigDict(extra="ignore")
+
+    error: ErrorInfo

@@ -1,0 +1,380 @@
+"""Exact diagonal Fisher information of a rendering, and the information maths built on it.
+
+``fisher_diag(gmap, camera)`` returns diag(JᵀJ), J the Jacobian of ``render(gmap, camera).rgb``
+flattened (every pixel and channel one residual) with respect to each parameter block, in one
+pass (paper eqs. hessian-def and diag-fisher). How:
+
+1. Every parameter of Gaussian i reaches the image only through its screen-space attributes
+   s_i = (mean2d [2], conic [3], opacity [1], colour [3]), so ∂C_pc/∂θ_i = g_pcᵀ (∂s_i/∂θ_i)
+   with g_pc = ∂C_pc/∂s_i, and Σ_pc (∂C_pc/∂θ_ij)² = (∂s_i/∂θ_ij)ᵀ M_i (∂s_i/∂θ_ij) where
+   M_i = Σ_pc g_pc g_pcᵀ is a 9x9 second-moment matrix per Gaussian.
+2. g_pc has closed form: the colour entry is w = Tα on channel c, and the geometric entries are
+   (∂C_c/∂α_i)·∂α/∂(mean2d, conic, opacity), where ∂α/∂· is α times a polynomial of degree ≤ 2
+   in the pixel offset (dx, dy). So M_i is assembled from pixel moments of degree ≤ 4, summed
+   per tile with one small matmul.
+3. ∂s_i/∂θ_i (the projection Jacobian) comes from autograd on the per-Gaussian projection
+   (one backward per screen attribute; Gaussians are independent, so summing over them and
+   differentiating gives every Gaussian's own row).
+
+Everything is plain torch, so the result is differentiable w.r.t. the camera pose (the
+anchor ascends a function of it). ``fisher_diag_bruteforce`` is the slow reference: one
+autograd backward per pixel and channel.
+
+Information state Ĥ is a dict keyed by the field names, each the field's shape; it is
+Σ_views H_v + λ (``init_information`` gives λ, ``accumulate_information`` adds a view).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from math import comb
+
+import torch
+from torch import Tensor
+
+from agilegs.service.nbv.camera import Camera
+from agilegs.service.nbv.gaussians import FIELD_NAMES, GaussianMap
+from agilegs.service.nbv.rasterize import (
+    Projected,
+    bin_gaussians,
+    composite_chunk,
+    dcolor_dalpha,
+    gather_lists,
+    pixel_monomials,
+    project_gaussians,
+    render,
+    tile_pixels,
+)
+
+# monomials x^i y^j with i + j <= 4 in the graded order of ``pixel_monomials``
+_MONOS4: list[tuple[int, int]] = [(i, k - i) for k in range(5) for i in range(k, -1, -1)]
+_MONO_INDEX = {m: n for n, m in enumerate(_MONOS4)}
+# the basis φ = (1, dx, dy, dx², dxdy, dy²) of ∂α/∂screen / α
+_PHI: list[tuple[int, int]] = [(0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2)]
+
+
+def _central_moments(raw: Tensor, m: Tensor, monos: list[tuple[int, int]]) -> Tensor:
+    """Σ f (x-m_x)^i (y-m_y)^j from raw moments Σ f x^a y^b [.., M] (binomial expansion).
+
+    Args:
+        raw: raw moments in the order of ``monos`` [..., M].
+        m: centres [..., 2].
+        monos: exponent pairs (i, j), closed under lowering either exponent.
+    """
+    index = {mono: n for n, mono in enumerate(monos)}
+    mx, my = -m[..., 0], -m[..., 1]
+    deg = max(i + j for i, j in monos)
+    px = [torch.ones_like(mx)]
+    py = [torch.ones_like(my)]
+    for _ in range(deg):
+        px.append(px[-1] * mx)
+        py.append(py[-1] * my)
+    out = []
+    for i, j in monos:
+        acc = torch.zeros_like(mx)
+        for a in range(i + 1):
+            for b in range(j + 1):
+                coef = comb(i, a) * comb(j, b)
+                acc = acc + coef * px[i - a] * py[j - b] * raw[..., index[(a, b)]]
+        out.append(acc)
+    return torch.stack(out, dim=-1)
+
+
+def _screen_basis(con: Tensor, op: Tensor) -> Tensor:
+    """A [.., 6, 6] with ∂α/∂(mx, my, a, b, c, o) = α · A φ, φ = (1, dx, dy, dx², dxdy, dy²)."""
+    a, b, c = con.unbind(-1)
+    z = torch.zeros_like(a)
+    one = torch.ones_like(a)
+    rows = [
+        [z, a, b, z, z, z],
+        [z, b, c, z, z, z],
+        [z, z, z, -0.5 * one, z, z],
+        [z, z, z, z, -one, z],
+        [z, z, z, z, z, -0.5 * one],
+        [1.0 / op.clamp_min(1e-30), z, z, z, z, z],
+    ]
+    return torch.stack([torch.stack(r, dim=-1) for r in rows], dim=-2)
+
+
+def screen_second_moments(
+    gmap: GaussianMap,
+    camera: Camera,
+    *,
+    background: Tensor | None = None,
+    tile_size: int = 8,
+    near: float = 0.01,
+    max_elements: int = 1 << 20,
+) -> Tensor:
+    """M_i = Σ_pc g g^T over the screen attributes of every Gaussian [N, 9, 9].
+
+    Attribute order: mean_x, mean_y, conic_a, conic_b, conic_c, opacity, r, g, b.
+    Differentiable in whatever ``gmap`` and ``camera.c2w`` carry a graph for.
+    """
+    dt, dev = gmap.means.dtype, gmap.means.device
+    proj = project_gaussians(
+        gmap.means,
+        gmap.log_scales,
+        gmap.quats,
+        gmap.opacity_logits,
+        gmap.sh,
+        camera,
+        near=near,
+    )
+    bg = (
+        torch.zeros(3, dtype=dt, device=dev)
+        if background is None
+        else torch.as_tensor(background, dtype=dt, device=dev).reshape(3)
+    )
+    n = gmap.num_gaussians
+    binning = bin_gaussians(
+        proj.means2d, proj.radii, proj.depths, camera.width, camera.height, tile_size
+    )
+    # screen quantities: detached from the Gaussian parameters (their Jacobian is chained
+    # separately) but still attached to the camera pose when it requires grad
+    m2d_all = proj.means2d
+    con_all = proj.conics
+    op_all = proj.opacities
+    col_all = proj.colors
+    z_all = proj.depths
+    mgg = torch.zeros(n, 6, 6, dtype=dt, device=dev)
+    mgc = torch.zeros(n, 3, 6, dtype=dt, device=dev)
+    mcc = torch.zeros(n, dtype=dt, device=dev)
+    for tile_ids, lmax in binning.chunks(max_elements):
+        local, centres, flat = tile_pixels(binning, tile_ids, dt)
+        ids, valid = gather_lists(binning, tile_ids, lmax)
+        m2d = m2d_all[ids] - centres[:, None, :]
+        con, op, col = con_all[ids], op_all[ids], col_all[ids]
+        t = composite_chunk(local, m2d, con, op, col, z_all[ids], valid, bg)
+        inside = (flat >= 0).to(dt)[..., None]  # [Tc, P, 1]
+        dcda = dcolor_dalpha(t, col, bg)  # [Tc, P, L, 3]
+        al_ok = torch.where(t.raw_ok, t.alpha, torch.zeros_like(t.alpha)) * inside
+        w = t.weight * inside
+        f4 = (dcda * dcda).sum(-1) * al_ok * al_ok  # [Tc, P, L]
+        f2 = dcda * (w * al_ok)[..., None]  # [Tc, P, L, 3]
+        mono4 = pixel_monomials(local, 4)  # [P, 15]
+        mono2 = mono4[:, :6]
+        raw4 = torch.matmul(f4.transpose(1, 2), mono4)  # [Tc, L, 15]
+        raw2 = torch.matmul(f2.permute(0, 2, 3, 1), mono2)  # [Tc, L, 3, 6]
+        c4 = _central_moments(raw4, m2d, _MONOS4)
+        c2 = _central_moments(raw2, m2d[:, :, None, :], _MONOS4[:6])
+        # Φ_ab = Σ f φ_a φ_b (a moment of degree ≤ 4)
+        phi = torch.stack(
+            [
+                torch.stack(
+                    [c4[..., _MONO_INDEX[(pa[0] + pb[0], pa[1] + pb[1])]] for pb in _PHI], -1
+                )
+                for pa in _PHI
+            ],
+            -2,
+        )  # [Tc, L, 6, 6]
+        amat = _screen_basis(con, op)  # [Tc, L, 6, 6]
+        gg = amat @ phi @ amat.transpose(-1, -2)
+        gc = c2 @ amat.transpose(-1, -2)  # [Tc, L, 3, 6]
+        fid = ids.flatten()
+        mgg = mgg.index_add(0, fid, gg.flatten(0, 1))
+        mgc = mgc.index_add(0, fid, gc.flatten(0, 1))
+        mcc = mcc.index_add(0, fid, (w * w).sum(1).flatten())
+    top = torch.cat([mgg, mgc.transpose(1, 2)], dim=2)  # [N, 6, 9]
+    eye3 = torch.eye(3, dtype=dt, device=dev)
+    bottom = torch.cat([mgc, mcc[:, None, None] * eye3], dim=2)  # [N, 3, 9]
+    return torch.cat([top, bottom], dim=1)
+
+
+def _screen_outputs(p: Projected) -> list[Tensor]:
+    return [
+        p.means2d[:, 0],
+        p.means2d[:, 1],
+        p.conics[:, 0],
+        p.conics[:, 1],
+        p.conics[:, 2],
+        p.opacities,
+        p.colors[:, 0],
+        p.colors[:, 1],
+        p.colors[:, 2],
+    ]
+
+
+def fisher_diag(
+    gmap: GaussianMap,
+    camera: Camera,
+    *,
+    background: Tensor | None = None,
+    fields: Iterable[str] | None = None,
+    tile_size: int = 8,
+    near: float = 0.01,
+    max_elements: int = 1 << 20,
+) -> dict[str, Tensor]:
+    """Exact diag(JᵀJ) of the rendered RGB w.r.t. each parameter block, in one pass.
+
+    Args:
+        gmap: the Gaussians (N).
+        camera: the view; if ``camera.c2w`` requires grad the result is differentiable in it.
+        background: background colour [3] used by the render (default black).
+        fields: which blocks to return (default all five).
+        tile_size, near, max_elements: as in :func:`render`.
+
+    Returns:
+        {field name: diag Fisher of that field, same shape as the field}.
+    """
+    want = tuple(FIELD_NAMES if fields is None else fields)
+    for f in want:
+        if f not in FIELD_NAMES:
+            raise ValueError(f"fields: unknown parameter block {f!r} (known: {FIELD_NAMES})")
+    pose_grad = bool(camera.c2w.requires_grad) and torch.is_grad_enabled()
+    detached = gmap.detach()
+    with torch.set_grad_enabled(pose_grad):
+        m = screen_second_moments(
+            detached,
+            camera,
+            background=background,
+            tile_size=tile_size,
+            near=near,
+            max_elements=max_elements,
+        )
+    # per-Gaussian projection Jacobian rows: d(Σ_i s_i,a)/dθ_i = ds_i,a/dθ_i, since each
+    # Gaussian's screen attributes depend on its own parameters only
+    leaves = {k: v.requires_grad_(True) for k, v in gmap.detach().items()}
+    jac: dict[str, list[Tensor]] = {f: [] for f in want}
+    with torch.enable_grad():
+        proj = project_gaussians(
+            leaves["means"],
+            leaves["log_scales"],
+            leaves["quats"],
+            leaves["opacity_logits"],
+            leaves["sh"],
+            camera,
+            near=near,
+        )
+        wanted_leaves = [leaves[f] for f in want]
+        for out in _screen_outputs(proj):
+            grads = torch.autograd.grad(
+                out.sum(),
+                wanted_leaves,
+                create_graph=pose_grad,
+                retain_graph=True,
+                allow_unused=True,
+            )
+            for f, g in zip(want, grads):
+                n = leaves[f].shape[0]
+                jac[f].append(
+                    torch.zeros_like(leaves[f]).reshape(n, -1) if g is None else g.reshape(n, -1)
+                )
+    result: dict[str, Tensor] = {}
+    for f in want:
+        j = torch.stack(jac[f], dim=1)  # [N, 9, P_f]
+        h = torch.einsum("nap,nab,nbp->np", j, m, j)
+        result[f] = h.reshape(leaves[f].shape) if pose_grad else h.reshape(leaves[f].shape).detach()
+    return result
+
+
+def fisher_diag_bruteforce(
+    gmap: GaussianMap,
+    camera: Camera,
+    *,
+    background: Tensor | None = None,
+    tile_size: int = 8,
+) -> dict[str, Tensor]:
+    """Reference: diag(JᵀJ) from one autograd backward per pixel and channel (slow)."""
+    leaves = {k: v.detach().clone().requires_grad_(True) for k, v in gmap.items()}
+    g = GaussianMap(**leaves)
+    rgb = render(g, camera, background=background, tile_size=tile_size, backward="autograd").rgb
+    flat = rgb.reshape(-1)
+    acc = {k: torch.zeros_like(v) for k, v in leaves.items()}
+    names = list(leaves)
+    for i in range(flat.numel()):
+        if not flat[i].requires_grad:
+            continue
+        grads = torch.autograd.grad(flat[i], [leaves[k] for k in names], retain_graph=True)
+        for k, gr in zip(names, grads):
+            acc[k] += gr * gr
+    return acc
+
+
+# ----------------------------------------------------------------------------- information maths
+def init_information(gmap: GaussianMap, lam: float = 1e-6) -> dict[str, Tensor]:
+    """λI as a per-field dict (the prior term of Ĥ)."""
+    if not lam > 0:
+        raise ValueError(f"lam must be > 0, got {lam}")
+    return {k: torch.full_like(v.detach(), lam) for k, v in gmap.items()}
+
+
+def accumulate_information(
+    h_acc: Mapping[str, Tensor], h_view: Mapping[str, Tensor]
+) -> dict[str, Tensor]:
+    """Ĥ + H_v, field by field (shapes must match)."""
+    out = {}
+    for k, v in h_acc.items():
+        if k not in h_view:
+            raise ValueError(f"h_view is missing field {k!r}")
+        if h_view[k].shape != v.shape:
+            raise ValueError(
+                f"h_view[{k!r}] has shape {list(h_view[k].shape)}, h_acc has {list(v.shape)}"
+            )
+        out[k] = v + h_view[k].detach().to(v.dtype)
+    return out
+
+
+def _field_terms(
+    h_view: Mapping[str, Tensor],
+    h_acc: Mapping[str, Tensor],
+    fields: Iterable[str] | None,
+    fn: str,
+) -> Tensor:
+    names = list(h_acc) if fields is None else list(fields)
+    total: Tensor | None = None
+    for k in names:
+        if k not in h_acc or k not in h_view:
+            raise ValueError(f"fields: {k!r} missing from h_view or h_acc")
+        hv, ha = h_view[k], h_acc[k]
+        extra = hv.ndim - ha.ndim
+        if extra < 0 or tuple(hv.shape[extra:]) != tuple(ha.shape):
+            raise ValueError(
+                f"h_view[{k!r}] shape {list(hv.shape)} does not end with h_acc shape "
+                f"{list(ha.shape)}"
+            )
+        ratio = hv / ha
+        term = torch.log1p(ratio) if fn == "eig" else ratio
+        s = term.reshape(*hv.shape[:extra], -1).sum(-1)
+        total = s if total is None else total + s
+    if total is None:
+        raise ValueError("fields: no parameter block selected")
+    return total
+
+
+def expected_information_gain(
+    h_view: Mapping[str, Tensor],
+    h_acc: Mapping[str, Tensor],
+    fields: Iterable[str] | None = None,
+) -> Tensor:
+    """φ = Σ_q log(1 + H_v,qq / Ĥ_qq) (paper eq. plus_diagonal).
+
+    Args:
+        h_view: per-field diagonal Fisher of the view(s); each may carry leading batch dims
+            [V, *field_shape] to score many views at once.
+        h_acc: accumulated information Ĥ (including λ), per field [*field_shape].
+        fields: blocks to include (default: every block of h_acc).
+
+    Returns:
+        EIG, a scalar tensor or [V].
+    """
+    return _field_terms(h_view, h_acc, fields, "eig")
+
+
+def trace_surrogate(
+    h_view: Mapping[str, Tensor],
+    h_acc: Mapping[str, Tensor],
+    fields: Iterable[str] | None = None,
+) -> Tensor:
+    """ψ = Σ_q H_v,qq / Ĥ_qq = tr(H_v Ĥ⁻¹) (paper eq. trace-surrogate); batched like the EIG."""
+    return _field_terms(h_view, h_acc, fields, "trace")
+
+
+__all__ = [
+    "accumulate_information",
+    "expected_information_gain",
+    "fisher_diag",
+    "fisher_diag_bruteforce",
+    "init_information",
+    "screen_second_moments",
+    "trace_surrogate",
+]
