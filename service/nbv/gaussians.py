@@ -29,6 +29,7 @@ Loaded maps are float32 on the CPU. Bad files raise ``ValueError`` naming the pr
 
 from __future__ import annotations
 
+import io
 import math
 import os
 import re
@@ -358,8 +359,6 @@ def _ply_property_names(sh_rest: int) -> list[str]:
 
 
 def _ply_bytes(m: GaussianMap) -> bytes:
-    import io
-
     from plyfile import PlyData, PlyElement
 
     n = m.num_gaussians
@@ -382,6 +381,8 @@ def _ply_bytes(m: GaussianMap) -> bytes:
         ],
         axis=1,
     )
+    if not np.isfinite(cols).all():
+        raise ValueError("cannot save .ply: parameter values overflow float32")
     names = _ply_property_names(3 * (k - 1))
     arr = np.empty(n, dtype=[(name, "<f4") for name in names])
     for i, name in enumerate(names):
@@ -395,8 +396,8 @@ def _load_ply(path: Path) -> GaussianMap:
     from plyfile import PlyData
 
     try:
-        with path.open("rb") as fh:
-            ply = PlyData.read(fh)
+        # parse from memory: no memory map left open, no file handle leaked by the ASCII path
+        ply = PlyData.read(io.BytesIO(path.read_bytes()))
     except Exception as exc:  # plyfile raises several types; report them all as ValueError
         msg = str(exc)
         if "end-of-file" in msg or "end of file" in msg:
@@ -411,8 +412,7 @@ def _load_ply(path: Path) -> GaussianMap:
     missing = [p for p in PLY_REQUIRED if p not in props]
     if missing:
         raise ValueError(
-            f"{path}: PLY vertex element is missing required properties {missing} "
-            f"(has {props})"
+            f"{path}: PLY vertex element is missing required properties {missing} (has {props})"
         )
     rest_idx = sorted(int(mt.group(1)) for p in props if (mt := _F_REST.match(p)))
     n_rest = len(rest_idx)
@@ -431,7 +431,8 @@ def _load_ply(path: Path) -> GaussianMap:
         v: Any = data[name]
         if v.dtype == object or not np.issubdtype(v.dtype, np.number):
             raise ValueError(f"{path}: PLY property {name!r} must be a numeric scalar")
-        out = np.asarray(v, dtype=np.float32)
+        with np.errstate(over="ignore", invalid="ignore"):  # out-of-range -> inf, reported
+            out = np.array(v, dtype=np.float32)  # a contiguous copy (not a view of the file)
         _check_finite(path, f"PLY property {name!r}", out)
         return out
 
