@@ -12,7 +12,7 @@ from plyfile import PlyData, PlyElement
 
 from agilegs.service.nbv.gaussians import SH_C0, GaussianMap, load_scene
 
-SCENES = Path("/work/shared/data/scenes")
+SCENES = Path(__file__).resolve().parents[2] / "shared" / "data" / "scenes"
 TEAPOT = SCENES / "teapot" / "teapot_10k.splat"
 PLANT = SCENES / "plant" / "plant.splat"
 needs_scenes = pytest.mark.skipif(not SCENES.is_dir(), reason="shared scenes not present")

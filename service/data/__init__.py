@@ -1,0 +1,14 @@
+"""Bundled data: small ground-truth splat scenes (see scenes/ATTRIBUTION.md) and loaders."""
+
+from __future__ import annotations
+
+from importlib import resources
+from pathlib import Path
+
+
+def bundled_scene(name: str = "spot") -> Path:
+    """Path of a bundled ``.splat`` scene: ``"spot"`` (default) or ``"teapot"``."""
+    files = {"spot": "spot_10k.splat", "teapot": "teapot_10k.splat"}
+    if name not in files:
+        raise ValueError(f"name must be one of {sorted(files)}, got {name!r}")
+    return Path(str(resources.files(__package__) / "scenes" / files[name]))
