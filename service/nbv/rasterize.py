@@ -507,12 +507,21 @@ class _Composite(torch.autograd.Function):
         out_d = torch.zeros(h * w, dtype=dt, device=dev)
         chunks = binning.chunks(max_elements)
         saved = []
+        # one packed gather per chunk instead of five
+        packed = torch.cat([means2d, conics, opacities[:, None], depths[:, None], colors], dim=1)
         for tile_ids, lmax in chunks:
             local, centres, flat = tile_pixels(binning, tile_ids, dt)
             ids, valid = gather_lists(binning, tile_ids, lmax)
-            m2d = means2d[ids] - centres[:, None, :]
+            g = packed.index_select(0, ids.flatten()).view(ids.shape[0], lmax, -1)
             t = composite_chunk(
-                local, m2d, conics[ids], opacities[ids], colors[ids], depths[ids], valid, bg
+                local,
+                g[..., 0:2] - centres[:, None, :],
+                g[..., 2:5],
+                g[..., 5],
+                g[..., 7:],
+                g[..., 6],
+                valid,
+                bg,
             )
             sel = flat >= 0
             out_c[flat[sel]] = t.color[sel]
@@ -541,19 +550,25 @@ class _Composite(torch.autograd.Function):
         gcol = torch.zeros_like(colors)
         gz = torch.zeros_like(depths)
         gbg = torch.zeros_like(bg)
+        packed = torch.cat([means2d, conics, opacities[:, None], depths[:, None], colors], dim=1)
+        g_out = torch.cat([g_c, g_a[:, None], g_d[:, None]], dim=1)  # [HW, C + 2]
+        mono2 = None
         for tile_ids, ids, alpha, trans, raw_ok, t_final in ctx.saved_chunks:
             local, centres, flat = tile_pixels(binning, tile_ids, dt)
-            sel = (flat >= 0).to(dt)
-            fl = flat.clamp_min(0)
-            gc = g_c[fl] * sel[..., None]  # [Tc, P, C]
-            ga = g_a[fl] * sel
-            gdp = g_d[fl] * sel
-            col, z = colors[ids], depths[ids]
+            if mono2 is None:
+                mono2 = pixel_monomials(local, 2)  # [P, 6], the same for every tile
+            inside = flat >= 0
+            go = g_out.index_select(0, flat.clamp_min(0).flatten()).view(*flat.shape, -1)
+            go = go * inside[..., None].to(dt)
+            gc, ga, gdp = go[..., :n_ch], go[..., n_ch], go[..., n_ch + 1]
+            g = packed.index_select(0, ids.flatten()).view(ids.shape[0], ids.shape[1], -1)
+            m2d, con, op, z, col = g[..., 0:2], g[..., 2:5], g[..., 5], g[..., 6], g[..., 7:]
             weight = trans * alpha
             fid = ids.flatten()
+            wt = weight.transpose(1, 2)
             # dC/dc_i = w_i ; dC/dbg = T_final ; dD_acc/dz_i = w_i
-            gcol.index_add_(0, fid, torch.matmul(weight.transpose(1, 2), gc).flatten(0, 1))
-            gz.index_add_(0, fid, torch.matmul(weight.transpose(1, 2), gdp[..., None]).flatten())
+            gcol.index_add_(0, fid, torch.matmul(wt, gc).flatten(0, 1))
+            gz.index_add_(0, fid, torch.matmul(wt, gdp[..., None]).flatten())
             gbg += torch.einsum("tp,tpc->c", t_final, gc)
             # dL/dα_i = T_i u_i - (Σ_{j>i} w_j u_j + T_final (bg·gC - gA)) / (1 - α_i)
             # with u_i = c_i·gC + z_i gD (colour, alpha and depth outputs in one pass)
@@ -561,10 +576,9 @@ class _Composite(torch.autograd.Function):
             tail = t_final * ((gc * bg).sum(-1) - ga)
             gal = trans * u - (suffix_sum(weight * u, dim=2) + tail[..., None]) / (1.0 - alpha)
             gprime = torch.where(raw_ok, gal * alpha, torch.zeros_like(gal))
-            mom = torch.matmul(gprime.transpose(1, 2), pixel_monomials(local, 2))  # [Tc,L,6]
-            m2d = means2d[ids] - centres[:, None, :]
-            cm = centred_moments_2(mom, m2d)
-            gs = screen_grads_from_moments(cm, conics[ids], opacities[ids]).flatten(0, 1)
+            mom = torch.matmul(gprime.transpose(1, 2), mono2)  # [Tc, L, 6]
+            cm = centred_moments_2(mom, m2d - centres[:, None, :])
+            gs = screen_grads_from_moments(cm, con, op).flatten(0, 1)
             gm.index_add_(0, fid, gs[:, 0:2])
             gcon.index_add_(0, fid, gs[:, 2:5])
             gop.index_add_(0, fid, gs[:, 5])
