@@ -1,0 +1,224 @@
+"""The operations every client offers, once for blocking clients and once for asyncio.
+
+Each method builds its request (:mod:`agilegs.client._requests`) and hands it to the
+transport's ``_send``; method names equal the operation names of
+:data:`agilegs.schemas.ops.OPERATIONS` and the last chunk of their Zenoh keys.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any, TypeVar
+
+import numpy as np
+from pydantic import BaseModel
+
+from agilegs.schemas import models as m
+from agilegs.schemas.geometry import Bounds, Intrinsics
+
+from . import _requests as rq
+from ._requests import Call, PoseLike
+
+__all__ = ["AsyncOperations", "SyncOperations"]
+
+T = TypeVar("T", bound=BaseModel)
+
+PoolLike = m.PoolIn | np.ndarray | Sequence[PoseLike]
+GaussiansLike = m.GaussiansIn | str | Path | Mapping[str, Any]
+ObservationLike = m.ObservationIn | Mapping[str, Any]
+
+
+class SyncOperations:
+    """Blocking operations; a subclass implements ``_send(call) -> response model``."""
+
+    def _send(self, call: Call) -> Any:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def health(self) -> m.Health:
+        """Liveness, version and session count."""
+        return self._send(rq.call("health"))  # type: ignore[no-any-return]
+
+    def create_session(
+        self,
+        intrinsics: Intrinsics | Mapping[str, Any],
+        *,
+        id: str | None = None,
+        bounds: Bounds | Mapping[str, Any] | None = None,
+        gaussians: GaussiansLike | None = None,
+        frames: Sequence[ObservationLike] = (),
+        init_gaussians: int = 1000,
+        seed: int = 0,
+        pool: PoolLike | None = None,
+        defaults: m.SelectDefaults | Mapping[str, Any] | None = None,
+        information: m.InformationConfig | Mapping[str, Any] | None = None,
+    ) -> m.SessionInfo:
+        """Create a session: with ``bounds`` (random Gaussians inside), from ``gaussians``
+        (a .ply / .splat path, a GaussiansIn, or a dict of arrays), or from posed ``frames``."""
+        return self._send(rq.create_session(  # type: ignore[no-any-return]
+            intrinsics, id=id, bounds=bounds, gaussians=gaussians, frames=frames,
+            init_gaussians=init_gaussians, seed=seed, pool=pool, defaults=defaults,
+            information=information))
+
+    def list_sessions(self) -> m.SessionList:
+        return self._send(rq.call("list_sessions"))  # type: ignore[no-any-return]
+
+    def get_session(self, session: str) -> m.SessionInfo:
+        return self._send(rq.call("get_session", session))  # type: ignore[no-any-return]
+
+    def delete_session(self, session: str) -> m.Deleted:
+        return self._send(rq.call("delete_session", session))  # type: ignore[no-any-return]
+
+    def set_gaussians(self, session: str, gaussians: GaussiansLike) -> m.SessionInfo:
+        """Replace the session's Gaussians (Ĥ follows the new map)."""
+        return self._send(rq.call(  # type: ignore[no-any-return]
+            "set_gaussians", session, rq.to_gaussians(gaussians)))
+
+    def add_observations(self, session: str,
+                         observations: ObservationLike | Sequence[ObservationLike]
+                         ) -> m.ViewsOut:
+        """Add posed frames (see ObservationIn): new acquired views update Ĥ."""
+        return self._send(rq.add_observations(session, observations))  # type: ignore[no-any-return]
+
+    def list_views(self, session: str) -> m.ViewsOut:
+        return self._send(rq.call("list_views", session))  # type: ignore[no-any-return]
+
+    def commit(self, session: str, candidate_id: int | None = None, *,
+               pose: PoseLike | None = None, keep_in_pool: bool = False) -> m.View:
+        """Acquire a candidate (by id) or a pose as a view; updates Ĥ."""
+        return self._send(rq.commit(  # type: ignore[no-any-return]
+            session, candidate_id, pose=pose, keep_in_pool=keep_in_pool))
+
+    def set_pool(self, session: str, poses: PoolLike, ids: Sequence[int] | None = None
+                 ) -> m.PoolOut:
+        """Replace the candidate pool with ``poses`` ([D, 4, 4] camera-to-world)."""
+        return self._send(rq.call(  # type: ignore[no-any-return]
+            "set_pool", session, rq.to_pool(poses, ids)))
+
+    def extend_pool(self, session: str, poses: PoolLike, ids: Sequence[int] | None = None
+                    ) -> m.PoolOut:
+        """Add candidates to the pool."""
+        return self._send(rq.call(  # type: ignore[no-any-return]
+            "extend_pool", session, rq.to_pool(poses, ids)))
+
+    def get_pool(self, session: str) -> m.PoolOut:
+        return self._send(rq.call("get_pool", session))  # type: ignore[no-any-return]
+
+    def select(
+        self,
+        session: str,
+        *,
+        method: str | None = None,
+        shortlist_size: int | None = None,
+        shortlist: str | None = None,
+        embodied_k: int | None = None,
+        seed: int | None = None,
+        fields: Sequence[str] | None = None,
+        config: Mapping[str, Any] | None = None,
+        current_id: int | None = None,
+        current_pose: PoseLike | None = None,
+        pool: PoolLike | None = None,
+        commit: bool = False,
+    ) -> m.SelectResponse:
+        """Choose the next view (unset arguments take the session's defaults)."""
+        return self._send(rq.select(  # type: ignore[no-any-return]
+            session, method=method, shortlist_size=shortlist_size, shortlist=shortlist,
+            embodied_k=embodied_k, seed=seed, fields=fields, config=config,
+            current_id=current_id, current_pose=current_pose, pool=pool, commit=commit))
+
+    def get_information(self, session: str) -> m.InformationOut:
+        """Ĥ per parameter block (``.arrays()`` gives numpy arrays)."""
+        return self._send(rq.call("get_information", session))  # type: ignore[no-any-return]
+
+
+class AsyncOperations:
+    """The same operations as :class:`SyncOperations`, as coroutines."""
+
+    async def _send(self, call: Call) -> Any:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    async def health(self) -> m.Health:
+        return await self._send(rq.call("health"))  # type: ignore[no-any-return]
+
+    async def create_session(
+        self,
+        intrinsics: Intrinsics | Mapping[str, Any],
+        *,
+        id: str | None = None,
+        bounds: Bounds | Mapping[str, Any] | None = None,
+        gaussians: GaussiansLike | None = None,
+        frames: Sequence[ObservationLike] = (),
+        init_gaussians: int = 1000,
+        seed: int = 0,
+        pool: PoolLike | None = None,
+        defaults: m.SelectDefaults | Mapping[str, Any] | None = None,
+        information: m.InformationConfig | Mapping[str, Any] | None = None,
+    ) -> m.SessionInfo:
+        return await self._send(rq.create_session(  # type: ignore[no-any-return]
+            intrinsics, id=id, bounds=bounds, gaussians=gaussians, frames=frames,
+            init_gaussians=init_gaussians, seed=seed, pool=pool, defaults=defaults,
+            information=information))
+
+    async def list_sessions(self) -> m.SessionList:
+        return await self._send(rq.call("list_sessions"))  # type: ignore[no-any-return]
+
+    async def get_session(self, session: str) -> m.SessionInfo:
+        return await self._send(rq.call("get_session", session))  # type: ignore[no-any-return]
+
+    async def delete_session(self, session: str) -> m.Deleted:
+        return await self._send(rq.call("delete_session", session))  # type: ignore[no-any-return]
+
+    async def set_gaussians(self, session: str, gaussians: GaussiansLike) -> m.SessionInfo:
+        return await self._send(rq.call(  # type: ignore[no-any-return]
+            "set_gaussians", session, rq.to_gaussians(gaussians)))
+
+    async def add_observations(self, session: str,
+                               observations: ObservationLike | Sequence[ObservationLike]
+                               ) -> m.ViewsOut:
+        return await self._send(  # type: ignore[no-any-return]
+            rq.add_observations(session, observations))
+
+    async def list_views(self, session: str) -> m.ViewsOut:
+        return await self._send(rq.call("list_views", session))  # type: ignore[no-any-return]
+
+    async def commit(self, session: str, candidate_id: int | None = None, *,
+                     pose: PoseLike | None = None, keep_in_pool: bool = False) -> m.View:
+        return await self._send(rq.commit(  # type: ignore[no-any-return]
+            session, candidate_id, pose=pose, keep_in_pool=keep_in_pool))
+
+    async def set_pool(self, session: str, poses: PoolLike, ids: Sequence[int] | None = None
+                       ) -> m.PoolOut:
+        return await self._send(rq.call(  # type: ignore[no-any-return]
+            "set_pool", session, rq.to_pool(poses, ids)))
+
+    async def extend_pool(self, session: str, poses: PoolLike, ids: Sequence[int] | None = None
+                          ) -> m.PoolOut:
+        return await self._send(rq.call(  # type: ignore[no-any-return]
+            "extend_pool", session, rq.to_pool(poses, ids)))
+
+    async def get_pool(self, session: str) -> m.PoolOut:
+        return await self._send(rq.call("get_pool", session))  # type: ignore[no-any-return]
+
+    async def select(
+        self,
+        session: str,
+        *,
+        method: str | None = None,
+        shortlist_size: int | None = None,
+        shortlist: str | None = None,
+        embodied_k: int | None = None,
+        seed: int | None = None,
+        fields: Sequence[str] | None = None,
+        config: Mapping[str, Any] | None = None,
+        current_id: int | None = None,
+        current_pose: PoseLike | None = None,
+        pool: PoolLike | None = None,
+        commit: bool = False,
+    ) -> m.SelectResponse:
+        return await self._send(rq.select(  # type: ignore[no-any-return]
+            session, method=method, shortlist_size=shortlist_size, shortlist=shortlist,
+            embodied_k=embodied_k, seed=seed, fields=fields, config=config,
+            current_id=current_id, current_pose=current_pose, pool=pool, commit=commit))
+
+    async def get_information(self, session: str) -> m.InformationOut:
+        return await self._send(rq.call("get_information", session))  # type: ignore[no-any-return]

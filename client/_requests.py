@@ -1,0 +1,185 @@
+"""Request builders shared by every client (no I/O): each returns the operation, the session
+and the request model; numpy inputs are turned into wire models here."""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, ParamSpec, TypeVar
+
+import numpy as np
+from pydantic import BaseModel
+from pydantic import ValidationError as PydanticValidationError
+
+from agilegs.schemas import models as m
+from agilegs.schemas.arrays import NDArray
+from agilegs.schemas.geometry import Bounds, Intrinsics, Pose
+from agilegs.schemas.ops import OPERATIONS, Operation
+
+from .errors import ValidationError
+
+__all__ = ["Call", "PoseLike"]
+
+P = ParamSpec("P")
+R = TypeVar("R")
+
+
+def checked(fn: Callable[P, R]) -> Callable[P, R]:
+    """Refuse bad arguments before sending, with the 422 the server would give."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
+        try:
+            return fn(*args, **kwargs)
+        except PydanticValidationError as exc:
+            e = exc.errors(include_url=False, include_input=False)[0]
+            field = "body" + "".join(f"[{p}]" if isinstance(p, int) else f".{p}"
+                                     for p in e["loc"])
+            raise ValidationError(422, "invalid", f"{field}: {e['msg']}", field) from exc
+        except ValueError as exc:
+            raise ValidationError(422, "invalid", str(exc), None) from exc
+
+    return wrapper
+
+PoseLike = Pose | np.ndarray | Sequence[Sequence[float]]
+
+
+@dataclass(frozen=True)
+class Call:
+    """One request: which operation, on which session, with which body."""
+
+    op: Operation
+    session: str | None = None
+    body: BaseModel | None = None
+
+
+def call(name: str, session: str | None = None, body: BaseModel | None = None) -> Call:
+    return Call(OPERATIONS[name], session, body)
+
+
+@checked
+def to_pose(p: PoseLike) -> Pose:
+    if isinstance(p, Pose):
+        return p
+    return Pose.from_matrix(np.asarray(p, dtype=np.float64))
+
+
+@checked
+def to_pool(poses: m.PoolIn | np.ndarray | Sequence[PoseLike], ids: Sequence[int] | None
+            ) -> m.PoolIn:
+    if isinstance(poses, m.PoolIn):
+        return poses
+    if isinstance(poses, np.ndarray):
+        if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+            raise ValueError(f"poses must have shape [D, 4, 4], got {list(poses.shape)}")
+        rows = poses.astype(np.float64).tolist()
+        plist = [Pose.model_construct(matrix=r, position=None, orientation_xyzw=None)
+                 for r in rows]
+    else:
+        plist = [to_pose(p) for p in poses]
+    return m.PoolIn.model_construct(poses=plist, ids=list(ids) if ids is not None else None)
+
+
+@checked
+def to_gaussians(g: m.GaussiansIn | str | Path | Mapping[str, Any]) -> m.GaussiansIn:
+    """A GaussiansIn from a model, a ``.ply`` / ``.splat`` path, or a dict of arrays."""
+    if isinstance(g, m.GaussiansIn):
+        return g
+    if isinstance(g, str | Path):
+        path = Path(g)
+        fmt = path.suffix.lower().lstrip(".")
+        if fmt not in ("ply", "splat"):
+            raise ValueError(f"{path}: expected a .ply or .splat file")
+        return m.GaussiansIn(format=fmt, data=path.read_bytes())  # type: ignore[arg-type]
+    arrays = {k: NDArray.from_numpy(np.asarray(v, dtype=np.float32)) for k, v in g.items()}
+    return m.GaussiansIn(format="arrays", arrays=m.GaussianArrays(**arrays))
+
+
+@checked
+def to_observation(o: m.ObservationIn | Mapping[str, Any]) -> m.ObservationIn:
+    if isinstance(o, m.ObservationIn):
+        return o
+    return m.ObservationIn.from_numpy(**dict(o))
+
+
+@checked
+def create_session(
+    intrinsics: Intrinsics | Mapping[str, Any],
+    *,
+    id: str | None = None,
+    bounds: Bounds | Mapping[str, Any] | None = None,
+    gaussians: m.GaussiansIn | str | Path | Mapping[str, Any] | None = None,
+    frames: Sequence[m.ObservationIn | Mapping[str, Any]] = (),
+    init_gaussians: int = 1000,
+    seed: int = 0,
+    pool: m.PoolIn | np.ndarray | Sequence[PoseLike] | None = None,
+    defaults: m.SelectDefaults | Mapping[str, Any] | None = None,
+    information: m.InformationConfig | Mapping[str, Any] | None = None,
+) -> Call:
+    body = m.SessionCreate(
+        id=id,
+        intrinsics=Intrinsics.model_validate(intrinsics),
+        bounds=Bounds.model_validate(bounds) if bounds is not None else None,
+        gaussians=to_gaussians(gaussians) if gaussians is not None else None,
+        frames=[to_observation(f) for f in frames],
+        init_gaussians=init_gaussians,
+        seed=seed,
+        pool=to_pool(pool, None) if pool is not None else None,
+        defaults=m.SelectDefaults.model_validate(defaults or {}),
+        information=m.InformationConfig.model_validate(information or {}),
+    )
+    return call("create_session", None, body)
+
+
+@checked
+def select(
+    session: str,
+    *,
+    method: str | None = None,
+    shortlist_size: int | None = None,
+    shortlist: str | None = None,
+    embodied_k: int | None = None,
+    seed: int | None = None,
+    fields: Sequence[str] | None = None,
+    config: Mapping[str, Any] | None = None,
+    current_id: int | None = None,
+    current_pose: PoseLike | None = None,
+    pool: m.PoolIn | np.ndarray | Sequence[PoseLike] | None = None,
+    commit: bool = False,
+) -> Call:
+    body = m.SelectRequest.model_construct(
+        method=method,
+        shortlist_size=shortlist_size,
+        shortlist=shortlist,
+        embodied_k=embodied_k,
+        seed=seed,
+        fields=list(fields) if fields is not None else None,
+        config=dict(config) if config is not None else None,
+        current_id=current_id,
+        current_pose=to_pose(current_pose) if current_pose is not None else None,
+        pool=to_pool(pool, None) if pool is not None else None,
+        commit=commit,
+    )
+    return call("select", session, body)
+
+
+@checked
+def commit(session: str, candidate_id: int | None = None, *, pose: PoseLike | None = None,
+           keep_in_pool: bool = False) -> Call:
+    body = m.CommitRequest.model_construct(
+        candidate_id=candidate_id, pose=to_pose(pose) if pose is not None else None,
+        keep_in_pool=keep_in_pool,
+    )
+    return call("commit", session, body)
+
+
+@checked
+def add_observations(session: str, observations: m.ObservationIn | Mapping[str, Any]
+                     | Sequence[m.ObservationIn | Mapping[str, Any]]) -> Call:
+    if isinstance(observations, m.ObservationIn | Mapping):
+        observations = [observations]
+    body = m.ObservationsIn.model_construct(
+        observations=[to_observation(o) for o in observations])
+    return call("add_observations", session, body)

@@ -1,0 +1,151 @@
+"""The client's exceptions: one tree for HTTP and Zenoh alike.
+
+::
+
+    AgileGSError                       every error this package raises
+    ├── TransportError                 the server could not be reached or did not answer
+    │   └── RequestTimeout             no answer within the timeout
+    ├── ProtocolError                  an answer that breaks the wire contract
+    └── APIError                       the server refused the request (an error body)
+        ├── BadRequestError            400  undecodable body; 406 / 415 media types
+        ├── AuthenticationError        401  missing or wrong bearer token
+        ├── NotFoundError              404  unknown session, candidate, view or route
+        ├── ConflictError              409  state forbids it (id taken, empty pool, ...)
+        ├── PayloadTooLargeError       413  a size limit (body, pool, pixels, Gaussians)
+        ├── ValidationError            422  a malformed or out-of-range value
+        ├── TooManyError               429  a count limit (sessions, views)
+        └── ServerError                5xx  a server fault
+
+An :class:`APIError` carries the error body's ``status``, ``code``, ``message``, ``field``
+(the path of the offending input, e.g. ``body.poses[3].matrix``) and ``errors`` (every
+problem found). HTTP error responses and Zenoh error replies carry the same body, so the
+same exception comes out of :class:`Client`, :class:`AsyncClient` and :class:`ZenohClient`.
+Backend exceptions (httpx, zenoh) are chained as ``__cause__``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from agilegs.schemas import codec
+from agilegs.schemas.errors import ErrorBody, ErrorItem
+
+__all__ = [
+    "APIError",
+    "AgileGSError",
+    "AuthenticationError",
+    "BadRequestError",
+    "ConflictError",
+    "NotFoundError",
+    "PayloadTooLargeError",
+    "ProtocolError",
+    "RequestTimeout",
+    "ServerError",
+    "TooManyError",
+    "TransportError",
+    "ValidationError",
+    "error_from_body",
+]
+
+
+class AgileGSError(Exception):
+    """Base of every error raised by :mod:`agilegs.client`."""
+
+
+class TransportError(AgileGSError):
+    """The server could not be reached, or the connection failed mid-request."""
+
+
+class RequestTimeout(TransportError):
+    """No answer within the client's timeout."""
+
+
+class ProtocolError(AgileGSError):
+    """The server's answer does not follow the wire contract (undecodable, wrong shape)."""
+
+
+class APIError(AgileGSError):
+    """The server refused the request; see the module docstring for the fields."""
+
+    def __init__(
+        self,
+        status: int,
+        code: str,
+        message: str,
+        field: str | None = None,
+        errors: list[ErrorItem] | None = None,
+    ) -> None:
+        where = f" [{field}]" if field and not message.startswith(field) else ""
+        super().__init__(f"{status} {code}: {message}{where}")
+        self.status = status
+        self.code = code
+        self.message = message
+        self.field = field
+        self.errors = errors or []
+
+
+class BadRequestError(APIError):
+    """400 (undecodable body), 406 (no acceptable response type), 415 (body type)."""
+
+
+class AuthenticationError(APIError):
+    """401: missing or wrong bearer token."""
+
+
+class NotFoundError(APIError):
+    """404: unknown session, candidate, view, operation or route."""
+
+
+class ConflictError(APIError):
+    """409: the session's state forbids it (id taken, empty pool, map empty...)."""
+
+
+class PayloadTooLargeError(APIError):
+    """413: a size limit of the server (body bytes, pool size, pixels, Gaussians)."""
+
+
+class ValidationError(APIError):
+    """422: a value is malformed or out of range; ``field`` says which."""
+
+
+class TooManyError(APIError):
+    """429: a count limit of the server (sessions, views)."""
+
+
+class ServerError(APIError):
+    """5xx: a fault on the server side."""
+
+
+_BY_STATUS: dict[int, type[APIError]] = {
+    400: BadRequestError,
+    401: AuthenticationError,
+    404: NotFoundError,
+    405: NotFoundError,
+    406: BadRequestError,
+    409: ConflictError,
+    413: PayloadTooLargeError,
+    415: BadRequestError,
+    422: ValidationError,
+    429: TooManyError,
+}
+
+
+def error_from_body(status: int | None, body: bytes, kind: str | None) -> APIError:
+    """The exception for an error response / reply ``body`` (JSON or msgpack)."""
+    info: Any = None
+    try:
+        info = ErrorBody.model_validate(codec.load(body, kind or codec.JSON)).error
+    except Exception:
+        try:  # the other encoding, in case the content type was missing or wrong
+            other = codec.MSGPACK if (kind or codec.JSON) == codec.JSON else codec.JSON
+            info = ErrorBody.model_validate(codec.load(body, other)).error
+        except Exception:
+            info = None
+    if info is None:
+        st = status or 500
+        text = body[:200].decode("utf-8", "replace")
+        cls = _BY_STATUS.get(st, ServerError if st >= 500 else APIError)
+        return cls(st, "unknown", f"unexpected error body: {text!r}")
+    st = status or info.status
+    cls = _BY_STATUS.get(st, ServerError if st >= 500 else APIError)
+    return cls(st, info.code, info.message, info.field, list(info.errors))

@@ -1,0 +1,190 @@
+"""The Zenoh client: the same operations as the HTTP clients, as Zenoh queries.
+
+Needs ``eclipse-zenoh`` (``pip install 'agilegs[zenoh]'``). Every operation is a query on
+``agilegs/<session>/<op>`` (or ``agilegs/@service/<op>``) with a msgpack payload; besides, a
+robot can publish frames and pools and follow every decision (see :mod:`agilegs.schemas.keys`).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from pydantic import BaseModel
+from pydantic import ValidationError as PydanticValidationError
+
+from agilegs.schemas import codec, keys
+from agilegs.schemas import models as m
+from agilegs.schemas.errors import ErrorBody
+
+from . import _requests as rq
+from ._ops import ObservationLike, PoolLike, SyncOperations
+from ._requests import Call
+from ._zenoh import peer_config
+from .errors import AgileGSError, ProtocolError, RequestTimeout, TransportError, error_from_body
+
+__all__ = ["ZenohClient"]
+
+
+class ZenohClient(SyncOperations):
+    """Blocking Zenoh client (peer mode, scouting off).
+
+    Args:
+        connect: endpoints of the server (its ``--zenoh-listen``) or of a router.
+        listen: endpoints this peer listens on (none by default).
+        token: bearer token, sent as the attachment ``Bearer <token>``.
+        timeout: seconds to wait for a reply.
+        wait: seconds to wait at start for the server to answer ``health`` (0: do not wait).
+        mode: zenoh mode, ``"peer"`` or ``"client"`` (through a router).
+    """
+
+    def __init__(
+        self,
+        connect: Sequence[str] = ("tcp/127.0.0.1:7447",),
+        *,
+        listen: Sequence[str] = (),
+        token: str | None = None,
+        timeout: float = 120.0,
+        wait: float = 10.0,
+        mode: str = "peer",
+    ) -> None:
+        try:
+            import zenoh
+        except ImportError as exc:  # pragma: no cover - depends on the install
+            raise TransportError("ZenohClient needs eclipse-zenoh: "
+                                 "pip install 'agilegs[zenoh]'") from exc
+        self.timeout = timeout
+        self._attachment = f"Bearer {token}".encode() if token else None
+        self._session: Any = None
+        try:
+            self._session = zenoh.open(peer_config(listen, connect, mode))
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot open a Zenoh session: {exc}") from exc
+        self._subscribers: list[Any] = []
+        if wait > 0:
+            self._wait_for_server(wait)
+
+    def _wait_for_server(self, wait: float) -> None:
+        deadline = time.monotonic() + wait
+        while True:
+            try:
+                self.health()
+                return
+            except TransportError:
+                if time.monotonic() > deadline:
+                    self.close()
+                    raise
+                time.sleep(0.05)
+
+    @staticmethod
+    def _key(call: Call) -> str:
+        if call.op.scope == "service":
+            return keys.service_key(call.op.name)
+        assert call.session is not None
+        try:
+            return keys.session_key(call.session, call.op.name)
+        except ValueError as exc:  # mirrors the server's answer to a bad id
+            from .errors import ValidationError
+
+            raise ValidationError(422, "invalid", str(exc), "session") from None
+
+    def _send(self, call: Call) -> BaseModel:
+        key = self._key(call)
+        payload = codec.dump(call.body, codec.MSGPACK) if call.body is not None else None
+        kwargs: dict[str, Any] = {"timeout": self.timeout, "encoding": codec.MSGPACK}
+        if payload is not None:
+            kwargs["payload"] = payload
+        if self._attachment is not None:
+            kwargs["attachment"] = self._attachment
+        t0 = time.monotonic()
+        try:
+            replies = self._session.get(key, **kwargs)
+            for reply in replies:
+                if reply.ok is not None:
+                    sample = reply.ok
+                    kind = codec.media_type(str(sample.encoding)) or codec.MSGPACK
+                    try:
+                        return call.op.response.model_validate(
+                            codec.load(sample.payload.to_bytes(), kind))
+                    except (codec.DecodeError, PydanticValidationError) as exc:
+                        raise ProtocolError(
+                            f"{call.op.name}: the reply does not match "
+                            f"{call.op.response.__name__}: {exc}") from exc
+                err = reply.err
+                err_kind = codec.media_type(str(err.encoding)) if err.encoding is not None else None
+                raise error_from_body(None, err.payload.to_bytes(), err_kind or codec.MSGPACK)
+        except AgileGSError:
+            raise
+        except Exception as exc:
+            raise TransportError(f"{call.op.name}: zenoh query on {key} failed: {exc}") from exc
+        if time.monotonic() - t0 >= self.timeout * 0.99:
+            raise RequestTimeout(f"{call.op.name}: no reply on {key} within {self.timeout} s")
+        raise TransportError(f"{call.op.name}: no reply on {key} (is the server running with "
+                             "Zenoh, and reachable?)")
+
+    # ------------------------------------------------------------------ pub / sub
+    def publish_frames(self, session: str,
+                       observations: ObservationLike | Sequence[ObservationLike]) -> None:
+        """Publish frames on ``agilegs/<session>/frames`` (the server adds them as
+        observations; a refused message is published on ``.../errors``)."""
+        body = rq.add_observations(session, observations).body
+        assert body is not None
+        self._put(keys.session_key(session, keys.FRAMES), codec.dump(body, codec.MSGPACK))
+
+    def publish_pool(self, session: str, poses: PoolLike, ids: Sequence[int] | None = None
+                     ) -> None:
+        """Publish a candidate pool on ``agilegs/<session>/candidates`` (replaces the pool)."""
+        body = rq.to_pool(poses, ids)
+        self._put(keys.session_key(session, keys.CANDIDATES), codec.dump(body, codec.MSGPACK))
+
+    def _put(self, key: str, payload: bytes) -> None:
+        kwargs: dict[str, Any] = {"encoding": codec.MSGPACK}
+        if self._attachment is not None:
+            kwargs["attachment"] = self._attachment
+        self._session.put(key, payload, **kwargs)
+
+    def subscribe_decisions(self, session: str, callback: Callable[[m.SelectResponse], None]
+                            ) -> Any:
+        """Call ``callback`` with every decision of ``session`` (``"*"``: every session);
+        returns the subscriber (``.undeclare()`` it, or let :meth:`close` do it)."""
+        key = keys.session_wildcard(keys.DECISIONS) if session == "*" else keys.session_key(
+            session, keys.DECISIONS)
+
+        def on_sample(sample: Any) -> None:
+            callback(m.SelectResponse.model_validate(
+                codec.load(sample.payload.to_bytes(), codec.MSGPACK)))
+
+        sub = self._session.declare_subscriber(key, on_sample)
+        self._subscribers.append(sub)
+        return sub
+
+    def subscribe_errors(self, session: str, callback: Callable[[ErrorBody], None]) -> Any:
+        """Call ``callback`` with the error body of every refused frames / pool message."""
+
+        def on_sample(sample: Any) -> None:
+            callback(ErrorBody.model_validate(codec.load(sample.payload.to_bytes(),
+                                                         codec.MSGPACK)))
+
+        sub = self._session.declare_subscriber(keys.session_key(session, keys.ERRORS), on_sample)
+        self._subscribers.append(sub)
+        return sub
+
+    # ------------------------------------------------------------------ lifecycle
+    def close(self) -> None:
+        """Undeclare the subscribers and close the Zenoh session."""
+        for sub in self._subscribers:
+            try:
+                sub.undeclare()
+            except Exception:  # already undeclared by the caller
+                pass
+        self._subscribers.clear()
+        if getattr(self, "_session", None) is not None:
+            self._session.close()
+            self._session = None
+
+    def __enter__(self) -> ZenohClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

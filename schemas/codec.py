@@ -1,0 +1,100 @@
+"""Body encodings: JSON and msgpack, chosen by Content-Type and Accept.
+
+msgpack maps carry string keys, bytes travel as msgpack ``bin``; JSON carries bytes as
+base64 strings. :func:`dump` turns a model into either; :func:`load` parses either into
+plain Python data for ``Model.model_validate``.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import msgpack
+from pydantic import BaseModel
+
+__all__ = [
+    "JSON",
+    "MSGPACK",
+    "MSGPACK_TYPES",
+    "DecodeError",
+    "dump",
+    "load",
+    "media_type",
+    "negotiate",
+]
+
+JSON = "application/json"
+MSGPACK = "application/msgpack"
+MSGPACK_TYPES = frozenset(
+    {"application/msgpack", "application/x-msgpack", "application/vnd.msgpack"}
+)
+
+
+class DecodeError(ValueError):
+    """A body that is not valid JSON / msgpack."""
+
+
+def media_type(content_type: str | None) -> str | None:
+    """``JSON``, ``MSGPACK``, or None (unsupported) for a Content-Type header value."""
+    if not content_type:
+        return JSON
+    base = content_type.split(";", 1)[0].strip().lower()
+    if base == JSON or (base.startswith("application/") and base.endswith("+json")):
+        return JSON
+    if base in MSGPACK_TYPES:
+        return MSGPACK
+    return None
+
+
+def negotiate(accept: str | None, default: str = JSON) -> str | None:
+    """The response type for an Accept header: JSON or MSGPACK by quality, else None."""
+    if not accept:
+        return default
+    best: tuple[float, int, str] | None = None
+    for order, part in enumerate(accept.split(",")):
+        fields = part.strip().split(";")
+        kind = fields[0].strip().lower()
+        q = 1.0
+        for param in fields[1:]:
+            name, _, value = param.strip().partition("=")
+            if name.strip() == "q":
+                try:
+                    q = float(value)
+                except ValueError:
+                    q = 0.0
+        if q <= 0:
+            continue
+        if kind in MSGPACK_TYPES:
+            chosen = MSGPACK
+        elif kind == JSON or kind.endswith("+json"):
+            chosen = JSON
+        elif kind in ("*/*", "application/*"):
+            chosen = default
+        else:
+            continue
+        if best is None or (q, -order) > (best[0], best[1]):
+            best = (q, -order, chosen)
+    return best[2] if best else None
+
+
+def dump(model: BaseModel | dict[str, Any], kind: str) -> bytes:
+    """Encode a model (or a JSON-able dict) as JSON or msgpack bytes."""
+    if kind == MSGPACK:
+        data = model.model_dump(mode="python") if isinstance(model, BaseModel) else model
+        return msgpack.packb(data, use_bin_type=True)
+    if isinstance(model, BaseModel):
+        return model.model_dump_json().encode()
+    return json.dumps(model, allow_nan=False).encode()
+
+
+def load(body: bytes, kind: str) -> Any:
+    """Parse JSON or msgpack bytes into Python data; DecodeError if malformed."""
+    try:
+        if kind == MSGPACK:
+            return msgpack.unpackb(body, raw=False, strict_map_key=True)
+        return json.loads(body)
+    except (ValueError, TypeError, RecursionError, msgpack.ExtraData, msgpack.FormatError,
+            msgpack.StackError) as exc:
+        raise DecodeError(f"body is not valid {'msgpack' if kind == MSGPACK else 'JSON'}: "
+                          f"{exc}") from exc

@@ -1,0 +1,588 @@
+"""Request and response models of every operation (HTTP and Zenoh share them).
+
+Poses are camera-to-world with OpenCV axes (see :mod:`agilegs.schemas.geometry`); bytes
+travel raw in msgpack and base64 in JSON (see :mod:`agilegs.schemas.arrays`). Candidate and
+view ids are server-assigned (or client-chosen for candidates) integers that stay stable for
+the life of a session: an id is never reused for another pose.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, StringConstraints, model_validator
+
+from .arrays import B64Bytes, NDArray
+from .geometry import Bounds, Intrinsics, Pose
+
+__all__ = [
+    "FIELD_NAMES",
+    "METHODS",
+    "SESSION_ID_PATTERN",
+    "SHORTLISTS",
+    "Candidate",
+    "CommitRequest",
+    "Deleted",
+    "FieldName",
+    "FieldSummary",
+    "GaussianArrays",
+    "GaussiansIn",
+    "GaussiansSummary",
+    "Health",
+    "ImageData",
+    "InformationConfig",
+    "InformationOut",
+    "InformationSummary",
+    "Method",
+    "ObservationIn",
+    "ObservationsIn",
+    "PoolIn",
+    "PoolOut",
+    "ScoredCandidate",
+    "SelectDefaults",
+    "SelectRequest",
+    "SelectResponse",
+    "SessionCreate",
+    "SessionId",
+    "SessionInfo",
+    "SessionList",
+    "SessionSummary",
+    "ShortlistStrategy",
+    "View",
+    "ViewsOut",
+]
+
+SESSION_ID_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
+SessionId = Annotated[str, StringConstraints(pattern=SESSION_ID_PATTERN)]
+"""A session id: 1 to 64 characters from ``[A-Za-z0-9_-]`` (safe in URLs and Zenoh keys)."""
+
+Method = Literal["random", "fisherrf", "cover", "agile", "agile_plus"]
+METHODS: tuple[str, ...] = ("random", "fisherrf", "cover", "agile", "agile_plus")
+ShortlistStrategy = Literal["leverage", "knearest", "topnorm", "online"]
+SHORTLISTS: tuple[str, ...] = ("leverage", "knearest", "topnorm", "online")
+FieldName = Literal["means", "log_scales", "quats", "opacity_logits", "sh"]
+FIELD_NAMES: tuple[str, ...] = ("means", "log_scales", "quats", "opacity_logits", "sh")
+
+Id = Annotated[int, Field(ge=0, le=2**53)]
+MAX_POOL_WIRE = 100_000  # the schema's own cap; the server's pool_size setting is lower
+MAX_OBSERVATIONS_WIRE = 256
+
+
+def _unique(values: list[Any] | None, what: str) -> None:
+    if values is not None and len(set(values)) != len(values):
+        seen: set[Any] = set()
+        for i, v in enumerate(values):
+            if v in seen:
+                raise ValueError(f"{what} must be unique ({what}[{i}] = {v!r} repeats)")
+            seen.add(v)
+
+
+# ---------------------------------------------------------------------------- sessions
+class SelectDefaults(BaseModel):
+    """A session's selection defaults; every select request may override each of them."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    method: Method = Field(default="agile", description="selection method")
+    shortlist_size: int = Field(default=10, ge=1, le=1024, description="shortlist size N")
+    shortlist: ShortlistStrategy = Field(
+        default="leverage", description="shortlist strategy of agile / agile_plus"
+    )
+    embodied_k: int | None = Field(
+        default=None,
+        ge=1,
+        le=100_000,
+        description="embodied mode: only the K candidates nearest the current view are eligible",
+    )
+    seed: int = Field(default=0, ge=0, le=2**63 - 1, description="random seed")
+    fields: list[FieldName] | None = Field(
+        default=None, description="parameter blocks entering the information (None: all five)"
+    )
+    config: dict[str, Any] = Field(
+        default_factory=dict,
+        description=(
+            "further SelectConfig fields by name, e.g. {'anchor': {'steps': 3}}; unknown "
+            "names are rejected"
+        ),
+    )
+
+    @model_validator(mode="after")
+    def _unique_fields(self) -> SelectDefaults:
+        _unique(self.fields, "fields")
+        return self
+
+
+class InformationConfig(BaseModel):
+    """How the accumulated information Ĥ = λI + Σ_views H_v is kept.
+
+    Ĥ is accumulated at the session's intrinsics (each acquired view's pose with the
+    session camera), so it is on the scale of the H_v the selectors compute.
+    """
+
+    model_config = ConfigDict(extra="forbid", populate_by_name=True, serialize_by_alias=True)
+
+    lambda_: float = Field(
+        default=1e-3,
+        alias="lambda",
+        gt=0,
+        le=1e12,
+        allow_inf_nan=False,
+        description="ridge λ added to every diagonal entry of Ĥ",
+    )
+    recompute_on_map_change: bool = Field(
+        default=True,
+        description=(
+            "when the Gaussians are replaced, recompute Ĥ from every acquired view on the new "
+            "map (always done when the Gaussian count changes)"
+        ),
+    )
+
+
+class SessionCreate(BaseModel):
+    """Create a session: empty with scene ``bounds`` (random Gaussians inside them), from
+    uploaded ``gaussians``, or from initial posed ``frames`` (RGB or RGB-D).
+
+    With RGB-D frames and no Gaussians, the map is initialised by back-projecting the depth
+    (``init_gaussians`` points, coloured from the images); with RGB frames only, ``bounds``
+    is required. Frames become acquired views (and update Ĥ). ``pool`` sets the initial
+    candidate pool.
+    """
+
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={
+            "anyOf": [
+                {"required": ["bounds"], "properties": {"bounds": {"type": "object"}}},
+                {"required": ["gaussians"], "properties": {"gaussians": {"type": "object"}}},
+                {"required": ["frames"], "properties": {"frames": {"minItems": 1}}},
+            ]
+        },
+    )
+
+    id: SessionId | None = Field(default=None, description="session id (generated if absent)")
+    intrinsics: Intrinsics = Field(description="camera of the candidates and of Ĥ")
+    bounds: Bounds | None = Field(default=None, description="scene bounds")
+    gaussians: GaussiansIn | None = Field(default=None, description="initial Gaussians")
+    frames: list[ObservationIn] = Field(
+        default_factory=list, max_length=MAX_OBSERVATIONS_WIRE, description="initial posed frames"
+    )
+    init_gaussians: int = Field(
+        default=1000, ge=0, le=1_000_000, description="Gaussians created from bounds or depth"
+    )
+    seed: int = Field(default=0, ge=0, le=2**63 - 1, description="seed of the initialisation")
+    pool: PoolIn | None = Field(default=None, description="initial candidate pool")
+    defaults: SelectDefaults = Field(default_factory=SelectDefaults)
+    information: InformationConfig = Field(default_factory=InformationConfig)
+
+    @model_validator(mode="after")
+    def _has_scene(self) -> SessionCreate:
+        if self.bounds is None and self.gaussians is None and not self.frames:
+            raise ValueError("give bounds, gaussians, or frames")
+        for frame in self.frames:
+            if frame.candidate_id is not None or frame.view_id is not None:
+                raise ValueError("initial frames take a pose, not candidate_id or view_id")
+        return self
+
+
+class GaussiansSummary(BaseModel):
+    """The session's Gaussians in brief."""
+
+    count: int
+    sh_degree: int
+    means_min: list[float] | None = Field(default=None, description="lower corner of the means")
+    means_max: list[float] | None = Field(default=None, description="upper corner of the means")
+
+
+class FieldSummary(BaseModel):
+    shape: list[int]
+    sum: float
+    min: float | None
+    max: float | None
+
+
+class InformationSummary(BaseModel):
+    """Ĥ in brief: per-field shape and sums, and a digest of all its bytes."""
+
+    fields: dict[str, FieldSummary]
+    digest: str = Field(description="sha256 over every field's float32 little-endian bytes")
+
+
+class SessionSummary(BaseModel):
+    id: str
+    version: int = Field(description="incremented by every acknowledged state change")
+    num_gaussians: int
+    pool_size: int
+    num_views: int
+    updated_at: float
+
+
+class SessionInfo(BaseModel):
+    """A session's state (its arrays are read through their own operations)."""
+
+    id: str
+    created_at: float = Field(description="unix time (s)")
+    updated_at: float = Field(description="unix time (s) of the last state change")
+    version: int = Field(description="incremented by every acknowledged state change")
+    intrinsics: Intrinsics
+    bounds: Bounds | None
+    defaults: SelectDefaults
+    information_config: InformationConfig
+    gaussians: GaussiansSummary
+    information: InformationSummary
+    pool_size: int
+    next_candidate_id: int
+    num_views: int
+    last_view_id: int | None
+
+
+class SessionList(BaseModel):
+    sessions: list[SessionSummary]
+
+
+class Deleted(BaseModel):
+    id: str
+    deleted: bool = True
+
+
+class Health(BaseModel):
+    status: Literal["ok"] = "ok"
+    version: str
+    sessions: int
+    zenoh: bool
+    uptime_s: float
+
+
+# ---------------------------------------------------------------------------- Gaussians
+class GaussianArrays(BaseModel):
+    """The five parameter tensors (float32 or float64): means [N,3], log_scales [N,3]
+    (log standard deviations), quats [N,4] (w, x, y, z), opacity_logits [N] (pre-sigmoid),
+    sh [N,(d+1)^2,3] (DC first, d <= 3)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    means: NDArray
+    log_scales: NDArray
+    quats: NDArray
+    opacity_logits: NDArray
+    sh: NDArray
+
+
+class GaussiansIn(BaseModel):
+    """Gaussians as a file (``ply``: Inria 3DGS PLY; ``splat``: antimatter15 32-byte
+    records) in ``data``, or as ``arrays``."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    format: Literal["ply", "splat", "arrays"]
+    data: B64Bytes | None = Field(default=None, description="file bytes (ply / splat)")
+    arrays: GaussianArrays | None = Field(default=None, description="tensors (arrays)")
+
+    @model_validator(mode="after")
+    def _consistent(self) -> GaussiansIn:
+        if self.format == "arrays":
+            if self.arrays is None or self.data is not None:
+                raise ValueError("format 'arrays' takes arrays and no data")
+        elif self.data is None or self.arrays is not None:
+            raise ValueError(f"format {self.format!r} takes data (the file bytes) and no arrays")
+        return self
+
+
+# ---------------------------------------------------------------------------- observations
+class ImageData(BaseModel):
+    """An RGB image: ``png`` or ``jpeg`` file bytes, or ``raw`` pixels with ``dtype``
+    (uint8 0-255, or float32 0-1) and ``shape`` [H, W, 3], C order, little-endian."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    encoding: Literal["png", "jpeg", "raw"]
+    data: B64Bytes
+    dtype: Literal["uint8", "float32"] | None = Field(default=None, description="raw only")
+    shape: list[Annotated[int, Field(ge=1, le=16384)]] | None = Field(
+        default=None, description="raw only: [H, W, 3]"
+    )
+
+    @model_validator(mode="after")
+    def _consistent(self) -> ImageData:
+        if self.encoding == "raw":
+            if self.dtype is None or self.shape is None:
+                raise ValueError("raw images need dtype and shape")
+            if len(self.shape) != 3 or self.shape[2] != 3:
+                raise ValueError(f"raw image shape must be [H, W, 3], got {self.shape}")
+            need = math.prod(self.shape) * np.dtype(self.dtype).itemsize
+            if len(self.data) != need:
+                raise ValueError(f"raw image data has {len(self.data)} bytes, needs {need}")
+        elif self.dtype is not None or self.shape is not None:
+            raise ValueError(f"{self.encoding} images carry no dtype or shape")
+        return self
+
+    @classmethod
+    def from_numpy(cls, image: Any, encoding: Literal["raw", "png", "jpeg"] = "raw") -> ImageData:
+        """Wrap an RGB image [H, W, 3] (uint8, or float in 0-1); png/jpeg need Pillow."""
+        a = np.asarray(image)
+        if a.ndim != 3 or a.shape[2] != 3:
+            raise ValueError(f"image must have shape [H, W, 3], got {list(a.shape)}")
+        if encoding == "raw":
+            if a.dtype != np.uint8:
+                a = a.astype("<f4")
+            a = np.ascontiguousarray(a)
+            dtype: Literal["uint8", "float32"] = "uint8" if a.dtype == np.uint8 else "float32"
+            return cls(encoding="raw", data=a.tobytes(), dtype=dtype, shape=list(a.shape))
+        import io
+
+        from PIL import Image
+
+        if a.dtype != np.uint8:
+            a = (np.clip(a, 0, 1) * 255 + 0.5).astype(np.uint8)
+        buf = io.BytesIO()
+        Image.fromarray(a).save(buf, format="PNG" if encoding == "png" else "JPEG")
+        return cls(encoding=encoding, data=buf.getvalue())
+
+    def to_numpy(self) -> np.ndarray:
+        """The pixels [H, W, 3] (raw: as sent; png/jpeg: uint8, decoded with Pillow)."""
+        if self.encoding == "raw":
+            assert self.dtype is not None and self.shape is not None
+            return np.frombuffer(self.data, dtype=np.dtype(self.dtype).newbyteorder("<")).reshape(
+                self.shape
+            )
+        import io
+
+        from PIL import Image
+
+        with Image.open(io.BytesIO(self.data)) as img:
+            return np.asarray(img.convert("RGB"))
+
+
+class ObservationIn(BaseModel):
+    """A posed frame. Where it was taken, one of:
+
+    * ``pose`` alone: a new acquired view at that pose;
+    * ``candidate_id`` (with ``pose`` if the reached pose differs from the candidate's):
+      acquires that candidate (as a commit does) and attaches the frame;
+    * ``view_id``: attaches the frame to a view already committed (no pose: it is fixed).
+
+    A new view updates Ĥ. ``intrinsics`` are the image's (default: the session's); the image
+    and depth must be ``height`` x ``width``. Depth is [H, W] float32 in scene units, or
+    uint16 multiplied by ``depth_scale``; 0 marks a missing value.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    pose: Pose | None = None
+    candidate_id: Id | None = None
+    view_id: Id | None = None
+    intrinsics: Intrinsics | None = None
+    image: ImageData | None = None
+    depth: NDArray | None = None
+    depth_scale: float = Field(default=1.0, gt=0, le=1e6, allow_inf_nan=False)
+
+    @classmethod
+    def from_numpy(
+        cls,
+        pose: Any = None,
+        *,
+        image: Any = None,
+        depth: Any = None,
+        intrinsics: Intrinsics | dict[str, Any] | None = None,
+        candidate_id: int | None = None,
+        view_id: int | None = None,
+        image_encoding: Literal["raw", "png", "jpeg"] = "raw",
+        depth_scale: float = 1.0,
+    ) -> ObservationIn:
+        """An observation from numpy: ``pose`` [4, 4] (or a Pose), ``image`` [H, W, 3]
+        (uint8, or float in 0-1), ``depth`` [H, W] (float32, or uint16 x ``depth_scale``)."""
+        p = None
+        if pose is not None:
+            p = pose if isinstance(pose, Pose) else Pose.from_matrix(pose)
+        img = None
+        if image is not None:
+            img = image if isinstance(image, ImageData) else ImageData.from_numpy(image,
+                                                                                 image_encoding)
+        dep = None
+        if depth is not None:
+            d = np.asarray(depth)
+            dep = NDArray.from_numpy(d if d.dtype == np.uint16 else d.astype(np.float32))
+        k = Intrinsics.model_validate(intrinsics) if intrinsics is not None else None
+        return cls(pose=p, candidate_id=candidate_id, view_id=view_id, intrinsics=k, image=img,
+                   depth=dep, depth_scale=depth_scale)
+
+    @model_validator(mode="after")
+    def _where(self) -> ObservationIn:
+        if self.view_id is not None:
+            if self.pose is not None or self.candidate_id is not None:
+                raise ValueError("view_id takes no pose and no candidate_id")
+        elif self.pose is None and self.candidate_id is None:
+            raise ValueError("give pose, candidate_id, or view_id")
+        if self.depth is not None:
+            if self.depth.dtype not in ("float32", "uint16") or len(self.depth.shape) != 2:
+                raise ValueError("depth must be a [H, W] float32 or uint16 array")
+        return self
+
+
+class ObservationsIn(BaseModel):
+    observations: list[ObservationIn] = Field(min_length=1, max_length=MAX_OBSERVATIONS_WIRE)
+
+
+class View(BaseModel):
+    """An acquired view."""
+
+    id: int
+    pose: Pose
+    candidate_id: int | None = Field(description="the candidate it was acquired from, if any")
+    intrinsics: Intrinsics | None = Field(description="the image's intrinsics, if an image came")
+    has_image: bool
+    has_depth: bool
+    created_at: float
+
+
+class ViewsOut(BaseModel):
+    views: list[View]
+    version: int
+
+
+# ---------------------------------------------------------------------------- pool
+class PoolIn(BaseModel):
+    """Candidate poses (camera-to-world), optionally with client-chosen ``ids``; without
+    ids the server numbers them on from the session's counter."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    poses: list[Pose] = Field(max_length=MAX_POOL_WIRE)
+    ids: list[Id] | None = Field(default=None, description="one id per pose, unique")
+
+    @model_validator(mode="after")
+    def _ids(self) -> PoolIn:
+        if self.ids is not None:
+            if len(self.ids) != len(self.poses):
+                raise ValueError(f"ids has {len(self.ids)} entries for {len(self.poses)} poses")
+            _unique(self.ids, "ids")
+        return self
+
+    @classmethod
+    def from_numpy(cls, poses: Any, ids: list[int] | None = None, validate: bool = True) -> PoolIn:
+        """A pool from camera-to-world matrices [D, 4, 4]."""
+        m = np.asarray(poses, dtype=np.float64)
+        if m.ndim != 3 or m.shape[1:] != (4, 4):
+            raise ValueError(f"poses must have shape [D, 4, 4], got {list(m.shape)}")
+        rows = m.tolist()
+        if validate:
+            return cls(poses=[Pose(matrix=r) for r in rows], ids=ids)
+        plist = [Pose.from_matrix(r, validate=False) for r in rows]
+        return cls.model_construct(poses=plist, ids=ids)
+
+
+class Candidate(BaseModel):
+    id: int
+    pose: Pose
+
+
+class PoolOut(BaseModel):
+    candidates: list[Candidate]
+    version: int
+
+    def ids(self) -> list[int]:
+        return [c.id for c in self.candidates]
+
+    def matrices(self) -> np.ndarray:
+        """Candidate poses [D, 4, 4]."""
+        if not self.candidates:
+            return np.zeros((0, 4, 4))
+        return np.stack([c.pose.to_matrix() for c in self.candidates])
+
+
+# ---------------------------------------------------------------------------- selection
+class SelectRequest(BaseModel):
+    """Choose the next view among the pool. Unset fields take the session's defaults.
+
+    Embodied mode (``embodied_k``) restricts the choice to the K candidates nearest the
+    current view: ``current_id`` (a candidate), ``current_pose``, or else the last acquired
+    view. ``pool`` replaces the pool first (as set_pool does, persisted). ``commit``
+    acquires the chosen candidate (as a commit does) in the same step. A selection without
+    commit changes nothing.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    method: Method | None = None
+    shortlist_size: int | None = Field(default=None, ge=1, le=1024)
+    shortlist: ShortlistStrategy | None = None
+    embodied_k: int | None = Field(default=None, ge=1, le=100_000)
+    seed: int | None = Field(default=None, ge=0, le=2**63 - 1)
+    fields: list[FieldName] | None = None
+    config: dict[str, Any] | None = Field(
+        default=None, description="SelectConfig fields, merged over the session's config"
+    )
+    current_id: Id | None = Field(default=None, description="the current view, a candidate id")
+    current_pose: Pose | None = Field(default=None, description="the current view's pose")
+    pool: PoolIn | None = Field(default=None, description="replace the pool before selecting")
+    commit: bool = Field(default=False, description="acquire the chosen candidate")
+
+    @model_validator(mode="after")
+    def _current(self) -> SelectRequest:
+        if self.current_id is not None and self.current_pose is not None:
+            raise ValueError("give current_id or current_pose, not both")
+        _unique(self.fields, "fields")
+        return self
+
+
+class ScoredCandidate(BaseModel):
+    id: int
+    score: float | None = Field(description="the method's score where it computed one")
+
+
+class SelectResponse(BaseModel):
+    """A decision: the chosen candidate, the shortlist with scores, the anchor, timings.
+
+    ``latency_ms`` is the selection core's own breakdown (anchor, scoring, leverage,
+    rerank, total); ``core_ms`` adds the session work around it (pose conversion, id
+    mapping, and the commit when asked); ``server_ms`` runs from the request's arrival to
+    the response being ready to encode. Transport overhead = round trip - ``latency_ms.total``.
+    """
+
+    session: str
+    method: str
+    chosen: Candidate
+    shortlist: list[ScoredCandidate]
+    anchor: Pose | None = Field(description="anchor pose (agile, agile_plus)")
+    scores: list[ScoredCandidate] = Field(description="every score the method computed")
+    eligible: list[int] = Field(description="candidate ids that could be chosen")
+    psi_trace: list[float]
+    latency_ms: dict[str, float]
+    core_ms: float
+    server_ms: float | None = None
+    committed: View | None = Field(description="the acquired view when commit was asked")
+    version: int
+    time: float = Field(description="unix time (s) of the decision")
+
+
+class CommitRequest(BaseModel):
+    """Acquire a view: a candidate of the pool (removed from the pool unless
+    ``keep_in_pool``), or any ``pose``. Updates Ĥ."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    candidate_id: Id | None = None
+    pose: Pose | None = None
+    keep_in_pool: bool = False
+
+    @model_validator(mode="after")
+    def _one(self) -> CommitRequest:
+        if (self.candidate_id is None) == (self.pose is None):
+            raise ValueError("give exactly one of candidate_id and pose")
+        return self
+
+
+class InformationOut(BaseModel):
+    """Ĥ per parameter block (float32), with its summary."""
+
+    fields: dict[str, NDArray]
+    summary: InformationSummary
+    version: int
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Ĥ per parameter block as numpy arrays."""
+        return {k: v.to_numpy() for k, v in self.fields.items()}
+
+
+SessionCreate.model_rebuild()

@@ -1,0 +1,71 @@
+"""The operation table: each operation's name (the client method and the Zenoh key's last
+chunk), its HTTP route, and its request and response models."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+from pydantic import BaseModel
+
+from . import models as m
+
+__all__ = ["OPERATIONS", "Operation"]
+
+
+@dataclass(frozen=True)
+class Operation:
+    """One operation of the service."""
+
+    name: str
+    scope: Literal["service", "session"]
+    http_method: str
+    http_path: str
+    request: type[BaseModel] | None
+    response: type[BaseModel]
+    summary: str
+
+
+def _op(
+    name: str,
+    scope: Literal["service", "session"],
+    method: str,
+    path: str,
+    request: type[BaseModel] | None,
+    response: type[BaseModel],
+    summary: str,
+) -> Operation:
+    return Operation(name, scope, method, path, request, response, summary)
+
+
+_S = "/v1/sessions/{session}"
+
+OPERATIONS: dict[str, Operation] = {
+    op.name: op
+    for op in (
+        _op("health", "service", "GET", "/healthz", None, m.Health, "liveness and counts"),
+        _op("create_session", "service", "POST", "/v1/sessions", m.SessionCreate,
+            m.SessionInfo, "create a session"),
+        _op("list_sessions", "service", "GET", "/v1/sessions", None, m.SessionList,
+            "list sessions"),
+        _op("get_session", "session", "GET", _S, None, m.SessionInfo, "read a session's state"),
+        _op("delete_session", "session", "DELETE", _S, None, m.Deleted, "delete a session"),
+        _op("set_gaussians", "session", "PUT", _S + "/gaussians", m.GaussiansIn, m.SessionInfo,
+            "replace the Gaussians"),
+        _op("add_observations", "session", "POST", _S + "/observations", m.ObservationsIn,
+            m.ViewsOut, "add posed frames (acquired views; update Ĥ)"),
+        _op("list_views", "session", "GET", _S + "/views", None, m.ViewsOut,
+            "list acquired views"),
+        _op("commit", "session", "POST", _S + "/views", m.CommitRequest, m.View,
+            "acquire a view (update Ĥ)"),
+        _op("set_pool", "session", "PUT", _S + "/pool", m.PoolIn, m.PoolOut,
+            "replace the candidate pool"),
+        _op("extend_pool", "session", "POST", _S + "/pool", m.PoolIn, m.PoolOut,
+            "add candidates to the pool"),
+        _op("get_pool", "session", "GET", _S + "/pool", None, m.PoolOut, "read the pool"),
+        _op("select", "session", "POST", _S + "/select", m.SelectRequest, m.SelectResponse,
+            "choose the next view"),
+        _op("get_information", "session", "GET", _S + "/information", None, m.InformationOut,
+            "read Ĥ"),
+    )
+}

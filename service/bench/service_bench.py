@@ -1,0 +1,277 @@
+"""``agilegs bench service``: transport overhead of a selection, and throughput under load.
+
+Starts ``agilegs serve`` in a subprocess on free loopback ports (or uses ``--url`` and
+``--zenoh``), creates a session on a scene (default: the teapot subsampled to
+``--max-gaussians``) with a pool of ``--pool`` candidates, then:
+
+1. **Overhead.** ``--requests`` selections (no commit) over HTTP JSON, HTTP msgpack and
+   Zenoh, each timed by the client. Transport overhead = client round trip - the core's
+   selection time (``latency_ms.total``); also shown: server time (``server_ms``) - core
+   time, the part of the overhead spent inside the server (decode, validate, lock, encode).
+   Two request shapes: the pool set beforehand (``preset``: a small body naming the
+   session's 300 candidates) and the pool sent inside the select request (``inline``: 300
+   poses in the body, persisted before the answer).
+2. **Load.** ``--clients`` clients, each on a session of its own, select and commit
+   ``--selections`` times at once over HTTP msgpack; reports selections per second, errors,
+   and checks that every acknowledged commit is in the session afterwards.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+DEFAULT_SCENE = "/work/shared/data/scenes/teapot/teapot_10k.splat"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    a = parser.add_argument
+    a("--url", help="a running server (default: start one)")
+    a("--zenoh", help="its Zenoh endpoint, e.g. tcp/127.0.0.1:7447 (with --url)")
+    a("--token", default=os.environ.get("AGILEGS_TOKEN"), help="bearer token (AGILEGS_TOKEN)")
+    a("--scene", default=DEFAULT_SCENE, help=".splat / .ply scene (random Gaussians if absent)")
+    a("--max-gaussians", type=int, default=2000, help="subsample the scene to this many")
+    a("--pool", type=int, default=300, help="candidates per pool")
+    a("--size", type=int, default=64, help="candidate image width and height (px)")
+    a("--method", default="random", help="selection method timed for the overhead")
+    a("--requests", type=int, default=200, help="timed selections per transport and shape")
+    a("--warmup", type=int, default=20, help="untimed selections first")
+    a("--clients", type=int, default=8, help="concurrent clients in the load phase")
+    a("--selections", type=int, default=10, help="select + commit per client")
+    a("--load-method", default="agile", help="selection method of the load phase")
+    a("--json", dest="json_out", help="also write the results here")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class _Server:
+    """``agilegs serve`` in a subprocess on free ports, state in a temporary folder."""
+
+    def __init__(self, token: str | None) -> None:
+        self.tmp = tempfile.TemporaryDirectory(prefix="agilegs-bench-")
+        self.port = _free_port()
+        self.zport = _free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.zenoh = f"tcp/127.0.0.1:{self.zport}"
+        env = {k: v for k, v in os.environ.items() if not k.startswith("AGILEGS_")}
+        if token:
+            env["AGILEGS_TOKEN"] = token
+        self.log = open(Path(self.tmp.name) / "serve.log", "wb")
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "agilegs.service.cli", "serve", "--port", str(self.port),
+             "--state-dir", str(Path(self.tmp.name) / "state"), "--zenoh-listen", self.zenoh],
+            env=env, stdout=self.log, stderr=subprocess.STDOUT)
+
+    def wait(self, client: Any, timeout: float = 60.0) -> None:
+        from agilegs.client import TransportError
+
+        deadline = time.monotonic() + timeout
+        while True:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"the server exited ({self.proc.returncode}); see "
+                                   f"{self.log.name}")
+            try:
+                client.health()
+                return
+            except TransportError:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.1)
+
+    def stop(self) -> None:
+        self.proc.terminate()
+        try:
+            self.proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+        self.log.close()
+        self.tmp.cleanup()
+
+
+def _scene_arrays(path: str, max_gaussians: int) -> dict[str, np.ndarray] | None:
+    if not Path(path).is_file():
+        return None
+    from agilegs.service.nbv.gaussians import load_scene
+
+    g = load_scene(path, max_gaussians=max_gaussians, seed=0)
+    return {k: v.detach().cpu().numpy() for k, v in g.items()}
+
+
+def _pool(n: int, radius: float = 1.6) -> np.ndarray:
+    """``n`` camera-to-world poses on three rings around the origin, looking at it."""
+    out = []
+    per = int(np.ceil(n / 3))
+    for ring, elev in enumerate((-0.5, -0.15, 0.25)):
+        for a in np.linspace(0, 2 * np.pi, per, endpoint=False) + ring * 0.1:
+            eye = radius * np.array([np.cos(a) * np.cos(elev), np.sin(elev),
+                                     np.sin(a) * np.cos(elev)])
+            z = -eye / np.linalg.norm(eye)
+            x = np.cross(np.array([0.0, 1.0, 0.0]), z)
+            x /= np.linalg.norm(x)
+            m = np.eye(4)
+            m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = x, np.cross(z, x), z, eye
+            out.append(m)
+    return np.stack(out[:n])
+
+
+def _stats(xs: list[float]) -> dict[str, float]:
+    s = sorted(xs)
+    return {
+        "p50": statistics.median(s),
+        "p99": s[min(len(s) - 1, int(round(0.99 * (len(s) - 1))))],
+        "mean": statistics.fmean(s),
+    }
+
+
+def _time_selects(select: Callable[[], Any], n: int, warmup: int) -> dict[str, Any]:
+    for _ in range(warmup):
+        select()
+    rtt, server, core = [], [], []
+    for _ in range(n):
+        t = time.perf_counter()
+        r = select()
+        dt = (time.perf_counter() - t) * 1e3
+        total = r.latency_ms["total"]
+        rtt.append(dt - total)
+        server.append((r.server_ms or 0.0) - total)
+        core.append(total)
+    return {"overhead_ms": _stats(rtt), "server_overhead_ms": _stats(server),
+            "core_ms": _stats(core), "requests": n}
+
+
+def run(args: argparse.Namespace) -> int:
+    from agilegs.client import AgileGSError, Client, ZenohClient
+
+    logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per request otherwise
+    server = None
+    url, zenoh_ep = args.url, args.zenoh
+    if url is None:
+        server = _Server(args.token)
+        url, zenoh_ep = server.url, server.zenoh
+    results: dict[str, Any] = {"pool": args.pool, "method": args.method,
+                               "gaussians": args.max_gaussians, "size": args.size}
+    clients: dict[str, Any] = {}
+    try:
+        clients["http-json"] = Client(url, token=args.token, encoding="json")
+        clients["http-msgpack"] = Client(url, token=args.token, encoding="msgpack")
+        if server is not None:
+            server.wait(clients["http-json"])
+        if zenoh_ep:
+            clients["zenoh"] = ZenohClient([zenoh_ep], token=args.token)
+        c = clients["http-msgpack"]
+        f = args.size / 2 / np.tan(np.radians(25))
+        intr = {"fx": f, "fy": f, "cx": args.size / 2, "cy": args.size / 2,
+                "width": args.size, "height": args.size}
+        arrays = _scene_arrays(args.scene, args.max_gaussians)
+        bounds = {"min": [-0.5] * 3, "max": [0.5] * 3}
+        poses = _pool(args.pool)
+        scene: dict[str, Any] = ({"gaussians": arrays} if arrays is not None else
+                                 {"bounds": bounds, "init_gaussians": args.max_gaussians})
+        sid = f"bench-{os.getpid()}"
+        c.create_session(intr, id=sid, pool=poses, **scene)
+        results["overhead"] = {}
+        for name, client in clients.items():
+            for shape in ("preset", "inline"):
+                log.info("timing %s, %s pool", name, shape)
+                if shape == "preset":
+                    def select(cl: Any = client) -> Any:
+                        return cl.select(sid, method=args.method)
+                else:
+                    def select(cl: Any = client) -> Any:
+                        return cl.select(sid, method=args.method, pool=poses)
+                results["overhead"][f"{name}/{shape}"] = _time_selects(
+                    select, args.requests, args.warmup)
+        c.delete_session(sid)
+        results["load"] = _load(url, args, intr, scene, poses)
+    except AgileGSError as exc:
+        log.error("benchmark failed: %s", exc)
+        return 1
+    finally:
+        for cl in clients.values():
+            cl.close()
+        if server is not None:
+            server.stop()
+    _print(results)
+    if args.json_out:
+        Path(args.json_out).write_text(json.dumps(results, indent=2))
+    return 0 if results["load"]["errors"] == 0 and results["load"]["lost"] == 0 else 1
+
+
+def _load(url: str, args: argparse.Namespace, intr: dict[str, Any], scene: dict[str, Any],
+          poses: np.ndarray) -> dict[str, Any]:
+    from agilegs.client import AgileGSError, Client
+
+    ids = [f"load-{os.getpid()}-{i}" for i in range(args.clients)]
+    with Client(url, token=args.token) as c:
+        for sid in ids:
+            c.create_session(intr, id=sid, pool=poses, **scene)
+    acked: dict[str, list[int]] = {sid: [] for sid in ids}
+    errors: list[str] = []
+    barrier = threading.Barrier(args.clients)
+
+    def robot(sid: str) -> None:
+        with Client(url, token=args.token) as c:
+            barrier.wait()
+            for _ in range(args.selections):
+                try:
+                    r = c.select(sid, method=args.load_method, commit=True)
+                    assert r.committed is not None
+                    acked[sid].append(r.committed.id)
+                except AgileGSError as exc:
+                    errors.append(f"{sid}: {exc}")
+
+    threads = [threading.Thread(target=robot, args=(sid,)) for sid in ids]
+    t = time.perf_counter()
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    elapsed = time.perf_counter() - t
+    lost = 0
+    with Client(url, token=args.token) as c:
+        for sid in ids:
+            stored = {v.id for v in c.list_views(sid).views}
+            lost += sum(1 for v in acked[sid] if v not in stored)
+            c.delete_session(sid)
+    done = sum(len(v) for v in acked.values())
+    return {"clients": args.clients, "method": args.load_method, "selections": done,
+            "seconds": elapsed, "selections_per_s": done / elapsed, "errors": len(errors),
+            "lost": lost, "error_samples": errors[:3]}
+
+
+def _print(results: dict[str, Any]) -> None:
+    out = sys.stdout
+    out.write(f"\nagilegs bench service: select ({results['method']}) over a "
+              f"{results['pool']}-candidate pool, {results['gaussians']} Gaussians, "
+              f"{results['size']}x{results['size']} px\n\n")
+    out.write(f"{'transport / pool':<24}{'overhead p50':>14}{'p99':>10}{'in server p50':>15}"
+              f"{'p99':>10}{'core p50':>11}\n")
+    for name, r in results["overhead"].items():
+        o, s, c = r["overhead_ms"], r["server_overhead_ms"], r["core_ms"]
+        out.write(f"{name:<24}{o['p50']:>11.2f} ms{o['p99']:>7.2f} ms{s['p50']:>12.2f} ms"
+                  f"{s['p99']:>7.2f} ms{c['p50']:>8.2f} ms\n")
+    ld = results["load"]
+    out.write(f"\nload: {ld['clients']} clients x {ld['selections'] // max(ld['clients'], 1)} "
+              f"select+commit ({ld['method']}), {ld['selections_per_s']:.1f} selections/s, "
+              f"{ld['errors']} errors, {ld['lost']} acknowledged commits lost\n")
+    out.flush()

@@ -1,0 +1,89 @@
+"""``agilegs serve``: the NBV server, FastAPI on uvicorn, with Zenoh on by default.
+
+Every flag has an ``AGILEGS_*`` environment variable (see :mod:`agilegs.service.settings`);
+a flag given on the command line wins. The bearer token is read from ``AGILEGS_TOKEN`` only
+(a command line is visible to every user of the machine).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from typing import Any
+
+__all__ = ["add_arguments", "build_settings", "run"]
+
+log = logging.getLogger(__name__)
+
+
+def _endpoints(text: str) -> list[str]:
+    return [e.strip() for e in text.split(",") if e.strip()]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    a = parser.add_argument
+    a("--host", help="HTTP bind address (AGILEGS_HOST, default 127.0.0.1)")
+    a("--port", type=int, help="HTTP port (AGILEGS_PORT, default 8000)")
+    a("--state-dir", help="persistent state folder (AGILEGS_STATE_DIR, default ./agilegs-state)")
+    z = parser.add_mutually_exclusive_group()
+    z.add_argument("--zenoh", dest="zenoh", action="store_const", const=True,
+                   help="serve over Zenoh too (AGILEGS_ZENOH, the default)")
+    z.add_argument("--no-zenoh", dest="zenoh", action="store_const", const=False,
+                   help="HTTP only")
+    a("--zenoh-listen", action="append", type=_endpoints, metavar="ENDPOINTS",
+      help="Zenoh listen endpoints, comma-separated or repeated "
+           "(AGILEGS_ZENOH_LISTEN, default tcp/127.0.0.1:7447)")
+    a("--zenoh-connect", action="append", type=_endpoints, metavar="ENDPOINTS",
+      help="Zenoh peers / routers to connect to (AGILEGS_ZENOH_CONNECT)")
+    a("--workers", type=int, help="worker threads for session work (AGILEGS_WORKERS, 16)")
+    a("--torch-threads", type=int, help="torch intra-op threads, 0 = default "
+                                        "(AGILEGS_TORCH_THREADS)")
+    a("--max-body-bytes", type=int, help="largest request body (AGILEGS_MAX_BODY_BYTES)")
+    a("--max-pool-size", type=int, help="most candidates per pool (AGILEGS_MAX_POOL_SIZE)")
+    a("--max-image-pixels", type=int, help="most pixels per image (AGILEGS_MAX_IMAGE_PIXELS)")
+    a("--max-sessions", type=int, help="most sessions (AGILEGS_MAX_SESSIONS)")
+    a("--max-gaussians", type=int, help="most Gaussians per session (AGILEGS_MAX_GAUSSIANS)")
+    a("--max-views", type=int, help="most views per session (AGILEGS_MAX_VIEWS)")
+    a("--max-shortlist", type=int, help="largest shortlist size (AGILEGS_MAX_SHORTLIST)")
+    f = parser.add_mutually_exclusive_group()
+    f.add_argument("--fsync", dest="fsync", action="store_const", const=True,
+                   help="fsync before acknowledging (AGILEGS_FSYNC, the default)")
+    f.add_argument("--no-fsync", dest="fsync", action="store_const", const=False,
+                   help="skip fsync (state survives a killed process, not a power cut)")
+    a("--log-level", help="log level (AGILEGS_LOG_LEVEL, default info)")
+
+
+_FIELDS = ("host", "port", "state_dir", "zenoh", "workers", "torch_threads", "max_body_bytes",
+           "max_pool_size", "max_image_pixels", "max_sessions", "max_gaussians", "max_views",
+           "max_shortlist", "fsync", "log_level")
+
+
+def build_settings(args: argparse.Namespace) -> Any:
+    """Settings from the environment, overridden by the flags given."""
+    from .settings import Settings
+
+    overrides: dict[str, Any] = {}
+    for name in _FIELDS:
+        value = getattr(args, name, None)
+        if value is not None:
+            overrides[name] = value
+    for name in ("zenoh_listen", "zenoh_connect"):
+        value = getattr(args, name, None)
+        if value is not None:
+            overrides[name] = [e for group in value for e in group]
+    return Settings(**overrides)
+
+
+def run(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from .http_app import create_app
+
+    settings = build_settings(args)
+    settings.warn_if_unsafe()
+    app = create_app(settings)
+    log.info("agilegs serve: http://%s:%d (state in %s, zenoh %s)", settings.host, settings.port,
+             settings.state_dir, "on" if settings.zenoh else "off")
+    uvicorn.run(app, host=settings.host, port=settings.port, log_level=settings.log_level.lower(),
+                access_log=False, timeout_graceful_shutdown=10)
+    return 0

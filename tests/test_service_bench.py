@@ -1,0 +1,29 @@
+"""``agilegs bench service`` runs end to end and prints its figures (tiny settings)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+from conftest import ServerProcess
+
+
+def test_bench_service_prints_overhead_and_load(server: ServerProcess, tmp_path: Path) -> None:
+    out = tmp_path / "bench.json"
+    proc = subprocess.run(
+        [sys.executable, "-m", "agilegs.service.cli", "bench", "service", "--url", server.url,
+         "--zenoh", server.zenoh_endpoint, "--requests", "5",
+         "--warmup", "1", "--pool", "30", "--max-gaussians", "100", "--size", "16",
+         "--clients", "3", "--selections", "2", "--json", str(out)],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    for row in ("http-json/preset", "http-msgpack/preset", "zenoh/preset", "zenoh/inline"):
+        assert row in proc.stdout
+    assert "selections/s, 0 errors, 0 acknowledged commits lost" in proc.stdout
+    res = json.loads(out.read_text())
+    assert res["load"]["selections"] == 6 and res["load"]["lost"] == 0
+    r = res["overhead"]["http-msgpack/preset"]
+    assert r["requests"] == 5 and r["overhead_ms"]["p50"] > 0
