@@ -114,10 +114,9 @@ def _child(q: Any, *args: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import torch
     from rich.console import Console
     from rich.table import Table
-
-    import torch
 
     sizes = [int(s) for s in str(args.sizes).split(",") if s]
     counts = [int(s) for s in str(args.gaussians).split(",") if s]
