@@ -24,6 +24,23 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
 ]
 
 
+# third-party modules of the `service` extra: a client-only install lacks them
+_SERVER_EXTRAS = {
+    "torch",
+    "uvicorn",
+    "fastapi",
+    "zenoh",
+    "pydantic_settings",
+    "prometheus_client",
+    "plyfile",
+    "PIL",
+    "matplotlib",
+    "rich",
+    "skimage",
+    "starlette",
+}
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="agilegs", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -65,7 +82,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
         return 2
     mod = importlib.import_module(args._module)
-    return int(mod.run(args) or 0)
+    try:
+        return int(mod.run(args) or 0)
+    except ModuleNotFoundError as exc:
+        if exc.name and exc.name.split(".")[0] in _SERVER_EXTRAS:
+            sys.stderr.write(
+                f"agilegs: this command needs the server extras (missing {exc.name!r}).\n"
+                "Install them with: pip install torch==2.13.0 && pip install 'agilegs[service]'\n"
+            )
+            return 2
+        raise
 
 
 if __name__ == "__main__":  # pragma: no cover
