@@ -10,6 +10,7 @@
         ├── BadRequestError            400  undecodable body; 406 / 415 media types
         ├── AuthenticationError        401  missing or wrong bearer token
         ├── NotFoundError              404  unknown session, candidate, view or route
+        │   └── SessionUnavailableError     no instance answers for the session
         ├── ConflictError              409  state forbids it (id taken, empty pool, ...)
         ├── PayloadTooLargeError       413  a size limit (body, pool, pixels, Gaussians)
         ├── ValidationError            422  a malformed or out-of-range value
@@ -41,6 +42,7 @@ __all__ = [
     "ProtocolError",
     "RequestTimeout",
     "ServerError",
+    "SessionUnavailableError",
     "TooManyError",
     "TransportError",
     "ValidationError",
@@ -96,6 +98,11 @@ class NotFoundError(APIError):
     """404: unknown session, candidate, view, operation or route."""
 
 
+class SessionUnavailableError(NotFoundError):
+    """404 ``session_unavailable``: no live instance answers for the session; it does not
+    exist, or the instance that owns it is down (it comes back when that instance restarts)."""
+
+
 class ConflictError(APIError):
     """409: the session's state forbids it (id taken, empty pool, map empty...)."""
 
@@ -148,4 +155,6 @@ def error_from_body(status: int | None, body: bytes, kind: str | None) -> APIErr
         return cls(st, "unknown", f"unexpected error body: {text!r}")
     st = status or info.status
     cls = _BY_STATUS.get(st, ServerError if st >= 500 else APIError)
+    if info.code == "session_unavailable":
+        cls = SessionUnavailableError
     return cls(st, info.code, info.message, info.field, list(info.errors))

@@ -3,6 +3,12 @@
 Needs ``eclipse-zenoh`` (``pip install 'agilegs[zenoh]'``). Every operation is a query on
 ``agilegs/<session>/<op>`` (or ``agilegs/@service/<op>``) with a msgpack payload; besides, a
 robot can publish frames and pools and follow every decision (see :mod:`agilegs.schemas.keys`).
+
+With several server instances (see :mod:`agilegs.service.cluster`), a client that reaches
+one of them or their router reaches every session: Zenoh routes each query to the instance
+that owns the session. A query that no instance answers raises
+:class:`~agilegs.client.errors.SessionUnavailableError` while some instance is alive, and
+:class:`~agilegs.client.errors.TransportError` when none is.
 """
 
 from __future__ import annotations
@@ -22,7 +28,14 @@ from . import _requests as rq
 from ._ops import ObservationLike, PoolLike, SyncOperations
 from ._requests import Call
 from ._zenoh import peer_config
-from .errors import AgileGSError, ProtocolError, RequestTimeout, TransportError, error_from_body
+from .errors import (
+    AgileGSError,
+    ProtocolError,
+    RequestTimeout,
+    SessionUnavailableError,
+    TransportError,
+    error_from_body,
+)
 
 __all__ = ["ZenohClient"]
 
@@ -36,7 +49,8 @@ class ZenohClient(SyncOperations):
         token: bearer token, sent as the attachment ``Bearer <token>``.
         timeout: seconds to wait for a reply.
         wait: seconds to wait at start for the server to answer ``health`` (0: do not wait).
-        mode: zenoh mode, ``"peer"`` or ``"client"`` (through a router).
+        mode: zenoh mode, ``"peer"`` or ``"client"`` (through a router, or through one
+            server instance that is a peer: it routes to the other instances).
     """
 
     def __init__(
@@ -89,8 +103,19 @@ class ZenohClient(SyncOperations):
 
             raise ValidationError(422, "invalid", str(exc), "session") from None
 
-    def _send(self, call: Call) -> BaseModel:
+    def create_session(self, intrinsics: Any, *, instance: str | None = None,
+                       **kwargs: Any) -> m.SessionInfo:
+        """Create a session (the arguments of :meth:`Client.create_session`); ``instance``
+        names the server instance to create it on (default: the one with the fewest
+        sessions, ties by smallest id)."""
+        call = rq.create_session(intrinsics, **kwargs)
+        if instance is None:
+            return self._send(call)  # type: ignore[return-value]
+        return self._send(call, f"instance={instance}")  # type: ignore[return-value]
+
+    def _send(self, call: Call, parameters: str | None = None) -> BaseModel:
         key = self._key(call)
+        selector = key if parameters is None else f"{key}?{parameters}"
         payload = codec.dump(call.body, codec.MSGPACK) if call.body is not None else None
         kwargs: dict[str, Any] = {"timeout": self.timeout, "encoding": codec.MSGPACK}
         if payload is not None:
@@ -99,7 +124,7 @@ class ZenohClient(SyncOperations):
             kwargs["attachment"] = self._attachment
         t0 = time.monotonic()
         try:
-            replies = self._session.get(key, **kwargs)
+            replies = self._session.get(selector, **kwargs)
             for reply in replies:
                 if reply.ok is not None:
                     sample = reply.ok
@@ -120,8 +145,23 @@ class ZenohClient(SyncOperations):
             raise TransportError(f"{call.op.name}: zenoh query on {key} failed: {exc}") from exc
         if time.monotonic() - t0 >= self.timeout * 0.99:
             raise RequestTimeout(f"{call.op.name}: no reply on {key} within {self.timeout} s")
+        if call.op.scope == "session" and self._any_server():
+            raise SessionUnavailableError(
+                404, "session_unavailable",
+                f"{call.op.name}: no instance answers for session {call.session!r}: it does not "
+                "exist, or the instance that owns it is down", "path.session")
         raise TransportError(f"{call.op.name}: no reply on {key} (is the server running with "
                              "Zenoh, and reachable?)")
+
+    def _any_server(self) -> bool:
+        """Whether some server instance answers ``health`` (every instance does)."""
+        kwargs: dict[str, Any] = {"timeout": min(self.timeout, 2.0)}
+        if self._attachment is not None:
+            kwargs["attachment"] = self._attachment
+        try:
+            return any(True for _ in self._session.get(keys.service_key("health"), **kwargs))
+        except Exception:
+            return False
 
     # ------------------------------------------------------------------ pub / sub
     def publish_frames(self, session: str,

@@ -94,6 +94,9 @@ def create_app(settings: Settings, core: ServiceCore | None = None) -> FastAPI:
     and closes both on shutdown."""
     core = core or ServiceCore(settings)
     metrics = Metrics(sessions=lambda: len(core.sessions))
+    from .cluster import ClusterNode  # issue 6: placement and forwarding between instances
+
+    cluster = ClusterNode(core, settings)
     core.metrics = metrics
 
     @asynccontextmanager
@@ -103,7 +106,7 @@ def create_app(settings: Settings, core: ServiceCore | None = None) -> FastAPI:
         if settings.zenoh:
             from .zenoh_adapter import ZenohAdapter
 
-            adapter = ZenohAdapter(core, settings, metrics)
+            adapter = ZenohAdapter(core, settings, metrics, cluster=cluster)
             adapter.start()
         app.state.zenoh = adapter
         try:
@@ -123,6 +126,7 @@ def create_app(settings: Settings, core: ServiceCore | None = None) -> FastAPI:
         openapi_url="/openapi.json",
     )
     app.state.core = core
+    app.state.cluster = cluster
     app.state.metrics = metrics
     app.state.settings = settings
 
@@ -163,7 +167,7 @@ def create_app(settings: Settings, core: ServiceCore | None = None) -> FastAPI:
 
     from .routes_sessions import build_router
 
-    app.include_router(build_router(core, settings, metrics))
+    app.include_router(build_router(core, settings, metrics, dispatch=cluster.call))
 
     @app.get("/metrics", tags=["service"], summary="Prometheus metrics",
              response_class=Response,
@@ -219,4 +223,9 @@ Next-best-view selection for active 3D Gaussian Splatting (AGILE-GS), per map se
   status naming the offending field; a refused request changes nothing.
 * With `AGILEGS_TOKEN` set, every request needs `Authorization: Bearer <token>`.
 * The same operations are served over Zenoh under `agilegs/<session>/<op>`.
+* With several instances joined over Zenoh, any instance serves every session: an operation
+  on a session another instance owns is forwarded to it (its answer is returned as is; 404
+  `session_unavailable` when no instance answers for the session); `POST /v1/sessions` places
+  a new session on the instance with the fewest sessions (or `?instance=<id>`), and
+  `GET /v1/sessions` lists every instance's sessions.
 """

@@ -21,6 +21,7 @@ from agilegs.schemas.errors import ErrorBody
 from agilegs.schemas.models import SESSION_ID_PATTERN
 from agilegs.schemas.ops import OPERATIONS, Operation
 
+from .cluster import INSTANCE_ID_PATTERN
 from .core import ServiceCore, ServiceError
 from .metrics import Metrics
 from .settings import Settings
@@ -42,7 +43,7 @@ def _error_responses(op: Operation) -> dict[int | str, dict[str, Any]]:
     if op.scope == "session":
         codes += [404, 409, 429]
     elif op.name == "create_session":
-        codes += [409, 429]
+        codes += [404, 409, 429]  # 404: no instance answers as ?instance=
     return {
         c: {
             "model": ErrorBody,
@@ -66,6 +67,13 @@ def _request_body(op: Operation) -> dict[str, Any] | None:
             "name": "format", "in": "query", "required": False,
             "description": "format of an application/octet-stream body (default: sniffed)",
             "schema": {"type": "string", "enum": ["ply", "splat"]},
+        }]
+    if op.name == "create_session":  # issue 6: explicit placement
+        extra["parameters"] = [{
+            "name": "instance", "in": "query", "required": False,
+            "description": "create it on this instance (default: the instance with the fewest "
+                           "sessions, ties by smallest id; see agilegs.service.cluster)",
+            "schema": {"type": "string", "pattern": INSTANCE_ID_PATTERN},
         }]
     return extra
 
@@ -112,13 +120,18 @@ def _decode(op: Operation, body: bytes, content_type: str | None, params: dict[s
         raise ServiceError(400, "bad_request", str(exc), "body") from None
 
 
-def build_router(core: ServiceCore, settings: Settings, metrics: Metrics) -> APIRouter:
+def build_router(core: ServiceCore, settings: Settings, metrics: Metrics,
+                 dispatch: Callable[..., Any] | None = None) -> APIRouter:
+    """The routes; ``dispatch`` (a :meth:`ClusterNode.call <agilegs.service.cluster.
+    ClusterNode.call>`) runs operations where their session lives, else ``core.call``."""
     router = APIRouter()
 
     def work(op: Operation, session: str | None, body: bytes | None, content_type: str | None,
              params: dict[str, str], t0: float) -> Any:
         payload = None if body is None else _decode(op, body, content_type, params)
-        return core.call(op.name, session, payload, t0=t0)
+        if dispatch is None:
+            return core.call(op.name, session, payload, t0=t0)
+        return dispatch(op.name, session, payload, t0=t0, instance=params.get("instance"))
 
     async def handle(op: Operation, request: Request, session: str | None) -> Response:
         t0 = time.perf_counter()

@@ -35,6 +35,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
            "(AGILEGS_ZENOH_LISTEN, default tcp/127.0.0.1:7447)")
     a("--zenoh-connect", action="append", type=_endpoints, metavar="ENDPOINTS",
       help="Zenoh peers / routers to connect to (AGILEGS_ZENOH_CONNECT)")
+    # --- several instances (issue 6, see agilegs.service.cluster)
+    a("--zenoh-mode", choices=["peer", "client", "router"],
+      help="Zenoh mode (AGILEGS_ZENOH_MODE, default peer; client: through a zenohd router)")
+    a("--instance-id", help="this instance's id in a cluster "
+                            "(AGILEGS_INSTANCE_ID, default <hostname>-<port>)")
+    a("--forward-timeout", type=float, help="seconds an operation forwarded to the instance "
+                                            "owning a session may take (AGILEGS_FORWARD_TIMEOUT)")
+    # ---
     a("--workers", type=int, help="worker threads for session work (AGILEGS_WORKERS, 16)")
     a("--torch-threads", type=int, help="torch intra-op threads, 0 = default "
                                         "(AGILEGS_TORCH_THREADS)")
@@ -53,7 +61,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--log-level", help="log level (AGILEGS_LOG_LEVEL, default info)")
 
 
-_FIELDS = ("host", "port", "state_dir", "zenoh", "workers", "torch_threads", "max_body_bytes",
+_FIELDS = ("host", "port", "state_dir", "zenoh", "zenoh_mode", "instance_id", "forward_timeout",
+           "workers", "torch_threads", "max_body_bytes",
            "max_pool_size", "max_image_pixels", "max_sessions", "max_gaussians", "max_views",
            "max_shortlist", "fsync", "log_level")
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
@@ -35,6 +35,19 @@ class Settings(BaseSettings):
         default_factory=lambda: ["tcp/127.0.0.1:7447"], description="Zenoh listen endpoints"
     )
     zenoh_connect: Endpoints = Field(default_factory=list, description="Zenoh peers to connect")
+    # --- several instances (issue 6, see agilegs.service.cluster)
+    zenoh_mode: Literal["peer", "client", "router"] = Field(
+        default="peer", description="Zenoh mode: peer, or client of a router (zenohd)"
+    )
+    instance_id: str | None = Field(
+        default=None, pattern=r"^[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}$",
+        description="this instance's id in a cluster (default: <hostname>-<port>)",
+    )
+    forward_timeout: float = Field(
+        default=120.0, gt=0, description="seconds an operation forwarded to another instance "
+                                         "may take"
+    )
+    # ---
     token: SecretStr | None = Field(
         default=None, description="bearer token required on every request when set"
     )
@@ -50,6 +63,14 @@ class Settings(BaseSettings):
     workers: int = Field(default=16, ge=1, description="threads running session work")
     torch_threads: int = Field(default=0, ge=0, description="torch intra-op threads (0: default)")
     fsync: bool = Field(default=True, description="fsync files and folders before acknowledging")
+    # the mapper (see agilegs.service.trainer)
+    mapper: bool = Field(default=True, description="train sessions' maps from their images")
+    mapper_steps_per_view: int = Field(
+        default=100, ge=0, description="mapper training steps per view with an image"
+    )
+    mapper_burst: int = Field(
+        default=20, ge=1, description="mapper steps between two publications of the map"
+    )
     log_level: str = Field(default="info", description="uvicorn / logging level")
 
     @field_validator("zenoh_listen", "zenoh_connect", mode="before")

@@ -7,6 +7,10 @@ thread, and answered with the operation's response or an error reply carrying th
 robot are applied in arrival order by one thread; a refused one is published on
 ``agilegs/<session>/errors``. Every decision (over HTTP or Zenoh) is published on
 ``agilegs/<session>/decisions``.
+
+Which keys this instance declares (the ``@service`` and ``@instances/<id>`` queryables, and
+each owned session's queryable and subscribers) and where an operation runs (here, or
+forwarded to the instance that owns the session) is :mod:`agilegs.service.cluster`'s business.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from agilegs.client._zenoh import peer_config
 from agilegs.schemas import codec, keys
 from agilegs.schemas.models import SelectResponse
 
+from .cluster import ClusterNode
 from .core import ServiceCore, ServiceError
 from .metrics import Metrics
 from .settings import Settings
@@ -37,9 +42,11 @@ _STOP = object()
 class ZenohAdapter:
     """Serves the core over Zenoh (peer mode) until :meth:`close`."""
 
-    def __init__(self, core: ServiceCore, settings: Settings, metrics: Metrics | None = None
-                 ) -> None:
+    def __init__(self, core: ServiceCore, settings: Settings, metrics: Metrics | None = None,
+                 cluster: ClusterNode | None = None) -> None:
         self.core = core
+        # issue 6: which keys this instance declares, and where an operation runs
+        self.cluster = cluster if cluster is not None else ClusterNode(core, settings)
         self.settings = settings
         self.metrics = metrics
         token = settings.token_value()
@@ -54,24 +61,27 @@ class ZenohAdapter:
     def start(self) -> None:
         import zenoh
 
-        conf = peer_config(self.settings.zenoh_listen, self.settings.zenoh_connect)
+        mode = self.settings.zenoh_mode
+        listen = [] if mode == "client" else self.settings.zenoh_listen
+        conf = peer_config(listen, self.settings.zenoh_connect, mode)
         self.session = zenoh.open(conf)
-        s = self.session
-        for op in keys.SERVICE_OPS:
-            self._entities.append(s.declare_queryable(
-                keys.service_key(op), lambda q, op=op: self._on_query(q, op, None)))
-        self._entities.append(s.declare_queryable(keys.session_wildcard(), self._on_session_query))
-        self._entities.append(s.declare_subscriber(keys.session_wildcard(keys.FRAMES),
-                                                   self._on_sample))
-        self._entities.append(s.declare_subscriber(keys.session_wildcard(keys.CANDIDATES),
-                                                    self._on_sample))
+        # issue 6: the @service, @instances/<id> and per-session queryables and the
+        # per-session subscribers are declared by the cluster node (service/cluster.py)
+        try:
+            self.cluster.attach(self.session, on_query=self._on_query,
+                                on_session_query=self._on_session_query,
+                                on_sample=self._on_sample)
+        except Exception:
+            self.session.close()
+            self.session = None
+            raise
         self._worker = threading.Thread(target=self._drain, name="agilegs-zenoh-inbox",
                                         daemon=True)
         self._worker.start()
         self.core.decision_listeners.append(self.publish_decision)
         self.core.zenoh_enabled = True
-        log.info("zenoh: listening on %s, connecting to %s", self.settings.zenoh_listen,
-                 self.settings.zenoh_connect)
+        log.info("zenoh: %s %r, listening on %s, connecting to %s", mode,
+                 self.cluster.instance_id, listen, self.settings.zenoh_connect)
 
     def close(self) -> None:
         """Undeclare everything and close the session (a declared callback left behind
@@ -80,6 +90,7 @@ class ZenohAdapter:
         if self.publish_decision in self.core.decision_listeners:
             self.core.decision_listeners.remove(self.publish_decision)
         self.core.zenoh_enabled = False
+        self.cluster.detach()
         for entity in reversed(self._entities):
             try:
                 entity.undeclare()
@@ -106,16 +117,21 @@ class ZenohAdapter:
             return
         self._on_query(query, op, session)
 
-    def _on_query(self, query: Any, op: str, session: str | None) -> None:
+    def _on_query(self, query: Any, op: str, session: str | None, local: bool = False,
+                  reply_key: str | None = None) -> None:
         t0 = time.perf_counter()
+        if op == "health" or (local and op == "list_sessions"):  # cheap reads: inline
+            self._answer(query, op, session, t0, local, reply_key)
+            return
         try:
-            self.core.executor.submit(self._answer, query, op, session, t0)
+            self.core.executor.submit(self._answer, query, op, session, t0, local, reply_key)
         except RuntimeError:  # the executor is shut down: the server is stopping
             self._reply_error(query, ServiceError(503, "unavailable", "the server is stopping"),
                               codec.MSGPACK, op)
             query.drop()
 
-    def _answer(self, query: Any, op: str, session: str | None, t0: float) -> None:
+    def _answer(self, query: Any, op: str, session: str | None, t0: float, local: bool = False,
+                reply_key: str | None = None) -> None:
         kind = codec.MSGPACK
         try:
             enc = query.encoding
@@ -135,8 +151,10 @@ class ZenohAdapter:
                     payload = codec.load(raw, kind)
                 except codec.DecodeError as exc:
                     raise ServiceError(400, "bad_request", str(exc), "body") from None
-            result = self.core.call(op, session, payload, t0=t0)
-            query.reply(query.key_expr, codec.dump(result, kind), encoding=kind)
+            instance = query.parameters.get("instance") if op == "create_session" else None
+            result = self.cluster.call(op, session, payload, t0=t0, instance=instance,
+                                       local=local)
+            query.reply(reply_key or query.key_expr, codec.dump(result, kind), encoding=kind)
             self._count(op, 200)
         except ServiceError as err:
             self._reply_error(query, err, kind, op)
