@@ -52,13 +52,15 @@ class SyncOperations:
         pool: PoolLike | None = None,
         defaults: m.SelectDefaults | Mapping[str, Any] | None = None,
         information: m.InformationConfig | Mapping[str, Any] | None = None,
+        mapper: m.MapperOptions | Mapping[str, Any] | None = None,
     ) -> m.SessionInfo:
         """Create a session: with ``bounds`` (random Gaussians inside), from ``gaussians``
-        (a .ply / .splat path, a GaussiansIn, or a dict of arrays), or from posed ``frames``."""
+        (a .ply / .splat path, a GaussiansIn, or a dict of arrays), or from posed ``frames``.
+        ``mapper`` (MapperOptions) says how the service trains the map from the images."""
         return self._send(rq.create_session(  # type: ignore[no-any-return]
             intrinsics, id=id, bounds=bounds, gaussians=gaussians, frames=frames,
             init_gaussians=init_gaussians, seed=seed, pool=pool, defaults=defaults,
-            information=information))
+            information=information, mapper=mapper))
 
     def list_sessions(self) -> m.SessionList:
         return self._send(rq.call("list_sessions"))  # type: ignore[no-any-return]
@@ -130,6 +132,11 @@ class SyncOperations:
         """Ĥ per parameter block (``.arrays()`` gives numpy arrays)."""
         return self._send(rq.call("get_information", session))  # type: ignore[no-any-return]
 
+    def get_gaussians(self, session: str) -> m.GaussiansOut:
+        """The session's current Gaussians (``.to_numpy()`` gives the five arrays): the map
+        the service's mapper last published, or the one last set."""
+        return self._send(rq.call("get_gaussians", session))  # type: ignore[no-any-return]
+
 
 class AsyncOperations:
     """The same operations as :class:`SyncOperations`, as coroutines."""
@@ -153,11 +160,12 @@ class AsyncOperations:
         pool: PoolLike | None = None,
         defaults: m.SelectDefaults | Mapping[str, Any] | None = None,
         information: m.InformationConfig | Mapping[str, Any] | None = None,
+        mapper: m.MapperOptions | Mapping[str, Any] | None = None,
     ) -> m.SessionInfo:
         return await self._send(rq.create_session(  # type: ignore[no-any-return]
             intrinsics, id=id, bounds=bounds, gaussians=gaussians, frames=frames,
             init_gaussians=init_gaussians, seed=seed, pool=pool, defaults=defaults,
-            information=information))
+            information=information, mapper=mapper))
 
     async def list_sessions(self) -> m.SessionList:
         return await self._send(rq.call("list_sessions"))  # type: ignore[no-any-return]
@@ -222,3 +230,6 @@ class AsyncOperations:
 
     async def get_information(self, session: str) -> m.InformationOut:
         return await self._send(rq.call("get_information", session))  # type: ignore[no-any-return]
+
+    async def get_gaussians(self, session: str) -> m.GaussiansOut:
+        return await self._send(rq.call("get_gaussians", session))  # type: ignore[no-any-return]

@@ -117,6 +117,7 @@ def create_session(
     pool: m.PoolIn | np.ndarray | Sequence[PoseLike] | None = None,
     defaults: m.SelectDefaults | Mapping[str, Any] | None = None,
     information: m.InformationConfig | Mapping[str, Any] | None = None,
+    mapper: m.MapperOptions | Mapping[str, Any] | None = None,
 ) -> Call:
     body = m.SessionCreate(
         id=id,
@@ -129,6 +130,7 @@ def create_session(
         pool=to_pool(pool, None) if pool is not None else None,
         defaults=m.SelectDefaults.model_validate(defaults or {}),
         information=m.InformationConfig.model_validate(information or {}),
+        mapper=m.MapperOptions.model_validate(mapper or {}),
     )
     return call("create_session", None, body)
 

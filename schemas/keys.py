@@ -59,6 +59,7 @@ SESSION_OPS: tuple[str, ...] = (
     "get_pool",
     "select",
     "get_information",
+    "get_gaussians",
 )
 FRAMES = "frames"
 CANDIDATES = "candidates"

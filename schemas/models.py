@@ -29,12 +29,16 @@ __all__ = [
     "FieldSummary",
     "GaussianArrays",
     "GaussiansIn",
+    "GaussiansOut",
     "GaussiansSummary",
     "Health",
     "ImageData",
     "InformationConfig",
     "InformationOut",
     "InformationSummary",
+    "MapperOptions",
+    "MapperState",
+    "MapperStatus",
     "Method",
     "ObservationIn",
     "ObservationsIn",
@@ -138,6 +142,44 @@ class InformationConfig(BaseModel):
             "map (always done when the Gaussian count changes)"
         ),
     )
+    mapper_update: Literal["carry", "recompute"] = Field(
+        default="carry",
+        description=(
+            "when the service's mapper publishes a trained map: 'carry' Ĥ over per Gaussian "
+            "(kept Gaussians keep their row, clones and split children copy their source's, "
+            "new Gaussians start at λ), or 'recompute' it from every acquired view on the new "
+            "map (one Fisher pass per view per publication)"
+        ),
+    )
+
+
+class MapperOptions(BaseModel):
+    """How the service's mapper trains a session's Gaussians from the images sent to it.
+
+    After each observation batch the mapper (one background worker per server) trains
+    ``steps_per_view`` steps per new view with an image, on all the session's views with
+    images, then idles; every burst of steps is published as the session's map (persisted,
+    then visible). With ``enabled`` false (or the server's ``AGILEGS_MAPPER=0``) images are
+    only stored.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = Field(default=True, description="train this session's map from its images")
+    steps_per_view: int | None = Field(
+        default=None,
+        ge=0,
+        le=1_000_000,
+        description="training steps per view with an image (None: the server's "
+                    "AGILEGS_MAPPER_STEPS_PER_VIEW)",
+    )
+    config: dict[str, Any] = Field(
+        default_factory=dict,
+        description=(
+            "MapperConfig fields by name (3DGS training settings), e.g. {'background': "
+            "[1, 1, 1], 'sh_degree': 0, 'densify_from': 50}; unknown names are rejected"
+        ),
+    )
 
 
 class SessionCreate(BaseModel):
@@ -175,6 +217,7 @@ class SessionCreate(BaseModel):
     pool: PoolIn | None = Field(default=None, description="initial candidate pool")
     defaults: SelectDefaults = Field(default_factory=SelectDefaults)
     information: InformationConfig = Field(default_factory=InformationConfig)
+    mapper: MapperOptions = Field(default_factory=MapperOptions)
 
     @model_validator(mode="after")
     def _has_scene(self) -> SessionCreate:
@@ -193,6 +236,34 @@ class GaussiansSummary(BaseModel):
     sh_degree: int
     means_min: list[float] | None = Field(default=None, description="lower corner of the means")
     means_max: list[float] | None = Field(default=None, description="upper corner of the means")
+
+
+MapperState = Literal["off", "idle", "training", "error"]
+
+
+class MapperStatus(BaseModel):
+    """The mapper's progress on a session.
+
+    ``state``: ``off`` (the server's or the session's mapper is disabled), ``training``
+    (steps are pending, or trained steps are not yet published), ``idle`` (every step owed
+    is trained and the map holding them is published), ``error`` (training failed; see
+    ``error``; new observations retry). Steps owed = ``steps_per_view`` x views with an
+    image; ``pending_steps`` = owed - ``steps``.
+    """
+
+    enabled: bool
+    state: MapperState
+    steps: int = Field(description="training steps done (the burst in progress included)")
+    published_steps: int = Field(description="training steps held by the published map")
+    pending_steps: int = Field(description="steps still owed to the views sent")
+    steps_per_view: int
+    views: int = Field(description="acquired views with an image (what the mapper trains on)")
+    num_gaussians: int = Field(description="Gaussians in the mapper's current map")
+    last_loss: float | None = Field(
+        default=None, description="mean training loss (L1 + D-SSIM) of the last burst"
+    )
+    error: str | None = None
+    options: MapperOptions
 
 
 class FieldSummary(BaseModel):
@@ -235,6 +306,7 @@ class SessionInfo(BaseModel):
     next_candidate_id: int
     num_views: int
     last_view_id: int | None
+    mapper: MapperStatus | None = Field(default=None, description="the mapper's progress")
 
 
 class SessionList(BaseModel):
@@ -287,6 +359,21 @@ class GaussiansIn(BaseModel):
         elif self.data is None or self.arrays is not None:
             raise ValueError(f"format {self.format!r} takes data (the file bytes) and no arrays")
         return self
+
+
+class GaussiansOut(BaseModel):
+    """A session's current (published) Gaussians as float32 arrays, with the session
+    ``version`` they belong to and the mapper's training steps they hold."""
+
+    arrays: GaussianArrays
+    count: int
+    sh_degree: int
+    version: int
+    mapper_steps: int = Field(description="training steps of the mapper this map holds")
+
+    def to_numpy(self) -> dict[str, np.ndarray]:
+        """The five parameter arrays (means, log_scales, quats, opacity_logits, sh)."""
+        return {k: getattr(self.arrays, k).to_numpy() for k in FIELD_NAMES}
 
 
 # ---------------------------------------------------------------------------- observations

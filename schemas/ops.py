@@ -67,5 +67,7 @@ OPERATIONS: dict[str, Operation] = {
             "choose the next view"),
         _op("get_information", "session", "GET", _S + "/information", None, m.InformationOut,
             "read Ĥ"),
+        _op("get_gaussians", "session", "GET", _S + "/gaussians", None, m.GaussiansOut,
+            "read the current Gaussians (the mapper's published map)"),
     )
 }

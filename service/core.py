@@ -13,6 +13,9 @@ renames), then swap it in; only then is the change acknowledged. Reads take the 
 record without the lock (records are never mutated), so they never wait behind a selection.
 
 The maths lives in :mod:`agilegs.service.nbv` and is reached through :class:`MathBackend`.
+The mapper (:mod:`agilegs.service.trainer`, started by :meth:`ServiceCore.load` when the
+``mapper`` setting is on) trains each session's Gaussians from its images in a background
+thread and publishes them through :meth:`SessionCore.replace_map`.
 """
 
 from __future__ import annotations
@@ -483,7 +486,30 @@ class SessionCore:
             next_candidate_id=rec.next_candidate_id,
             num_views=len(rec.views),
             last_view_id=rec.views[-1].id if rec.views else None,
+            mapper=self.mapper_status(rec),
         )
+
+    def mapper_status(self, rec: SessionRecord | None = None) -> m.MapperStatus:
+        """The mapper's progress as of ``rec`` (default: the current record); state ``off``
+        when the mapper does not run for this session."""
+        from .trainer import SessionTrainer, mapper_status
+
+        rec = rec or self.record
+        st = self.mapper
+        if isinstance(st, SessionTrainer):
+            return st.status(rec)
+        return mapper_status(rec, self.settings.mapper_steps_per_view)
+
+    def get_gaussians(self) -> m.GaussiansOut:
+        """The published Gaussians as float32 arrays."""
+        rec = self.record
+        g = rec.gmap
+        arrays = m.GaussianArrays(**{
+            k: m.NDArray.from_numpy(v.detach().cpu().numpy().astype("<f4")) for k, v in g.items()
+        })
+        steps = int((rec.mapper or {}).get("steps", 0))
+        return m.GaussiansOut(arrays=arrays, count=len(g), sh_degree=g.sh_degree,
+                              version=rec.version, mapper_steps=steps)
 
     def summary(self) -> m.SessionSummary:
         rec = self.record
@@ -542,24 +568,56 @@ class SessionCore:
             self.replace_map(gmap)
         return self.info()
 
-    def replace_map(self, gmap: GaussianMap) -> SessionRecord:
+    def replace_map(self, gmap: GaussianMap, *, src: Tensor | None = None,
+                    mapper_progress: Mapping[str, Any] | None = None) -> SessionRecord:
         """Swap in a new map (a trainer's push, or the mapper's update); the lock is held.
 
-        Ĥ follows the map: it is recomputed from every acquired view on the new map when
-        the Gaussian count changes or ``information.recompute_on_map_change`` is set, else
-        kept as it is.
+        Args:
+            gmap: the new Gaussians [N_new].
+            src: the mapper's update: LongTensor [N_new], new Gaussian j descends from the
+                current map's Gaussian ``src[j]`` (-1: new). Ĥ then follows
+                ``information.mapper_update``: ``carry`` (default) remaps it per Gaussian
+                (:func:`~agilegs.service.mapper.remap_per_gaussian`; new Gaussians get λ),
+                ``recompute`` recomputes it from every acquired view on the new map.
+                None (a push): Ĥ is recomputed from every acquired view when the Gaussian
+                count changes or ``information.recompute_on_map_change`` is set, else kept.
+            mapper_progress: the mapper's progress to persist with the map (merged into
+                the record's ``mapper`` state).
         """
         rec = self.record
         if len(gmap) > self.settings.max_gaussians:
             raise too_large("body", f"{len(gmap)} Gaussians exceed max_gaussians "
                                     f"({self.settings.max_gaussians})")
-        if len(gmap) != len(rec.gmap) or rec.information_config.get(
-                "recompute_on_map_change", True):
+        cfg = rec.information_config
+        if src is not None:
+            if tuple(src.shape) != (len(gmap),):
+                raise ValueError(f"src must have shape [{len(gmap)}], got {list(src.shape)}")
+            if cfg.get("mapper_update", "carry") == "recompute":
+                h = self._recompute_information(gmap, rec)
+            else:
+                h = self._carry_information(gmap, src, rec)
+        elif len(gmap) != len(rec.gmap) or cfg.get("recompute_on_map_change", True):
             h = self._recompute_information(gmap, rec)
         else:
             h = rec.h_acc
-        new = self._bump(rec, gmap=gmap, h_acc=h)
+        changes: dict[str, Any] = {}
+        if mapper_progress is not None:
+            changes["mapper"] = {**(rec.mapper or {}), **mapper_progress}
+        new = self._bump(rec, gmap=gmap, h_acc=h, **changes)
         return self._commit(new, ("gaussians", "information"))
+
+    def _carry_information(self, gmap: GaussianMap, src: Tensor, rec: SessionRecord
+                           ) -> dict[str, Tensor]:
+        """Ĥ of ``rec`` carried to ``gmap`` along ``src`` (new Gaussians: λ)."""
+        from .mapper import remap_per_gaussian
+
+        h = remap_per_gaussian(rec.h_acc, src, 0.0)
+        new = src.to(torch.long) < 0
+        if bool(new.any()):
+            prior = self.backend.init_information(gmap, float(rec.information_config["lambda"]))
+            for k in h:
+                h[k][new] = prior[k][new].to(h[k].dtype)
+        return h
 
     # ------------------------------------------------------------------ pool
     def set_pool(self, req: m.PoolIn) -> m.PoolOut:
@@ -816,6 +874,12 @@ class SessionCore:
             )
 
 
+def _mapper_field(message: str) -> str:
+    """The request field a mapper-config error message names."""
+    found = re.search(r"(?:mapper\.config\.|MapperConfig\.)(\w+)", message)
+    return f"body.mapper.config.{found.group(1)}" if found else "body.mapper.config"
+
+
 def _storable_state(state: Mapping[str, Any] | None) -> dict[str, Any] | None:
     """The parts of a warm-start state that torch.load(weights_only=True) reads back."""
     if not state:
@@ -914,6 +978,7 @@ class ServiceCore:
         self.zenoh_enabled = False
         self.metrics: Any = None  # a metrics.Metrics, set by the server
         self.decision_listeners: list[Callable[[str, m.SelectResponse], None]] = []
+        self.trainer: Any = None  # a trainer.Trainer while the mapper runs (see load)
         self._tmp = Path(settings.state_dir) / "tmp"
         if settings.torch_threads:
             torch.set_num_threads(settings.torch_threads)
@@ -927,9 +992,24 @@ class ServiceCore:
         for rec in self.store.load_all():
             self.sessions[rec.id] = SessionCore(rec, self)
         log.info("loaded %d session(s) from %s", len(self.sessions), self.settings.state_dir)
+        if self.settings.mapper:
+            self.start_mapper()
         return len(self.sessions)
 
+    def start_mapper(self) -> None:
+        """Start the background mapper (:mod:`agilegs.service.trainer`) for every session;
+        sessions with steps still owed (e.g. after a restart) resume training."""
+        from .trainer import Trainer
+
+        if self.trainer is None:
+            self.trainer = Trainer(self)
+            for s in list(self.sessions.values()):
+                self.trainer.attach(s)
+        self.trainer.start()
+
     def close(self) -> None:
+        if self.trainer is not None:
+            self.trainer.close()
         self.executor.shutdown(wait=True, cancel_futures=True)
 
     # ------------------------------------------------------------------ dispatch
@@ -983,6 +1063,8 @@ class ServiceCore:
             return s.list_views()
         if op == "get_information":
             return s.get_information()
+        if op == "get_gaussians":
+            return s.get_gaussians()
         handler = {
             "set_gaussians": s.set_gaussians,
             "add_observations": s.add_observations,
@@ -1054,6 +1136,12 @@ class ServiceCore:
         if len(gmap) > self.settings.max_gaussians:
             raise too_large("body", f"{len(gmap)} Gaussians exceed max_gaussians "
                                     f"({self.settings.max_gaussians})")
+        from .trainer import initial_mapper_state, mapper_config
+
+        try:
+            mapper_config(req.mapper.config)
+        except ValueError as exc:
+            raise invalid(_mapper_field(str(exc)), str(exc)) from None
         now = time.time()
         lam = req.information.lambda_
         rec = SessionRecord(
@@ -1066,6 +1154,7 @@ class ServiceCore:
             h_acc=self.backend.init_information(gmap, lam),
             pool_ids=np.zeros(0, dtype=np.int64), pool_poses=np.zeros((0, 4, 4)),
             next_candidate_id=0, views=(), next_view_id=0,
+            mapper=initial_mapper_state(req.mapper),
         )
         draft = SessionCore(rec, self)
         if req.pool is not None:
@@ -1081,6 +1170,8 @@ class ServiceCore:
             except FileExistsError:
                 raise conflict("body.id", f"session {sid!r} already exists") from None
             s = SessionCore(rec, self)
+            if self.trainer is not None:
+                self.trainer.attach(s)
             self.sessions[sid] = s
         if frames:
             s.on_observation(list(rec.views))

@@ -115,6 +115,7 @@ class SessionRecord:
     next_view_id: int
     warm_state: dict[str, Any] | None = None
     files: dict[str, str] = field(default_factory=dict)
+    mapper: dict[str, Any] | None = None  # mapper options and progress (JSON, in the manifest)
 
     def manifest(self) -> dict[str, Any]:
         return {
@@ -131,6 +132,7 @@ class SessionRecord:
             "next_view_id": self.next_view_id,
             "views": [v.to_json() for v in self.views],
             "files": self.files,
+            "mapper": self.mapper,
         }
 
 
@@ -313,6 +315,7 @@ class SessionStore:
             next_view_id=int(m["next_view_id"]),
             warm_state=self._load_warm(folder, files),
             files=files,
+            mapper=m.get("mapper"),
         )
         self._collect_garbage(folder, record)
         return record

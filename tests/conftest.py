@@ -55,7 +55,8 @@ class ServerProcess:
         else:
             cmd += ["--zenoh-listen", self.zenoh_endpoint]
         env = {k: v for k, v in os.environ.items() if not k.startswith("AGILEGS_")}
-        env.update({"AGILEGS_TORCH_THREADS": "1", **self.env})
+        # the background mapper is off unless a test asks for it: these tests check exact state
+        env.update({"AGILEGS_TORCH_THREADS": "1", "AGILEGS_MAPPER": "0", **self.env})
         self._log = open(self.log_path, "ab")
         self.proc = subprocess.Popen(cmd, env=env, stdout=self._log, stderr=subprocess.STDOUT)
         deadline = time.monotonic() + timeout

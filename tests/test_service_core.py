@@ -22,6 +22,7 @@ POOL = ring_poses(24)
 
 
 def make_core(path: Path, **settings: Any) -> ServiceCore:
+    settings.setdefault("mapper", False)  # exact-state checks: no background training
     core = ServiceCore(Settings(state_dir=path, zenoh=False, workers=2, **settings))
     core.load()
     return core

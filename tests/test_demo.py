@@ -1,0 +1,55 @@
+"""``agilegs demo`` in its reduced mode: a real server subprocess, the SDK over HTTP."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from agilegs.service.demo import QUICK, attribution, initial_indices
+
+
+@pytest.mark.timeout(240)
+def test_quick_demo_runs_the_closed_loop(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("AGILEGS_")}
+    proc = subprocess.run(
+        [sys.executable, "-m", "agilegs.service.cli", "demo", "--quick", "--out", str(out)],
+        capture_output=True, text=True, timeout=230, env=env)
+    text = proc.stdout + proc.stderr
+    assert proc.returncode == 0, text[-4000:]
+    for method in ("AGILE-GS+", "Random"):
+        lines = [ln for ln in proc.stdout.splitlines()
+                 if re.match(rf"event \d+\s+{re.escape(method)}\s", ln)]
+        assert len(lines) == QUICK.events + 1, (method, proc.stdout)
+        for ln in lines[1:]:  # chosen view, latency breakdown, server time, PSNR
+            assert re.search(r"view #\d+", ln) and "total" in ln and "server" in ln, ln
+            assert re.search(r"PSNR\s+\d+\.\d+ dB", ln), ln
+    assert "anchor" in proc.stdout and "rerank" in proc.stdout
+    assert "Keenan Crane" in proc.stdout  # the bundled scene's attribution
+    png = out / "psnr.png"
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    res = json.loads((out / "demo.json").read_text())
+    for key in ("agile_plus", "random"):
+        r = res["methods"][key]
+        assert [c["views"] for c in r["curve"]] == list(
+            range(QUICK.initial_views, QUICK.initial_views + QUICK.events + 1))
+        assert all(e["mapper_steps"] == QUICK.steps_per_view * c["views"]
+                   for e, c in zip(r["events"], r["curve"][1:], strict=True))
+        chosen = [e["chosen"] for e in r["events"]]
+        assert len(set(chosen)) == len(chosen)  # committed views leave the pool
+        assert not set(chosen) & set(res["initial_views"])
+    assert "server.log" in {p.name for p in out.iterdir()}
+
+
+def test_attribution_and_initial_views() -> None:
+    assert "Keenan Crane" in attribution("spot") and "CC0" in attribution("spot")
+    assert "Newell" in attribution("teapot")
+    assert "not bundled" in attribution("/some/scene.splat")
+    assert initial_indices(60, 3) == [10, 30, 50]
+    assert initial_indices(5, 5) == [0, 1, 2, 3, 4]
