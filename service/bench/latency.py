@@ -1,0 +1,307 @@
+"""``agilegs bench latency``: selection latency and EIG percentile of every method.
+
+Loads a scene as the current map (seeded subsample to at most ``--max-gaussians``), builds a
+pool as a capture would (``capture_pool``: orbits at three elevations with near-duplicates)
+plus a few evenly spread acquired views, forms Hhat = lambda + sum of their Fisher, and then,
+for each of ``--events`` selection events, times every method on the same map, Hhat and pool
+in this one process. FisherRF runs first at each event; its phi over the whole pool is the
+yardstick for every method's ``eig_percentile``: the percentage of pool candidates whose phi
+is at most the chosen one's (100 = FisherRF's pick), averaged over events. After each event
+FisherRF's pick is acquired (Hhat updated, the view leaves the pool), so every method sees
+the same sequence of states; each method keeps its own warm-start state across events.
+
+Besides the five methods, the shortlist ablations (``agile_<s>`` and ``agile_plus_<s>`` for
+knearest, topnorm, online) and anchor variants that measure what each shortcut costs
+(``agile_plus@exact``: exact psi; ``@all_gaussians``: no importance sampling; ``@no_ascent``:
+best pool start under the proxy, no gradient steps; ``@cold``: no warm start;
+``@start_view``: typical Fisher from one Fisher pass instead of Hhat) are timed. Each
+record holds ``median_ms`` (wall clock, what ``Selection.latency_ms`` says),
+``cpu_median_ms`` (process CPU time, less sensitive to other load on a shared machine),
+``stages_ms`` (per-stage medians), ``eig_percentile`` and,
+for shortlist methods, ``head_eig_percentile`` (the percentile of the shortlist's first,
+i.e. what AGILE-GS picks from that shortlist).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import os
+import platform
+import statistics
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import torch
+
+log = logging.getLogger(__name__)
+
+DEFAULT_SCENE = "/work/shared/data/scenes/plant/plant.splat"
+BASE_METHODS = ("fisherrf", "random", "cover", "agile", "agile_plus")
+ABLATIONS = tuple(
+    f"{m}_{s}" for s in ("knearest", "topnorm", "online") for m in ("agile", "agile_plus")
+)
+VARIANTS = (
+    "agile_plus@no_ascent",
+    "agile_plus@cold",
+    "agile_plus@all_gaussians",
+    "agile_plus@start_view",
+    "agile_plus@exact",
+)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--scene", default=DEFAULT_SCENE, help="a .splat or .ply scene")
+    parser.add_argument("--pool", type=int, default=200, help="candidate pool size D")
+    parser.add_argument("--shortlist", type=int, default=10, help="shortlist size N")
+    parser.add_argument("--width", type=int, default=128)
+    parser.add_argument("--height", type=int, default=128)
+    parser.add_argument("--fov", type=float, default=50.0, help="horizontal field of view, deg")
+    parser.add_argument("--max-gaussians", type=int, default=20000)
+    parser.add_argument("--events", type=int, default=3)
+    parser.add_argument("--acquired", type=int, default=5, help="initial acquired views")
+    parser.add_argument(
+        "--orbit-scale", type=float, default=2.6, help="orbit radius / the scene's 98%% radius"
+    )
+    parser.add_argument("--lam", type=float, default=1e-6, help="lambda of Hhat")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: default)")
+    parser.add_argument(
+        "--methods",
+        default="all",
+        help="comma-separated subset of methods/ablations/variants, or 'all', 'base' "
+        "(the five methods), 'fast' (all but the exact-psi variant)",
+    )
+    parser.add_argument("--json", dest="json_out", default=None, help="write results here")
+
+
+def _load_map(path: str, max_gaussians: int, seed: int) -> Any:
+    from agilegs.service.nbv.gaussians import GaussianMap
+
+    gmap = GaussianMap.load(path)
+    if 0 < max_gaussians < len(gmap):
+        gen = torch.Generator().manual_seed(seed)
+        idx = torch.sort(torch.randperm(len(gmap), generator=gen)[:max_gaussians]).values
+        gmap = gmap.subset(idx)
+    return gmap
+
+
+def _method_list(spec: str) -> list[str]:
+    if spec == "all":
+        return list(BASE_METHODS + ABLATIONS + VARIANTS)
+    if spec == "fast":
+        return [m for m in BASE_METHODS + ABLATIONS + VARIANTS if m != "agile_plus@exact"]
+    if spec == "base":
+        return list(BASE_METHODS)
+    names = [s.strip() for s in spec.split(",") if s.strip()]
+    known = set(BASE_METHODS + ABLATIONS + VARIANTS)
+    for n in names:
+        if n not in known:
+            raise SystemExit(f"--methods: unknown name {n!r} (known: {sorted(known)})")
+    if "fisherrf" not in names:
+        names.insert(0, "fisherrf")  # the yardstick of every percentile
+    return names
+
+
+def _config_for(name: str, base: Any) -> tuple[str, Any]:
+    """(select method, SelectConfig) of a benchmark entry."""
+    from agilegs.service.nbv.selectors import SelectConfig
+
+    assert isinstance(base, SelectConfig)
+    method, _, variant = name.partition("@")
+    cfg = replace(base, anchor=replace(base.anchor), scoring=replace(base.scoring))
+    for s in ("knearest", "topnorm", "online"):
+        if method.endswith("_" + s):
+            method = method[: -len(s) - 1]
+            cfg.shortlist = s  # type: ignore[assignment]
+    if variant == "exact":
+        cfg.anchor = replace(cfg.anchor, psi="exact", num_starts=1, iterations=3, warm_start=True)
+    elif variant == "all_gaussians":
+        cfg.anchor = replace(cfg.anchor, num_gaussians=0)
+    elif variant == "no_ascent":
+        cfg.anchor = replace(cfg.anchor, iterations=0)
+    elif variant == "cold":
+        cfg.anchor = replace(cfg.anchor, warm_start=False)
+    elif variant == "start_view":
+        cfg.anchor = replace(cfg.anchor, typical_fisher="start_view")
+    return method, cfg
+
+
+def _percentile(phi: torch.Tensor, value: float) -> float:
+    return 100.0 * float((phi <= value + 1e-12 * abs(value)).to(torch.float64).mean())
+
+
+def run(args: argparse.Namespace) -> int:
+    from agilegs.service.nbv.camera import Camera, Intrinsics
+    from agilegs.service.nbv.candidates import capture_pool, scene_center_radius
+    from agilegs.service.nbv.information import (
+        accumulate_information,
+        fisher_diag,
+        init_information,
+    )
+    from agilegs.service.nbv.selectors import SelectConfig, select
+
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
+    if args.pool < 1 or args.shortlist < 1 or args.events < 1 or args.acquired < 0:
+        raise SystemExit("--pool, --shortlist and --events must be >= 1, --acquired >= 0")
+    names = _method_list(args.methods)
+    t_setup = time.perf_counter()
+    gmap = _load_map(args.scene, args.max_gaussians, args.seed)
+    center, r98 = scene_center_radius(gmap.means)
+    intr = Intrinsics.from_fov(args.fov, args.width, args.height)
+    total = args.pool + args.acquired
+    poses = capture_pool(center, args.orbit_scale * r98, total, seed=args.seed)
+    acq_idx = (
+        sorted({int(round(i * total / args.acquired)) % total for i in range(args.acquired)})
+        if args.acquired
+        else []
+    )
+    acquired = poses[acq_idx]
+    keep = [i for i in range(total) if i not in set(acq_idx)]
+    pool = poses[keep]
+    h_acc = init_information(gmap, args.lam)
+    with torch.no_grad():
+        for p in acquired:
+            h_acc = accumulate_information(h_acc, fisher_diag(gmap, Camera(c2w=p, intrinsics=intr)))
+    base = SelectConfig(shortlist_size=args.shortlist, seed=args.seed)
+    log.info(
+        "map %d Gaussians, pool %d, %d acquired, setup %.1f s",
+        len(gmap),
+        len(pool),
+        len(acquired),
+        time.perf_counter() - t_setup,
+    )
+    # warm-up: first calls pay one-off allocation costs
+    select("agile", gmap, h_acc, pool, intr, config=base, acquired=acquired)
+    with torch.no_grad():
+        fisher_diag(gmap, Camera(c2w=pool[0], intrinsics=intr))
+
+    records: dict[str, dict[str, Any]] = {
+        n: {"latency_ms": [], "cpu_ms": [], "stages": [], "pct": [], "head_pct": [], "picks": []}
+        for n in names
+    }
+    states: dict[str, dict[str, Any] | None] = {n: None for n in names}
+    for event in range(args.events):
+        phi_all: torch.Tensor | None = None
+        for name in names:
+            method, cfg = _config_for(name, base)
+            cpu0 = time.process_time()
+            sel = select(
+                method, gmap, h_acc, pool, intr, config=cfg, acquired=acquired, state=states[name]
+            )
+            cpu_ms = (time.process_time() - cpu0) * 1e3
+            states[name] = sel.state
+            if name == "fisherrf":
+                phi_all = torch.tensor(
+                    [sel.scores[i] for i in range(len(pool))], dtype=torch.float64
+                )
+            assert phi_all is not None
+            rec = records[name]
+            rec["latency_ms"].append(sel.latency_ms["total"])
+            rec["cpu_ms"].append(cpu_ms)
+            rec["stages"].append(dict(sel.latency_ms))
+            rec["pct"].append(_percentile(phi_all, float(phi_all[sel.index])))
+            rec["picks"].append(sel.index)
+            if sel.shortlist:
+                rec["head_pct"].append(_percentile(phi_all, float(phi_all[sel.shortlist[0]])))
+                rec.setdefault("shortlist_best_pct", []).append(
+                    max(_percentile(phi_all, float(phi_all[i])) for i in sel.shortlist)
+                )
+            if sel.psi_trace:
+                rec.setdefault("psi_gain", []).append(sel.psi_trace[-1] / sel.psi_trace[0])
+            log.info(
+                "event %d %-26s %9.1f ms  pick %3d  eig pct %5.1f",
+                event,
+                name,
+                sel.latency_ms["total"],
+                sel.index,
+                rec["pct"][-1],
+            )
+        # acquire FisherRF's pick: the same trajectory for every method
+        assert phi_all is not None
+        nxt = int(torch.argmax(phi_all))
+        with torch.no_grad():
+            hv = fisher_diag(gmap, Camera(c2w=pool[nxt], intrinsics=intr))
+        h_acc = accumulate_information(h_acc, hv)
+        acquired = torch.cat([acquired, pool[nxt : nxt + 1]])
+        pool = torch.cat([pool[:nxt], pool[nxt + 1 :]])
+
+    methods_out: dict[str, Any] = {}
+    for name, rec in records.items():
+        stages = {k: statistics.median(s[k] for s in rec["stages"]) for k in rec["stages"][0]}
+        out: dict[str, Any] = {
+            "median_ms": statistics.median(rec["latency_ms"]),
+            "latency_ms": rec["latency_ms"],
+            "cpu_median_ms": statistics.median(rec["cpu_ms"]),
+            "stages_ms": stages,
+            "eig_percentile": statistics.fmean(rec["pct"]),
+            "eig_percentiles": rec["pct"],
+            "picks": rec["picks"],
+        }
+        if rec["head_pct"]:
+            out["head_eig_percentile"] = statistics.fmean(rec["head_pct"])
+            out["shortlist_best_eig_percentile"] = statistics.fmean(rec["shortlist_best_pct"])
+        if rec.get("psi_gain"):
+            out["psi_gain"] = statistics.fmean(rec["psi_gain"])
+        methods_out[name] = out
+    fr = methods_out["fisherrf"]["median_ms"]
+    fr_cpu = methods_out["fisherrf"]["cpu_median_ms"]
+    for out in methods_out.values():
+        out["speedup_vs_fisherrf"] = fr / max(out["median_ms"], 1e-9)
+        out["cpu_speedup_vs_fisherrf"] = fr_cpu / max(out["cpu_median_ms"], 1e-9)
+    result = {
+        "config": {
+            "scene": str(args.scene),
+            "pool": args.pool,
+            "shortlist": args.shortlist,
+            "width": args.width,
+            "height": args.height,
+            "fov_deg": args.fov,
+            "max_gaussians": args.max_gaussians,
+            "gaussians": len(gmap),
+            "events": args.events,
+            "acquired": args.acquired,
+            "orbit_scale": args.orbit_scale,
+            "lam": args.lam,
+            "seed": args.seed,
+            "device": "cpu",
+            "torch_threads": torch.get_num_threads(),
+            "torch": torch.__version__,
+            "cpu_count": os.cpu_count(),
+            "platform": platform.platform(),
+            "methods": names,
+        },
+        "methods": methods_out,
+    }
+    _print_table(methods_out)
+    if args.json_out:
+        Path(args.json_out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json_out).write_text(json.dumps(result, indent=2))
+        log.info("wrote %s", args.json_out)
+    return 0
+
+
+def _print_table(methods: dict[str, Any]) -> None:
+    import sys
+
+    lines = [
+        "| method | median ms | anchor | scoring | leverage | rerank | FisherRF / method "
+        "| CPU ms | FisherRF / method (CPU) | EIG pct | head pct |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, m in methods.items():
+        s = m["stages_ms"]
+        head = m.get("head_eig_percentile")
+        lines.append(
+            f"| {name} | {m['median_ms']:.1f} | {s['anchor']:.1f} | {s['scoring']:.1f} | "
+            f"{s['leverage']:.1f} | {s['rerank']:.1f} | {m['speedup_vs_fisherrf']:.1f}x | "
+            f"{m['cpu_median_ms']:.1f} | {m['cpu_speedup_vs_fisherrf']:.1f}x | "
+            f"{m['eig_percentile']:.1f} | "
+            f"{'' if head is None or math.isnan(head) else f'{head:.1f}'} |"
+        )
+    sys.stdout.write("\n".join(lines) + "\n")

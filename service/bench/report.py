@@ -1,0 +1,399 @@
+"""``results.json`` and ``table.md`` of ``agilegs bench run``.
+
+``results.json`` holds, besides the settings and the environment:
+
+- ``scenes[<scene>]``: the scene's facts, ``runs[<variant>][<seed>]`` (each run's full
+  record: ``psnr``, ``ssim``, ``lpips`` (None without local LPIPS weights), ``events`` with
+  the per-event ``latency_ms`` breakdown, ``sequence`` / ``selected`` (pool indices in
+  acquisition order), ``curve``, ``path_length``, ``mean_index_jump``, ...), and
+  ``summary[<variant>]`` (mean and std over seeds);
+- ``summary[<variant>]``: the averages over scenes (the paper's "Avg." columns);
+- ``invocation``: which (scene, variant, seed) runs this call executed and which it skipped.
+
+Statistics: ``*_mean`` is the mean over seeds, ``*_std`` their sample standard deviation
+(0 with one seed). Latencies are means over every selection event of every seed; the
+averages over scenes weight scenes equally.
+
+``table.md`` lays the means ± std out as the paper's main results table (one PSNR / SSIM /
+LPIPS column group per scene, then the average PSNR and the average selection time per
+event), followed by a latency table (with FisherRF's latency over each method's), the
+acquisition trajectories (path length, mean frame-index jump) and, when they were run, the
+shortlist-strategy and shortlist-budget ablations laid out as the paper's two ablation tables.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+import time
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any
+
+from agilegs.service.bench.scenes import BenchScene
+
+__all__ = ["build_results", "scene_summary", "render_table", "mean_std"]
+
+MAIN_ORDER = ("random", "fisherrf", "cover", "agile", "agile_plus")
+
+
+def mean_std(values: Iterable[float | None]) -> tuple[float | None, float | None]:
+    """(mean, sample std) of the non-None values; (None, None) when there are none."""
+    v = [float(x) for x in values if x is not None and not math.isnan(float(x))]
+    if not v:
+        return None, None
+    return statistics.fmean(v), (statistics.stdev(v) if len(v) > 1 else 0.0)
+
+
+def scene_summary(scene: BenchScene) -> dict[str, Any]:
+    """The facts of a scene kept in ``results.json`` (pool poses for the trajectory plots)."""
+    return {
+        "kind": scene.kind,
+        "source": scene.source,
+        "pool": scene.pool_size,
+        "test": int(scene.test_poses.shape[0]),
+        "resolution": [scene.intrinsics.width, scene.intrinsics.height],
+        "background": list(scene.background),
+        "center": [float(x) for x in scene.center],
+        "radius": scene.radius,
+        "info": scene.info,
+    }
+
+
+def _summarise_runs(runs: Mapping[int, Mapping[str, Any]]) -> dict[str, Any]:
+    recs = list(runs.values())
+    out: dict[str, Any] = {"seeds": sorted(int(s) for s in runs)}
+    for key in ("psnr", "ssim", "lpips", "path_length", "mean_index_jump", "wall_s"):
+        m, s = mean_std(r.get(key) for r in recs)
+        out[f"{key}_mean"], out[f"{key}_std"] = m, s
+    lat = [e["latency_ms"]["total"] for r in recs for e in r.get("events", [])]
+    info = [e["information_ms"] for r in recs for e in r.get("events", [])]
+    out["latency_ms_mean"] = statistics.fmean(lat) if lat else None
+    cpu = [e["select_cpu_ms"] for r in recs for e in r.get("events", []) if "select_cpu_ms" in e]
+    out["cpu_ms_mean"] = statistics.fmean(cpu) if cpu else None
+    out["latency_ms_median"] = statistics.median(lat) if lat else None
+    out["latency_ms_seed_std"] = mean_std(r["latency_ms"]["mean"] for r in recs)[1]
+    out["information_ms_mean"] = statistics.fmean(info) if info else None
+    out["events"] = len(lat)
+    stages: dict[str, list[float]] = {}
+    for r in recs:
+        for e in r.get("events", []):
+            for k, v in e["latency_ms"].items():
+                stages.setdefault(k, []).append(float(v))
+    out["stages_ms_mean"] = {k: statistics.fmean(v) for k, v in stages.items()}
+    curve: dict[int, list[float]] = {}
+    for r in recs:
+        for c in r.get("curve", []):
+            curve.setdefault(int(c["views"]), []).append(float(c["psnr"]))
+    out["curve"] = [
+        {"views": n, "psnr_mean": mean_std(v)[0], "psnr_std": mean_std(v)[1], "runs": len(v)}
+        for n, v in sorted(curve.items())
+    ]
+    return out
+
+
+def build_results(
+    *,
+    records: Mapping[tuple[str, str, int], Mapping[str, Any]],
+    scenes: Mapping[str, Mapping[str, Any]],
+    variants: Sequence[Mapping[str, Any]],
+    seeds: Sequence[int],
+    profile: Mapping[str, Any],
+    settings: Mapping[str, Any],
+    environment: Mapping[str, Any],
+    invocation: Mapping[str, Any],
+) -> dict[str, Any]:
+    """Gather run records into the ``results.json`` structure (see the module docstring)."""
+    out_scenes: dict[str, Any] = {}
+    for name, facts in scenes.items():
+        runs: dict[str, dict[str, Any]] = {}
+        for v in variants:
+            for s in seeds:
+                rec = records.get((name, v["key"], int(s)))
+                if rec is not None:
+                    runs.setdefault(v["key"], {})[str(int(s))] = dict(rec)
+        summary = {k: _summarise_runs({int(s): r for s, r in rs.items()})
+                   for k, rs in runs.items()}
+        out_scenes[name] = {**facts, "runs": runs, "summary": summary}
+    overall: dict[str, Any] = {}
+    for v in variants:
+        per = [out_scenes[n]["summary"].get(v["key"]) for n in out_scenes]
+        per = [p for p in per if p is not None]
+        if not per:
+            continue
+        evs = [e for n in out_scenes
+               for r in out_scenes[n]["runs"].get(v["key"], {}).values() for e in r["events"]]
+        lat = [e["latency_ms"]["total"] for e in evs]
+        cpu = [e["select_cpu_ms"] for e in evs if "select_cpu_ms" in e]
+        overall[v["key"]] = {
+            "psnr_mean": mean_std(p["psnr_mean"] for p in per)[0],
+            "ssim_mean": mean_std(p["ssim_mean"] for p in per)[0],
+            "lpips_mean": mean_std(p["lpips_mean"] for p in per)[0],
+            "latency_ms_mean": statistics.fmean(lat) if lat else None,
+            "latency_ms_median": statistics.median(lat) if lat else None,
+            "cpu_ms_mean": statistics.fmean(cpu) if cpu else None,
+            "path_length_mean": mean_std(p["path_length_mean"] for p in per)[0],
+            "mean_index_jump_mean": mean_std(p["mean_index_jump_mean"] for p in per)[0],
+            "scenes": len(per),
+        }
+    fr = overall.get("fisherrf", {}).get("latency_ms_mean")
+    fr_cpu = overall.get("fisherrf", {}).get("cpu_ms_mean")
+    for o in overall.values():
+        lm = o.get("latency_ms_mean")
+        o["fisherrf_over_method"] = (fr / lm) if fr and lm else None
+        cm = o.get("cpu_ms_mean")
+        o["fisherrf_over_method_cpu"] = (fr_cpu / cm) if fr_cpu and cm else None
+    from agilegs.service.bench.protocol import RESULTS_FORMAT
+
+    return {
+        "format": RESULTS_FORMAT,
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "profile": dict(profile),
+        "settings": dict(settings),
+        "environment": dict(environment),
+        "seeds": [int(s) for s in seeds],
+        "variants": [dict(v) for v in variants],
+        "scenes": out_scenes,
+        "summary": overall,
+        "invocation": dict(invocation),
+    }
+
+
+# ----------------------------------------------------------------------------- markdown
+def _display(key: str) -> str:
+    from agilegs.service.bench.protocol import display_name
+
+    return display_name(key)
+
+
+def _fmt(m: float | None, s: float | None, digits: int) -> str:
+    if m is None:
+        return "–"
+    if s is None:
+        return f"{m:.{digits}f}"
+    return f"{m:.{digits}f} ± {s:.{digits}f}"
+
+
+def _rank_marks(values: Mapping[str, float | None], higher: bool) -> dict[str, str]:
+    """'best' / 'second' marks (bold / italic) among the non-None values."""
+    vals = [(k, v) for k, v in values.items() if v is not None]
+    if len(vals) < 2:
+        return {}
+    order = sorted(vals, key=lambda kv: kv[1], reverse=higher)
+    marks = {order[0][0]: "best"}
+    if len(order) > 2:
+        marks[order[1][0]] = "second"
+    return marks
+
+
+def _mark(text: str, mark: str | None) -> str:
+    if mark == "best":
+        return f"**{text}**"
+    if mark == "second":
+        return f"_{text}_"
+    return text
+
+
+def _variants_in(results: Mapping[str, Any], group: str) -> list[str]:
+    return [v["key"] for v in results["variants"] if v["group"] == group
+            and v["key"] in results["summary"]]
+
+
+def _main_rows(results: Mapping[str, Any]) -> list[str]:
+    keys = [k for k in MAIN_ORDER if k in results["summary"]]
+    keys += [k for k in _variants_in(results, "main") if k not in keys]
+    return keys
+
+
+def render_table(results: Mapping[str, Any]) -> str:
+    """``table.md``: the paper's main results table and the companion tables."""
+    scenes = list(results["scenes"])
+    prof = results["profile"]
+    seeds = results["seeds"]
+    emb = results["settings"].get("embodied_k")
+    lines = [
+        f"# agilegs bench run: `{prof['name']}` profile",
+        "",
+        f"Scenes: {', '.join(scenes)}; seeds: {', '.join(map(str, seeds))}; "
+        f"{prof['initial_views']} initial views, one selection every {prof['interval']} steps"
+        f" up to {prof['view_budget'] or 'the step budget'} views, {prof['total_steps']} steps; "
+        f"shortlist N = {prof['shortlist_size']}"
+        + (f"; **embodied**: K = {emb} nearest candidates" if emb else "") + ".",
+        "Values are mean ± std over seeds; **bold** best, _italic_ second best. Selection time "
+        "is the mean latency per acquisition event (the `select` call; recomputing Ĥ is "
+        "reported apart). LPIPS is – when its weights are not available locally.",
+        "",
+    ]
+    keys = _main_rows(results)
+    if keys:
+        lines += _main_table(results, scenes, keys)
+        lines += _latency_table(results, keys)
+        lines += _trajectory_table(results, keys, emb)
+    # the ablations' reference rows (the paper's settings) are the main agile / agile_plus runs
+    sl = _variants_in(results, "shortlist")
+    if sl:
+        ref = results["settings"].get("shortlist_method", "agile")
+        lines += _shortlist_table(results, sl + [k for k in (ref,)
+                                                 if k in results["summary"]], ref)
+    bud = _variants_in(results, "budget")
+    if bud:
+        lines += _budget_table(results, bud + [k for k in ("agile_plus",)
+                                               if k in results["summary"]])
+    return "\n".join(lines) + "\n"
+
+
+def _main_table(results: Mapping[str, Any], scenes: list[str], keys: list[str]) -> list[str]:
+    head = "| Method |"
+    sep = "|---|"
+    for s in scenes:
+        head += f" {s} PSNR↑ | {s} SSIM↑ | {s} LPIPS↓ |"
+        sep += "---|---|---|"
+    head += " Avg. PSNR↑ | Avg. selection time (s)↓ |"
+    sep += "---|---|"
+    marks: dict[tuple[str, str], dict[str, str]] = {}
+    for s in scenes:
+        summ = results["scenes"][s]["summary"]
+        for metric, higher in (("psnr", True), ("ssim", True), ("lpips", False)):
+            marks[(s, metric)] = _rank_marks(
+                {k: summ.get(k, {}).get(f"{metric}_mean") for k in keys}, higher)
+    avg = results["summary"]
+    marks[("avg", "psnr")] = _rank_marks({k: avg[k]["psnr_mean"] for k in keys}, True)
+    marks[("avg", "time")] = _rank_marks({k: avg[k]["latency_ms_mean"] for k in keys}, False)
+    rows = ["## Main results", "", head, sep]
+    for k in keys:
+        row = f"| {_display(k)} |"
+        for s in scenes:
+            summ = results["scenes"][s]["summary"].get(k)
+            for metric, digits in (("psnr", 3), ("ssim", 4), ("lpips", 4)):
+                if summ is None:
+                    row += " – |"
+                    continue
+                txt = _fmt(summ[f"{metric}_mean"], summ[f"{metric}_std"], digits)
+                row += f" {_mark(txt, marks[(s, metric)].get(k))} |"
+        a = avg[k]
+        row += f" {_mark(_fmt(a['psnr_mean'], None, 3), marks[('avg', 'psnr')].get(k))} |"
+        t = a["latency_ms_mean"]
+        row += f" {_mark('–' if t is None else f'{t / 1e3:.3f}', marks[('avg', 'time')].get(k))} |"
+        rows.append(row)
+    return rows + [""]
+
+
+def _latency_table(results: Mapping[str, Any], keys: list[str]) -> list[str]:
+    rows = [
+        "## Selection latency per event",
+        "",
+        "Wall-clock milliseconds per event (mean; stages are the `select` breakdown), the "
+        "process CPU time of the same calls, and FisherRF's mean over each method's. On a "
+        "shared machine the wall clock carries other processes' load; the CPU time of these "
+        "single-threaded runs measures the work.",
+        "",
+        "| Method | mean (ms) | median (ms) | anchor | scoring | leverage | rerank | "
+        "CPU (ms) | Ĥ recompute (ms, apart) | FisherRF / method (wall) | "
+        "FisherRF / method (CPU) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for k in keys:
+        a = results["summary"][k]
+        stages: dict[str, list[float]] = {}
+        info: list[float] = []
+        for s in results["scenes"].values():
+            summ = s["summary"].get(k)
+            if summ is None:
+                continue
+            for st, v in summ["stages_ms_mean"].items():
+                stages.setdefault(st, []).append(v)
+            if summ["information_ms_mean"] is not None:
+                info.append(summ["information_ms_mean"])
+
+        def st(name: str, stages: dict[str, list[float]] = stages) -> str:
+            v = stages.get(name)
+            return f"{statistics.fmean(v):.1f}" if v else "–"
+
+        ratio = a.get("fisherrf_over_method")
+        ratio_cpu = a.get("fisherrf_over_method_cpu")
+        rows.append(
+            f"| {_display(k)} | {_num(a['latency_ms_mean'], 1)} | "
+            f"{_num(a['latency_ms_median'], 1)} | {st('anchor')} | {st('scoring')} | "
+            f"{st('leverage')} | {st('rerank')} | {_num(a.get('cpu_ms_mean'), 1)} | "
+            f"{_num(statistics.fmean(info) if info else None, 1)} | "
+            f"{'–' if ratio is None else f'{ratio:.1f}×'} | "
+            f"{'–' if ratio_cpu is None else f'{ratio_cpu:.1f}×'} |"
+        )
+    return rows + [""]
+
+
+def _num(v: float | None, digits: int) -> str:
+    return "–" if v is None else f"{v:.{digits}f}"
+
+
+def _trajectory_table(results: Mapping[str, Any], keys: list[str], emb: int | None) -> list[str]:
+    title = "## Acquisition trajectories" + (f" (embodied, K = {emb})" if emb else "")
+    rows = [
+        title,
+        "",
+        "Path length: sum of camera-centre distances from the last initial view through every "
+        "selected view (scene units); frame-index jump: mean |difference| of consecutive pool "
+        "indices (capture order).",
+        "",
+        "| Method | path length | mean frame-index jump |",
+        "|---|---|---|",
+    ]
+    for k in keys:
+        a = results["summary"][k]
+        rows.append(f"| {_display(k)} | {_num(a['path_length_mean'], 3)} | "
+                    f"{_num(a['mean_index_jump_mean'], 2)} |")
+    return rows + [""]
+
+
+def _ablation_rows(results: Mapping[str, Any], keys: list[str], ref: str | None,
+                   label: Any) -> list[str]:
+    rows = []
+    ref_lat = results["summary"].get(ref, {}).get("latency_ms_mean") if ref else None
+    for k in keys:
+        a = results["summary"][k]
+        lat = a["latency_ms_mean"]
+        speed = f"{ref_lat / lat:.2f}×" if ref_lat and lat else "–"
+        rows.append(f"| {label(k)} | {_num(a['psnr_mean'], 3)} | {_num(a['ssim_mean'], 4)} | "
+                    f"{_num(a['lpips_mean'], 4)} | {_num(lat, 1)} | {speed} |")
+    return rows
+
+
+def _shortlist_table(results: Mapping[str, Any], keys: list[str], ref: str) -> list[str]:
+    from agilegs.service.bench.protocol import SHORTLIST_DISPLAY
+
+    order = {f"{ref}@knearest": 0, f"{ref}@online": 1, f"{ref}@topnorm": 2, ref: 3}
+    keys = sorted(keys, key=lambda k: order.get(k, 9))
+    by_key = {v["key"]: v for v in results["variants"]}
+    name = _display(ref)
+
+    def label(k: str) -> str:
+        s = by_key[k]["shortlist"]
+        return f"{name} (ours: ridge leverage)" if s == "leverage" else SHORTLIST_DISPLAY.get(s, k)
+
+    note = []
+    if ref == "agile":
+        note = ["AGILE-GS takes the shortlist's first view; the first greedy ridge-leverage pick "
+                "(S_0 = λ_G I) is the largest-norm row, so top independent norm and ridge "
+                "leverage choose the same views by construction.", ""]
+    return [
+        f"## Ablation: shortlist strategy ({name}), averaged over scenes",
+        "",
+        *note,
+        f"| Strategy | PSNR↑ | SSIM↑ | LPIPS↓ | latency (ms) | Speed-up vs {name} |",
+        "|---|---|---|---|---|---|",
+        *_ablation_rows(results, keys, ref if ref in results["summary"] else None, label),
+        "",
+    ]
+
+
+def _budget_table(results: Mapping[str, Any], keys: list[str]) -> list[str]:
+    by_key = {v["key"]: v for v in results["variants"]}
+    keys = sorted(keys, key=lambda k: by_key[k]["shortlist_size"])
+    ref = "agile_plus" if "agile_plus" in results["summary"] else None
+    return [
+        "## Ablation: AGILE-GS+ shortlist budget N, averaged over scenes",
+        "",
+        "| N | PSNR↑ | SSIM↑ | LPIPS↓ | latency (ms) | Speed-up vs the default N |",
+        "|---|---|---|---|---|---|",
+        *_ablation_rows(results, keys, ref, lambda k: str(by_key[k]["shortlist_size"])),
+        "",
+    ]

@@ -1,0 +1,223 @@
+"""Candidate scoring without rendering any candidate (paper section 4.2).
+
+The anchor's viewing volume is discretised into K frustum support samples ``x_k``
+(``support_samples``): the surface seen by the anchor, from a cheap point z-buffer of the
+Gaussian means on a coarse grid, plus points along the anchor's rays in front of that
+surface. Every candidate v is then described by its row of the anchor coverage matrix
+
+    M_vk = rho_v^gamma * chi_vk * [d_v . r_vk]_+ / (||x_k - p_v|| + eps)        (eq. 10)
+    rho_v = exp(-||p_v - p*||^2 / (2 sigma_p^2)) * [d_v . d*]_+^2 * mean_k chi_vk   (eq. 9)
+
+with chi_vk the frustum containment of x_k in candidate v (depth beyond the near plane and
+inside the image) and r_vk the unit direction from the candidate centre to x_k. All
+candidates are processed at once as [D, K] tensors. ``jl_projection`` is the fixed, seeded
+Johnson-Lindenstrauss matrix Pi [K, d] with N(0, 1/d) entries, so ``B = M Pi``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from .camera import Intrinsics
+
+
+@dataclass
+class CoverageResult:
+    """The anchor coverage matrix and its parts.
+
+    Attributes:
+        m: coverage matrix M [D, K].
+        rho: consistency weights rho_v in [0, 1] [D].
+        chi: frustum containment chi_vk [D, K] (bool).
+        samples: support samples x_k [K, 3].
+    """
+
+    m: Tensor
+    rho: Tensor
+    chi: Tensor
+    samples: Tensor
+
+
+def project_points(
+    points: Tensor, c2w: Tensor, intrinsics: Intrinsics
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Project world points into one or many cameras.
+
+    Args:
+        points: world points [K, 3].
+        c2w: camera-to-world poses [4, 4] or [D, 4, 4] (OpenCV axes).
+        intrinsics: pinhole intrinsics shared by the cameras.
+
+    Returns:
+        ``(u, v, z)``: pixel coordinates and camera-space depth, each [K] or [D, K].
+    """
+    r = c2w[..., :3, :3]
+    t = c2w[..., :3, 3]
+    rel = points - t.unsqueeze(-2)  # [..., K, 3]
+    cam = rel @ r  # rows: (x - t)^T R = (R^T (x - t))^T
+    z = cam[..., 2]
+    zs = z.clamp_min(1e-9)
+    u = intrinsics.fx * cam[..., 0] / zs + intrinsics.cx
+    v = intrinsics.fy * cam[..., 1] / zs + intrinsics.cy
+    return u, v, z
+
+
+def frustum_visibility(
+    points: Tensor, c2w: Tensor, intrinsics: Intrinsics, near: float = 0.01
+) -> Tensor:
+    """chi: whether each point lies in each camera's frustum (depth > near, inside image).
+
+    Args:
+        points: world points [K, 3].
+        c2w: poses [D, 4, 4].
+
+    Returns:
+        Bool [D, K].
+    """
+    u, v, z = project_points(points, c2w, intrinsics)
+    return (z > near) & (u >= 0) & (u < intrinsics.width) & (v >= 0) & (v < intrinsics.height)
+
+
+def support_samples(
+    means: Tensor,
+    anchor_c2w: Tensor,
+    intrinsics: Intrinsics,
+    *,
+    opacities: Tensor | None = None,
+    grid: int = 64,
+    ray_samples: int = 1,
+    ray_min_fraction: float = 0.5,
+    min_opacity: float = 0.05,
+    near: float = 0.01,
+    max_samples: int = 2048,
+    generator: torch.Generator | None = None,
+) -> Tensor:
+    """K frustum support samples in the anchor's frustum.
+
+    Surface samples: the Gaussian means are projected into the anchor camera rescaled to a
+    ``grid`` x ``grid`` image, and in every occupied cell the nearest mean (of opacity at least
+    ``min_opacity``) is kept, a point z-buffer. Ray samples: for each surface sample,
+    ``ray_samples`` points on the anchor ray towards it at a uniformly drawn fraction in
+    ``[ray_min_fraction, 1)`` of its depth. If more than ``max_samples`` result, a seeded subset
+    is kept. When the anchor sees no Gaussian, the samples fall back to the grid's rays at the
+    depth of the means' median, so that M stays defined.
+
+    Args:
+        means: Gaussian centres [N, 3].
+        anchor_c2w: the anchor pose [4, 4].
+        intrinsics: the anchor camera's intrinsics (only the field of view matters).
+        opacities: opacities in [0, 1] [N] (None: all kept).
+
+    Returns:
+        Support samples [K, 3].
+    """
+    dev, dt = means.device, means.dtype
+    anchor = anchor_c2w.detach().to(dt)
+    small = intrinsics.scaled(grid, grid)
+    u, v, z = project_points(means.detach(), anchor, small)
+    ok = (z > near) & (u >= 0) & (u < grid) & (v >= 0) & (v < grid)
+    if opacities is not None:
+        ok &= opacities.detach() >= min_opacity
+    idx = torch.nonzero(ok).squeeze(1)
+    cam_pos = anchor[:3, 3]
+    if idx.numel() == 0:
+        depth = (means.detach().median(dim=0).values - cam_pos).norm().clamp_min(10 * near)
+        ys, xs = torch.meshgrid(
+            torch.arange(grid, device=dev, dtype=dt) + 0.5,
+            torch.arange(grid, device=dev, dtype=dt) + 0.5,
+            indexing="ij",
+        )
+        dirs = torch.stack(
+            [(xs - small.cx) / small.fx, (ys - small.cy) / small.fy, torch.ones_like(xs)], -1
+        ).reshape(-1, 3)
+        surf = cam_pos + (dirs * depth) @ anchor[:3, :3].T
+    else:
+        cell = v[idx].long() * grid + u[idx].long()
+        zi = z[idx]
+        order = torch.argsort(zi, stable=True)
+        order = order[torch.argsort(cell[order], stable=True)]  # by cell, then depth
+        cs = cell[order]
+        first = torch.ones_like(cs, dtype=torch.bool)
+        first[1:] = cs[1:] != cs[:-1]
+        surf = means.detach()[idx[order[first]]]
+    pieces = [surf]
+    if ray_samples > 0:
+        frac = ray_min_fraction + (1.0 - ray_min_fraction) * torch.rand(
+            ray_samples, surf.shape[0], 1, generator=generator, dtype=dt
+        ).to(dev)
+        pieces.append((cam_pos + frac * (surf - cam_pos)).reshape(-1, 3))
+    x = torch.cat(pieces, dim=0)
+    if x.shape[0] > max_samples:
+        keep = torch.randperm(x.shape[0], generator=generator)[:max_samples].to(dev)
+        x = x[torch.sort(keep).values]
+    return x
+
+
+def coverage_matrix(
+    samples: Tensor,
+    candidates: Tensor,
+    anchor_c2w: Tensor,
+    intrinsics: Intrinsics,
+    *,
+    sigma_p: float,
+    gamma: float = 1.0,
+    eps: float = 1e-3,
+    near: float = 0.01,
+) -> CoverageResult:
+    """The anchor coverage matrix M [D, K] (paper eqs. 8-10), all candidates at once.
+
+    Args:
+        samples: support samples x_k [K, 3].
+        candidates: candidate poses c2w [D, 4, 4].
+        anchor_c2w: anchor pose [4, 4].
+        intrinsics: the candidates' intrinsics (frustum test).
+        sigma_p: positional tolerance (world units) of rho's position factor.
+        gamma: sharpness of the row weight rho^gamma.
+        eps: numerical regulariser of the inverse range.
+        near: near plane of the frustum test.
+    """
+    if sigma_p <= 0 or gamma <= 0 or eps <= 0:
+        raise ValueError("sigma_p, gamma and eps must be positive")
+    c = candidates.detach().to(samples.dtype)
+    anchor = anchor_c2w.detach().to(samples.dtype)
+    r = c[:, :3, :3]
+    p = c[:, :3, 3]
+    rel = samples.unsqueeze(0) - p.unsqueeze(1)  # [D, K, 3]
+    cam = torch.einsum("dkj,dji->dki", rel, r)  # camera-frame coordinates
+    z = cam[..., 2]
+    dist = rel.norm(dim=-1)
+    zs = z.clamp_min(1e-9)
+    u = intrinsics.fx * cam[..., 0] / zs + intrinsics.cx
+    v = intrinsics.fy * cam[..., 1] / zs + intrinsics.cy
+    chi = (z > near) & (u >= 0) & (u < intrinsics.width) & (v >= 0) & (v < intrinsics.height)
+    cos = (z / dist.clamp_min(1e-12)).clamp_min(0.0)  # d_v . r_vk, rectified
+    kappa = torch.where(chi, cos / (dist + eps), torch.zeros_like(cos))
+    pos = torch.exp(-((p - anchor[:3, 3]) ** 2).sum(-1) / (2.0 * sigma_p**2))
+    orient = (r[:, :, 2] @ anchor[:3, 2]).clamp(0.0, 1.0) ** 2
+    cover = chi.to(samples.dtype).mean(dim=1)
+    rho = pos * orient * cover
+    m = rho.pow(gamma).unsqueeze(1) * kappa
+    return CoverageResult(m=m, rho=rho, chi=chi, samples=samples)
+
+
+def jl_projection(
+    num_samples: int,
+    dim: int,
+    *,
+    seed: int = 0,
+    dtype: torch.dtype = torch.float32,
+    device: torch.device | str | None = None,
+) -> Tensor:
+    """A fixed Johnson-Lindenstrauss projection Pi [K, d] with i.i.d. N(0, 1/d) entries.
+
+    Drawn on the CPU from ``torch.Generator().manual_seed(seed)``, so the same seed gives the
+    same matrix on every device.
+    """
+    if num_samples < 1 or dim < 1:
+        raise ValueError(f"JL projection needs K >= 1 and d >= 1, got K={num_samples}, d={dim}")
+    g = torch.Generator().manual_seed(int(seed))
+    pi = torch.randn(num_samples, dim, generator=g, dtype=torch.float64) / dim**0.5
+    return pi.to(dtype=dtype, device=device)

@@ -1,0 +1,287 @@
+"""The anchor ascent: monotone psi, the pool envelope, the proxy's parts, the exact psi."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from agilegs.service.nbv.anchor import (
+    AnchorConfig,
+    PoolEnvelope,
+    ProxyPsi,
+    ascend,
+    information_weights,
+    optimize_anchor,
+    typical_fisher_from_h_acc,
+    typical_fisher_from_views,
+)
+from agilegs.service.nbv.camera import Camera, Intrinsics, check_pose, look_at
+from agilegs.service.nbv.candidates import capture_pool
+from agilegs.service.nbv.gaussians import FIELD_NAMES, GaussianMap
+from agilegs.service.nbv.information import accumulate_information, fisher_diag, init_information
+from agilegs.service.nbv.se3 import se3_exp
+
+INTR = Intrinsics.from_fov(55.0, 32, 32)
+
+
+def tiny_scene(n: int = 250, seed: int = 0, dtype: torch.dtype = torch.float64):
+    """A blob of Gaussians, a 24-camera capture pool and Hhat from 3 of its views."""
+    g = torch.Generator().manual_seed(seed)
+    pts = 0.3 * torch.randn(n, 3, generator=g, dtype=torch.float64)
+    pts[:, 0] *= 1.5  # elongated so that views differ
+    cols = torch.rand(n, 3, generator=g, dtype=torch.float64)
+    gmap = GaussianMap.from_points(pts, cols, scale=0.05, opacity=0.7).to(dtype=dtype)
+    pool = capture_pool([0.0, 0.0, 0.0], 2.0, 24, seed=seed, dtype=dtype)
+    acq = pool[[0, 8, 9]]
+    h = init_information(gmap, 1e-6)
+    with torch.no_grad():
+        for p in acq:
+            h = accumulate_information(h, fisher_diag(gmap, Camera(c2w=p, intrinsics=INTR)))
+    return gmap, pool, acq, h
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return tiny_scene()
+
+
+def test_accepted_steps_never_lower_psi(scene) -> None:
+    gmap, pool, acq, h = scene
+    aim = gmap.means.median(dim=0).values
+    env = PoolEnvelope.from_pool(pool, aim)
+    cfg = AnchorConfig(iterations=8, step_size=0.3, num_starts=4)
+    res = optimize_anchor(
+        gmap,
+        h,
+        pool,
+        INTR,
+        config=cfg,
+        num_acquired=3,
+        envelope=env,
+        generator=torch.Generator().manual_seed(0),
+    )
+    assert len(res.traces) == 4
+    for trace in res.traces:
+        assert all(b >= a for a, b in zip(trace, trace[1:])), trace
+    assert res.psi == max(t[-1] for t in res.traces)
+    assert res.psi_trace[-1] == res.psi
+    assert any(len(t) > 1 for t in res.traces)  # some step was accepted
+    check_pose(res.c2w.unsqueeze(0))
+
+
+def test_line_search_rejects_steps_that_lower_psi() -> None:
+    # psi = -(distance of the camera from a target)^2: a huge step overshoots and must be
+    # rejected and halved; the trace still never decreases
+    target = torch.tensor([0.3, -0.2, 0.5], dtype=torch.float64)
+
+    def psi(c2w: torch.Tensor) -> torch.Tensor:
+        return -((c2w[:, :3, 3] - target) ** 2).sum(-1)
+
+    start = torch.eye(4, dtype=torch.float64).unsqueeze(0)
+    cfg = AnchorConfig(iterations=30, step_size=5.0, backtracks=10, min_rel_gain=0.0)
+    poses, vals, traces, _ = ascend(psi, start, config=cfg, envelope=None, radius=1.0)
+    assert all(b >= a for a, b in zip(traces[0], traces[0][1:]))
+    assert float(vals[0]) > -1e-3  # it converged to the target all the same
+    torch.testing.assert_close(poses[0, :3, 3], target, atol=0.05, rtol=0)
+
+
+def test_envelope_projection(scene) -> None:
+    _, pool, _, _ = scene
+    aim = torch.zeros(3, dtype=torch.float64)
+    env = PoolEnvelope.from_pool(pool, aim, margin=0.0)
+    assert bool(env.contains(pool).all())
+    # pool poses are unchanged by the projection
+    torch.testing.assert_close(env.project(pool), pool)
+    # poses inside the object, far away, straight above, looking away: all pulled back
+    bad = torch.stack(
+        [
+            look_at(
+                torch.tensor([0.05, 0.0, 0.0], dtype=torch.float64),
+                torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64),
+            ),
+            look_at(torch.tensor([0.0, -0.5, -20.0], dtype=torch.float64), aim),
+            look_at(torch.tensor([0.0, -3.0, 0.01], dtype=torch.float64), aim),
+            look_at(
+                torch.tensor([0.0, -0.5, -2.0], dtype=torch.float64),
+                torch.tensor([0.0, -0.5, -5.0], dtype=torch.float64),
+            ),
+        ]
+    )
+    assert not bool(env.contains(bad).any())
+    fixed = env.project(bad)
+    check_pose(fixed)
+    assert bool(env.contains(fixed).all())
+
+
+def test_anchor_stays_in_envelope_and_runs_into_the_object_without_it(scene) -> None:
+    gmap, pool, _, h = scene
+    aim = gmap.means.median(dim=0).values
+    env = PoolEnvelope.from_pool(pool, aim)
+    cfg = AnchorConfig(iterations=25, step_size=0.5, min_rel_gain=0.0, num_starts=2)
+    gen = torch.Generator().manual_seed(0)
+    guarded = optimize_anchor(
+        gmap, h, pool, INTR, config=cfg, num_acquired=3, envelope=env, generator=gen
+    )
+    assert bool(env.contains(guarded.c2w.unsqueeze(0)).all())
+    free = optimize_anchor(
+        gmap,
+        h,
+        pool,
+        INTR,
+        config=cfg,
+        num_acquired=3,
+        envelope=None,
+        generator=torch.Generator().manual_seed(0),
+    )
+    # unguarded, psi rewards closeness: the anchor leaves the pool's radius range
+    d_free = float((free.c2w[:3, 3] - env.centre).norm())
+    assert d_free < env.r_min or not bool(env.contains(free.c2w.unsqueeze(0)).all())
+
+
+def test_warm_start_is_one_of_the_starts(scene) -> None:
+    gmap, pool, _, h = scene
+    warm = pool[5].clone()
+    cfg = AnchorConfig(iterations=0, num_starts=2)
+    res = optimize_anchor(
+        gmap, h, pool, INTR, config=cfg, warm_c2w=warm, generator=torch.Generator().manual_seed(0)
+    )
+    assert res.starts.shape[0] == 3
+    torch.testing.assert_close(res.starts[-1], warm)
+    cold = optimize_anchor(
+        gmap,
+        h,
+        pool,
+        INTR,
+        config=AnchorConfig(iterations=0, num_starts=2, warm_start=False),
+        warm_c2w=warm,
+    )
+    assert cold.starts.shape[0] == 2
+
+
+def test_starts_are_the_best_pool_candidates_under_the_proxy(scene) -> None:
+    gmap, pool, _, h = scene
+    res = optimize_anchor(
+        gmap,
+        h,
+        pool,
+        INTR,
+        config=AnchorConfig(iterations=0, num_starts=3),
+        generator=torch.Generator().manual_seed(0),
+    )
+    assert res.pool_psi is not None
+    best = torch.topk(res.pool_psi, 3).indices.tolist()
+    assert res.extra["start_indices"] == best
+    assert res.psi == pytest.approx(float(res.pool_psi.max()), rel=1e-9)
+
+
+def test_proxy_twist_gradient_matches_finite_differences(scene) -> None:
+    gmap, pool, _, h = scene
+    typical = typical_fisher_from_h_acc(h, 3, FIELD_NAMES)
+    c = information_weights(h, typical, FIELD_NAMES)
+    proxy = ProxyPsi.build(gmap, c, INTR, num_samples=0, near=0.1, edge=1.6, generator=None)
+    base = pool[3:4]
+    xi = torch.zeros(1, 6, dtype=torch.float64, requires_grad=True)
+    val = proxy(base @ se3_exp(xi))
+    (g,) = torch.autograd.grad(val.sum(), xi)
+    eps = 1e-6
+    fd = torch.zeros(6, dtype=torch.float64)
+    for k in range(6):
+        e = torch.zeros(1, 6, dtype=torch.float64)
+        e[0, k] = eps
+        fd[k] = (proxy(base @ se3_exp(e)) - proxy(base @ se3_exp(-e)))[0] / (2 * eps)
+    torch.testing.assert_close(g[0], fd, rtol=1e-5, atol=1e-6 * float(fd.abs().max()))
+
+
+def test_importance_sampling_is_unbiased_and_seeded(scene) -> None:
+    gmap, pool, _, h = scene
+    typical = typical_fisher_from_h_acc(h, 3, FIELD_NAMES)
+    c = information_weights(h, typical, FIELD_NAMES)
+    full = ProxyPsi.build(gmap, c, INTR, num_samples=0, near=0.1, edge=1.6, generator=None)
+    vals = []
+    for seed in range(20):
+        s = ProxyPsi.build(
+            gmap,
+            c,
+            INTR,
+            num_samples=60,
+            near=0.1,
+            edge=1.6,
+            generator=torch.Generator().manual_seed(seed),
+        )
+        vals.append(s(pool[:4]))
+    mean = torch.stack(vals).mean(0)
+    torch.testing.assert_close(mean, full(pool[:4]), rtol=0.15, atol=0)
+    a = ProxyPsi.build(
+        gmap,
+        c,
+        INTR,
+        num_samples=60,
+        near=0.1,
+        edge=1.6,
+        generator=torch.Generator().manual_seed(3),
+    )
+    b = ProxyPsi.build(
+        gmap,
+        c,
+        INTR,
+        num_samples=60,
+        near=0.1,
+        edge=1.6,
+        generator=torch.Generator().manual_seed(3),
+    )
+    assert torch.equal(a.weight, b.weight) and torch.equal(a.means, b.means)
+
+
+def test_typical_fisher_estimates() -> None:
+    n = 100
+    lam = 1e-6
+    h_view = {"means": torch.full((n, 3), 2.0, dtype=torch.float64)}
+    h_view["means"][:10] = 0.0  # unseen Gaussians keep lambda
+    h_acc = {"means": lam + 3 * h_view["means"]}  # three views like this one
+    m = typical_fisher_from_h_acc(h_acc, 3, ("means",))
+    torch.testing.assert_close(m["means"], torch.full((3,), 2.0, dtype=torch.float64))
+    m2 = typical_fisher_from_views([h_view], ("means",))
+    torch.testing.assert_close(m2["means"], torch.full((3,), 2.0, dtype=torch.float64))
+    w = information_weights(h_acc, m, ("means",))
+    assert float(w[0]) == pytest.approx(3 * math.log1p(2.0 / lam))
+    assert float(w[50]) == pytest.approx(3 * math.log1p(2.0 / (lam + 6.0)))
+
+
+def test_exact_psi_ascent_is_monotone() -> None:
+    gmap, pool, _, h = tiny_scene(n=120, seed=1)
+    aim = gmap.means.median(dim=0).values
+    env = PoolEnvelope.from_pool(pool, aim)
+    cfg = AnchorConfig(psi="exact", iterations=2, num_starts=1, resolution=24, backtracks=2)
+    res = optimize_anchor(
+        gmap,
+        h,
+        pool,
+        INTR,
+        config=cfg,
+        num_acquired=3,
+        envelope=env,
+        generator=torch.Generator().manual_seed(0),
+    )
+    trace = res.psi_trace
+    assert all(b >= a for a, b in zip(trace, trace[1:]))
+    # the reported psi is the exact trace surrogate at the anchor
+    from agilegs.service.nbv.information import trace_surrogate
+
+    small = INTR.scaled(24, 24)
+    with torch.no_grad():
+        ref = trace_surrogate(fisher_diag(gmap, Camera(c2w=res.c2w, intrinsics=small)), h)
+    assert res.psi == pytest.approx(float(ref), rel=1e-6)
+
+
+def test_bad_anchor_config_raises() -> None:
+    for kwargs, word in [
+        ({"psi": "bogus"}, "psi"),
+        ({"iterations": -1}, "iterations"),
+        ({"step_size": 0.0}, "step_size"),
+        ({"num_starts": 0}, "num_starts"),
+        ({"resolution": 2}, "resolution"),
+    ]:
+        with pytest.raises(ValueError, match=word):
+            AnchorConfig(**kwargs).validate()  # type: ignore[arg-type]
