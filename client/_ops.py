@@ -53,14 +53,17 @@ class SyncOperations:
         defaults: m.SelectDefaults | Mapping[str, Any] | None = None,
         information: m.InformationConfig | Mapping[str, Any] | None = None,
         mapper: m.MapperOptions | Mapping[str, Any] | None = None,
+        instance: str | None = None,
     ) -> m.SessionInfo:
         """Create a session: with ``bounds`` (random Gaussians inside), from ``gaussians``
         (a .ply / .splat path, a GaussiansIn, or a dict of arrays), or from posed ``frames``.
-        ``mapper`` (MapperOptions) says how the service trains the map from the images."""
+        ``mapper`` (MapperOptions) says how the service trains the map from the images;
+        ``instance`` names the server instance to create it on (several instances joined
+        over Zenoh; default: the placement policy)."""
         return self._send(rq.create_session(  # type: ignore[no-any-return]
             intrinsics, id=id, bounds=bounds, gaussians=gaussians, frames=frames,
             init_gaussians=init_gaussians, seed=seed, pool=pool, defaults=defaults,
-            information=information, mapper=mapper))
+            information=information, mapper=mapper, instance=instance))
 
     def list_sessions(self) -> m.SessionList:
         return self._send(rq.call("list_sessions"))  # type: ignore[no-any-return]
@@ -161,11 +164,12 @@ class AsyncOperations:
         defaults: m.SelectDefaults | Mapping[str, Any] | None = None,
         information: m.InformationConfig | Mapping[str, Any] | None = None,
         mapper: m.MapperOptions | Mapping[str, Any] | None = None,
+        instance: str | None = None,
     ) -> m.SessionInfo:
         return await self._send(rq.create_session(  # type: ignore[no-any-return]
             intrinsics, id=id, bounds=bounds, gaussians=gaussians, frames=frames,
             init_gaussians=init_gaussians, seed=seed, pool=pool, defaults=defaults,
-            information=information, mapper=mapper))
+            information=information, mapper=mapper, instance=instance))
 
     async def list_sessions(self) -> m.SessionList:
         return await self._send(rq.call("list_sessions"))  # type: ignore[no-any-return]

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, ParamSpec, TypeVar
 
@@ -53,6 +53,7 @@ class Call:
     op: Operation
     session: str | None = None
     body: BaseModel | None = None
+    params: dict[str, str] | None = None  # query parameters (HTTP) / selector (Zenoh)
 
 
 def call(name: str, session: str | None = None, body: BaseModel | None = None) -> Call:
@@ -118,6 +119,7 @@ def create_session(
     defaults: m.SelectDefaults | Mapping[str, Any] | None = None,
     information: m.InformationConfig | Mapping[str, Any] | None = None,
     mapper: m.MapperOptions | Mapping[str, Any] | None = None,
+    instance: str | None = None,
 ) -> Call:
     body = m.SessionCreate(
         id=id,
@@ -132,7 +134,8 @@ def create_session(
         information=m.InformationConfig.model_validate(information or {}),
         mapper=m.MapperOptions.model_validate(mapper or {}),
     )
-    return call("create_session", None, body)
+    out = call("create_session", None, body)
+    return out if instance is None else replace(out, params={"instance": instance})
 
 
 @checked

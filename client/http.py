@@ -40,7 +40,7 @@ class _HTTPBase:
             content = codec.dump(call.body, self.kind)
             headers["content-type"] = self.kind
         return {"method": call.op.http_method, "url": path, "content": content,
-                "headers": headers}
+                "headers": headers, "params": call.params}
 
     def _response(self, call: Call, r: httpx.Response) -> BaseModel:
         kind = codec.media_type(r.headers.get("content-type")) or codec.JSON

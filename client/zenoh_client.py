@@ -108,12 +108,12 @@ class ZenohClient(SyncOperations):
         """Create a session (the arguments of :meth:`Client.create_session`); ``instance``
         names the server instance to create it on (default: the one with the fewest
         sessions, ties by smallest id)."""
-        call = rq.create_session(intrinsics, **kwargs)
-        if instance is None:
-            return self._send(call)  # type: ignore[return-value]
-        return self._send(call, f"instance={instance}")  # type: ignore[return-value]
+        call = rq.create_session(intrinsics, instance=instance, **kwargs)
+        return self._send(call)  # type: ignore[return-value]
 
     def _send(self, call: Call, parameters: str | None = None) -> BaseModel:
+        if parameters is None and call.params:
+            parameters = "&".join(f"{k}={v}" for k, v in call.params.items())
         key = self._key(call)
         selector = key if parameters is None else f"{key}?{parameters}"
         payload = codec.dump(call.body, codec.MSGPACK) if call.body is not None else None

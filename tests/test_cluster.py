@@ -16,7 +16,6 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-import httpx
 import numpy as np
 import pytest
 from conftest import SMALL_INTRINSICS, ServerProcess, ring_poses
@@ -216,10 +215,7 @@ def test_sessions_created_on_each_are_found_and_selected_through_either(pair: Pa
         s2 = _new(ca)                  # a: 1, b: 0 -> b (forwarded by a)
         s3 = _new(cb, "made-on-b")     # a: 1, b: 1 -> a (placed by b)
         s4 = _new(zc, instance="b")    # explicit, over Zenoh
-        r = httpx.post(pair.a.url + "/v1/sessions?instance=b", json={
-            "intrinsics": SMALL_INTRINSICS, "bounds": BOUNDS, "init_gaussians": 50})
-        assert r.status_code == 200, r.text
-        s5 = r.json()["id"]            # explicit, over HTTP on the other instance
+        s5 = _new(ca, instance="b")    # explicit, over HTTP on the other instance (?instance=b)
         s6 = _new(zc)                  # @service: the coordinator (a) places it: a 2, b 3 -> a
         owners = {sid: pair.owner_dir(sid) for sid in (s1, s2, s3, s4, s5, s6)}
         assert owners == {s1: "a", s2: "b", s3: "a", s4: "b", s5: "b", s6: "a"}
