@@ -38,9 +38,11 @@ from typing import Any
 
 import torch
 
+from agilegs.service.data import bundled_scene
+
 log = logging.getLogger(__name__)
 
-DEFAULT_SCENE = "/work/shared/data/scenes/plant/plant.splat"
+DEFAULT_SCENE = str(bundled_scene("spot"))  # the runs pass --scene explicitly
 BASE_METHODS = ("fisherrf", "random", "cover", "agile", "agile_plus")
 ABLATIONS = tuple(
     f"{m}_{s}" for s in ("knearest", "topnorm", "online") for m in ("agile", "agile_plus")

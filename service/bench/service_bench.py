@@ -37,7 +37,9 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-DEFAULT_SCENE = "/work/shared/data/scenes/teapot/teapot_10k.splat"
+from agilegs.service.data import bundled_scene  # noqa: E402
+
+DEFAULT_SCENE = str(bundled_scene("teapot"))
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
