@@ -264,13 +264,14 @@ def _axis_angle_to_matrix(axis: Tensor, angle: Tensor) -> Tensor:
 
 # ----------------------------------------------------------------------------- proxy psi
 def typical_fisher_from_h_acc(
-    h_acc: dict[str, Tensor], num_views: int, fields: tuple[str, ...]
+    h_acc: dict[str, Tensor], num_views: int, fields: tuple[str, ...], max_rows: int = 4096
 ) -> dict[str, Tensor]:
     """m_q per parameter slot from Hhat alone: median over Gaussians of (Hhat - lambda) / A.
 
     lambda is taken as each slot's minimum over Gaussians (Hhat = sum H_v + lambda, and some
     Gaussian is seen by no acquired view in practice); only Gaussians with Hhat above lambda
-    enter the median. ``num_views`` A >= 1 is the number of acquired views.
+    enter the median, taken over at most ``max_rows`` Gaussians (a fixed stride).
+    ``num_views`` A >= 1 is the number of acquired views.
     """
     out: dict[str, Tensor] = {}
     a = max(int(num_views), 1)
@@ -278,6 +279,8 @@ def typical_fisher_from_h_acc(
         h = h_acc[name].detach()
         flat = h.reshape(h.shape[0], -1)
         base = flat.amin(dim=0, keepdim=True)
+        if flat.shape[0] > max_rows:  # a fixed stride subsample: the median hardly moves
+            flat = flat[:: -(-flat.shape[0] // max_rows)]
         excess = flat - base
         excess = torch.where(
             excess > 1e-6 * base.abs().clamp_min(1e-30),
@@ -394,7 +397,7 @@ class ProxyPsi:
             if opaque.numel() > num_occluders:
                 pick = torch.randperm(opaque.numel(), generator=generator)[:num_occluders]
                 opaque = opaque[pick.to(opaque.device)]
-            occ = torch.cat([gmap.means.detach()[opaque], means])
+            occ = gmap.means.detach()[opaque]
         return cls(
             means=means,
             cov=cov,
@@ -408,8 +411,14 @@ class ProxyPsi:
         )
 
     @torch.no_grad()
-    def visibility(self, c2w: Tensor) -> Tensor:
-        """The z-buffer visibility of every sample from poses [B, 4, 4] -> [B, S] (0 / 1)."""
+    def visibility(
+        self, c2w: Tensor, sample_cam: tuple[Tensor, Tensor, Tensor] | None = None
+    ) -> Tensor:
+        """The z-buffer visibility of every sample from poses [B, 4, 4] -> [B, S] (0 / 1).
+
+        The samples occlude too. ``sample_cam``: the samples' camera coordinates (x, y, z),
+        each [B, S], when the caller has them already.
+        """
         b = c2w.shape[0]
         s = self.means.shape[0]
         dt = c2w.dtype
@@ -417,25 +426,27 @@ class ProxyPsi:
             return torch.ones(b, s, dtype=dt, device=c2w.device)
         g = self.occ_grid
         k = self.intrinsics
-        sx, sy = g / k.width, g / k.height
+        fx, fy = k.fx * g / k.width, k.fy * g / k.height
+        cx, cy = k.cx * g / k.width, k.cy * g / k.height
         rot = c2w[:, :3, :3].detach()
         t = c2w[:, :3, 3].detach()
-        offset = (torch.arange(b, device=c2w.device) * (g * g)).unsqueeze(1)
-
-        def cells(points: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-            x, y, z = _to_camera(points.to(dt), rot, t)
-            zs = z.clamp_min(1e-9)
-            u = (k.fx * x / zs + k.cx) * sx
-            v = (k.fy * y / zs + k.cy) * sy
-            ok = (z > self.near) & (u >= 0) & (u < g) & (v >= 0) & (v < g)
-            cell = v.clamp(0, g - 1).long() * g + u.clamp(0, g - 1).long() + offset
-            return cell, z, ok
-
-        oc, oz, ook = cells(self.occluders)
+        if sample_cam is None:
+            sample_cam = _to_camera(self.means.to(dt), rot, t)
+        ox, oy, oz = _to_camera(self.occluders.to(dt), rot, t)
+        x = torch.cat([ox, sample_cam[0].detach()], dim=1)
+        y = torch.cat([oy, sample_cam[1].detach()], dim=1)
+        z = torch.cat([oz, sample_cam[2].detach()], dim=1)
+        iz = 1.0 / z.clamp_min(1e-9)
+        u = x * iz * fx + cx
+        v = y * iz * fy + cy
+        ok = (z > self.near) & (u >= 0) & (u < g) & (v >= 0) & (v < g)
+        cell = v.clamp(0, g - 1).long() * g + u.clamp(0, g - 1).long()
+        cell += (torch.arange(b, device=c2w.device) * (g * g)).unsqueeze(1)
         zbuf = torch.full((b * g * g,), float("inf"), dtype=dt, device=c2w.device)
-        zbuf = zbuf.scatter_reduce(0, oc[ook], oz[ook], reduce="amin")
-        sc, sz, sok = cells(self.means)
-        vis = sok & (sz <= zbuf[sc] * (1.0 + self.occ_tol))
+        zbuf = zbuf.scatter_reduce(0, cell[ok], z[ok], reduce="amin")
+        n_occ = ox.shape[1]
+        sc, sz = cell[:, n_occ:], z[:, n_occ:]
+        vis = ok[:, n_occ:] & (sz <= zbuf[sc] * (1.0 + self.occ_tol))
         return vis.to(dt)
 
     def __call__(self, c2w: Tensor) -> Tensor:
@@ -492,7 +503,7 @@ class ProxyPsi:
             * torch.sigmoid(v / e)
             * torch.sigmoid((k.height - v) / e)
         )
-        vis = self.visibility(c2w)
+        vis = self.visibility(c2w, (x, y, z))
         return (foot * inside * vis) @ self.weight.to(dt)
 
     def __post_init__(self) -> None:
