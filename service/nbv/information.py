@@ -41,7 +41,7 @@ from agilegs.service.nbv.rasterize import (
     dcolor_dalpha,
     gather_lists,
     pixel_monomials,
-    project_gaussians,
+    project_map,
     render,
     tile_pixels,
 )
@@ -111,15 +111,7 @@ def screen_second_moments(
     Differentiable in whatever ``gmap`` and ``camera.c2w`` carry a graph for.
     """
     dt, dev = gmap.means.dtype, gmap.means.device
-    proj = project_gaussians(
-        gmap.means,
-        gmap.log_scales,
-        gmap.quats,
-        gmap.opacity_logits,
-        gmap.sh,
-        camera,
-        near=near,
-    )
+    proj = project_map(gmap, camera, near=near)
     bg = (
         torch.zeros(3, dtype=dt, device=dev)
         if background is None
@@ -236,15 +228,7 @@ def fisher_diag(
     leaves = {k: v.requires_grad_(True) for k, v in gmap.detach().items()}
     jac: dict[str, list[Tensor]] = {f: [] for f in want}
     with torch.enable_grad():
-        proj = project_gaussians(
-            leaves["means"],
-            leaves["log_scales"],
-            leaves["quats"],
-            leaves["opacity_logits"],
-            leaves["sh"],
-            camera,
-            near=near,
-        )
+        proj = project_map(GaussianMap(**leaves), camera, near=near)
         wanted_leaves = [leaves[f] for f in want]
         for out in _screen_outputs(proj):
             grads = torch.autograd.grad(

@@ -193,6 +193,14 @@ def project_gaussians(
     )
 
 
+def project_map(gmap: GaussianMap, camera: Camera, *, near: float = 0.01) -> Projected:
+    """:func:`project_gaussians` on the fields of ``gmap``."""
+    g = gmap
+    return project_gaussians(
+        g.means, g.log_scales, g.quats, g.opacity_logits, g.sh, camera, near=near
+    )
+
+
 # ----------------------------------------------------------------------------- binning
 @dataclass
 class Binning:
@@ -669,15 +677,7 @@ def render(
     """
     _check_inputs(gmap, camera)
     dt, dev = gmap.means.dtype, gmap.means.device
-    proj = project_gaussians(
-        gmap.means,
-        gmap.log_scales,
-        gmap.quats,
-        gmap.opacity_logits,
-        gmap.sh,
-        camera,
-        near=near,
-    )
+    proj = project_map(gmap, camera, near=near)
     bg = (
         torch.zeros(3, dtype=dt, device=dev)
         if background is None
@@ -724,9 +724,7 @@ def render(
 def tile_pair_count(gmap: GaussianMap, camera: Camera, tile_size: int = 8) -> int:
     """Number of (tile, Gaussian) pairs a render would process (for diagnostics)."""
     with torch.no_grad():
-        proj = project_gaussians(
-            gmap.means, gmap.log_scales, gmap.quats, gmap.opacity_logits, gmap.sh, camera
-        )
+        proj = project_map(gmap, camera)
         b = bin_gaussians(
             proj.means2d, proj.radii, proj.depths, camera.width, camera.height, tile_size
         )
@@ -742,6 +740,7 @@ __all__ = [
     "composite_chunk",
     "covariance_3d",
     "project_gaussians",
+    "project_map",
     "quat_to_rotmat",
     "render",
 ]
