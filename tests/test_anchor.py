@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -13,6 +14,7 @@ from agilegs.service.nbv.anchor import (
     ProxyPsi,
     ascend,
     information_weights,
+    observation_rates,
     optimize_anchor,
     typical_fisher_from_h_acc,
     typical_fisher_from_views,
@@ -285,3 +287,95 @@ def test_bad_anchor_config_raises() -> None:
     ]:
         with pytest.raises(ValueError, match=word):
             AnchorConfig(**kwargs).validate()  # type: ignore[arg-type]
+
+
+# ----------------------------------------------------------------------------- fitted model
+FIT_KW = dict(near=0.1, edge=1.6, num_occluders=0, occ_grid=48, occ_tol=0.02)
+
+
+def _terms(gmap, poses):
+    ones = torch.ones(gmap.num_gaussians, dtype=gmap.dtype)
+    full = ProxyPsi.build(gmap, ones, INTR, num_samples=0, near=0.1, edge=1.6, generator=None)
+    return full(poses, per_sample=True)
+
+
+def test_observation_rates_follow_the_acquired_views(scene) -> None:
+    gmap, _, acq, h = scene
+    once = observation_rates(gmap, h, acq[:1], INTR, FIELD_NAMES, **FIT_KW)
+    twice = observation_rates(gmap, h, torch.cat([acq[:1], acq[:1]]), INTR, FIELD_NAMES, **FIT_KW)
+    terms = _terms(gmap, acq[:1])[0]
+    torch.testing.assert_close(once.accumulated, terms)
+    torch.testing.assert_close(twice.accumulated, 2 * terms)
+    assert once.typical == pytest.approx(float(terms[terms > 1e-6].median()))
+    assert once.slots == sum(getattr(gmap, f)[0].numel() for f in FIELD_NAMES)
+    seen = terms >= 0.25 * once.typical
+    assert seen.sum() > 10
+    # the same Hhat spread over twice the observation: half the rate
+    torch.testing.assert_close(twice.rate[seen], once.rate[seen] / 2)
+
+
+def test_observation_rates_of_unconstrained_and_unseen_gaussians(scene) -> None:
+    gmap, _, acq, h = scene
+    h = {k: v.clone() for k, v in h.items()}
+    terms = _terms(gmap, acq).sum(0)
+    fit0 = observation_rates(gmap, h, acq, INTR, FIELD_NAMES, **FIT_KW)
+    seen = torch.nonzero(terms >= 0.25 * fit0.typical).squeeze(1)
+    hidden = int(seen[0])  # seen by the proxy, but Hhat says no view constrains it
+    for k in h:
+        h[k][hidden] = h[k].reshape(h[k].shape[0], -1).amin(0).reshape(h[k].shape[1:])
+    means = gmap.means.detach().clone()
+    behind = 1  # moved behind every acquired camera: the proxy never sees it
+    means[behind] = acq[0, :3, 3] - 5.0 * acq[0, :3, 2]
+    moved = dataclasses.replace(gmap.clone(), means=means)
+    fit = observation_rates(moved, h, acq[:1], INTR, FIELD_NAMES, **FIT_KW)
+    assert float(fit.rate[hidden]) == 0.0
+    assert float(fit.accumulated[behind]) < 1e-9
+    assert float(fit.rate[behind]) == pytest.approx(4.0 / fit.typical)
+
+
+def test_log_form_proxy_and_its_importance_sampling(scene) -> None:
+    gmap, pool, acq, h = scene
+    fit = observation_rates(gmap, h, acq, INTR, FIELD_NAMES, **FIT_KW)
+    c = fit.slots * torch.log1p(fit.rate * fit.typical)
+    kw = dict(near=0.1, edge=1.6, rate=fit.rate, slots=fit.slots)
+    full = ProxyPsi.build(gmap, c, INTR, num_samples=0, generator=None, **kw)
+    want = (fit.slots * torch.log1p(fit.rate * _terms(gmap, pool[:4]))).sum(1)
+    torch.testing.assert_close(full(pool[:4]), want)
+    vals = [
+        ProxyPsi.build(
+            gmap, c, INTR, num_samples=60, generator=torch.Generator().manual_seed(s), **kw
+        )(pool[:4])
+        for s in range(30)
+    ]
+    torch.testing.assert_close(torch.stack(vals).mean(0), want, rtol=0.15, atol=0)
+
+
+def test_fitted_model_ranks_the_pool_like_the_exact_eig() -> None:
+    """Views of the side no acquired view saw score high under the proxy and the exact EIG."""
+    from agilegs.service.nbv.selectors import eig_scores
+
+    gmap, pool, _, _ = tiny_scene(n=300, seed=1)
+    acq = pool[[0, 1, 2]]  # neighbours in capture order: one side of the blob
+    h = init_information(gmap, 1e-6)
+    with torch.no_grad():
+        for p in acq:
+            h = accumulate_information(h, fisher_diag(gmap, Camera(c2w=p, intrinsics=INTR)))
+    phi = eig_scores(gmap, h, pool, INTR)
+    gen = torch.Generator().manual_seed(0)
+    fitted = optimize_anchor(
+        gmap, h, pool, INTR, config=AnchorConfig(iterations=0), acquired=acq, generator=gen
+    )
+    assert fitted.extra["model"] == "fitted"
+    assert fitted.pool_psi is not None
+
+    def ranks(x: torch.Tensor) -> torch.Tensor:
+        return x.argsort().argsort().double()
+
+    rho = float(torch.corrcoef(torch.stack([ranks(fitted.pool_psi), ranks(phi)]))[0, 1])
+    assert rho > 0.5, rho
+    best = int(fitted.pool_psi.argmax())
+    assert float((phi < phi[best]).double().mean()) >= 0.75
+    typical = optimize_anchor(
+        gmap, h, pool, INTR, config=AnchorConfig(iterations=0), generator=gen
+    )
+    assert typical.extra["model"] == "typical"

@@ -14,7 +14,9 @@ Besides the five methods, the shortlist ablations (``agile_<s>`` and ``agile_plu
 knearest, topnorm, online) and anchor variants that measure what each shortcut costs
 (``agile_plus@exact``: exact psi; ``@all_gaussians``: no importance sampling; ``@no_ascent``:
 best pool start under the proxy, no gradient steps; ``@cold``: no warm start;
-``@start_view``: typical Fisher from one Fisher pass instead of Hhat) are timed. Each
+``@typical``: the proxy's older observation model, one typical Fisher value per parameter
+slot, instead of the model fitted to Hhat; ``@start_view``: that typical model with its
+Fisher value from one Fisher pass instead of Hhat) are timed. Each
 record holds ``median_ms`` (wall clock, what ``Selection.latency_ms`` says),
 ``cpu_median_ms`` (process CPU time, less sensitive to other load on a shared machine),
 ``stages_ms`` (per-stage medians), ``eig_percentile`` and,
@@ -52,6 +54,7 @@ VARIANTS = (
     "agile_plus@cold",
     "agile_plus@all_gaussians",
     "agile_plus@start_view",
+    "agile_plus@typical",
     "agile_plus@exact",
 )
 
@@ -129,7 +132,9 @@ def _config_for(name: str, base: Any) -> tuple[str, Any]:
     elif variant == "cold":
         cfg.anchor = replace(cfg.anchor, warm_start=False)
     elif variant == "start_view":
-        cfg.anchor = replace(cfg.anchor, typical_fisher="start_view")
+        cfg.anchor = replace(cfg.anchor, model="typical", typical_fisher="start_view")
+    elif variant == "typical":
+        cfg.anchor = replace(cfg.anchor, model="typical")
     return method, cfg
 
 

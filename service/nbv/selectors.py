@@ -500,6 +500,7 @@ def select(
             warm_c2w=warm,
             typical=typical,
             generator=_generator(config.seed, event, 2),
+            acquired=acquired.to(dt) if acquired is not None else None,
         )
         anchor_c2w = res.c2w
         psi_trace = list(res.psi_trace)
