@@ -8,22 +8,27 @@ transport), ``path.session``, ``query.<name>``, ``header.<name>``, followed by a
 names and ``[i]`` list indices. ``errors`` lists every problem found (``field`` and
 ``message`` repeat the first). Codes:
 
-=====================  ======  ====================================================
-code                   status  meaning
-=====================  ======  ====================================================
-``bad_request``        400     the body could not be decoded (not JSON / msgpack)
-``unauthorized``       401     missing or wrong bearer token
-``not_found``          404     unknown session, candidate, view, or route
-``method_not_allowed`` 405     the route exists but not with this method
-``not_acceptable``     406     Accept names no type the server produces
-``conflict``           409     the session's state forbids it (id taken, empty pool, ...)
-``payload_too_large``  413     body over the ``max_body_bytes`` setting
-``unsupported_media``  415     Content-Type is neither JSON nor msgpack
-``invalid``            422     a value is malformed or out of range (the field says which)
-``limit_exceeded``     429     a server limit (sessions, pool size, pixels...) was reached
-``internal``           500     a server bug (bad input never yields it)
-``unavailable``        503     the server is shutting down or a dependency is missing
-=====================  ======  ====================================================
+========================  ======  ====================================================
+code                      status  meaning
+========================  ======  ====================================================
+``bad_request``           400     the body could not be decoded (not JSON / msgpack)
+``unauthorized``          401     missing or wrong bearer token
+``not_found``             404     unknown session, candidate, view, or route
+``session_unavailable``   404     scale-out: no live instance answers for the session
+``instance_unavailable``  404     scale-out: no live instance has the requested id
+``method_not_allowed``    405     the route exists but not with this method
+``not_acceptable``        406     Accept names no type the server produces
+``conflict``              409     the session's state forbids it (id taken, empty pool, ...)
+``payload_too_large``     413     body over the ``max_body_bytes`` setting
+``limit_exceeded``        413     a value over a server limit (pool size, pixels, ...)
+``unsupported_media``     415     Content-Type is neither JSON nor msgpack
+``invalid``               422     a value is malformed or out of range (the field says which)
+``too_many``              429     a count limit was reached (sessions, views per session)
+``internal``              500     a server bug (bad input never yields it)
+``bad_gateway``           502     scale-out: the owning instance's answer was unusable
+``unavailable``           503     the server is shutting down or a dependency is missing
+``gateway_timeout``       504     scale-out: the owning instance did not answer in time
+========================  ======  ====================================================
 """
 
 from __future__ import annotations

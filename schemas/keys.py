@@ -11,6 +11,9 @@ key expression                         kind          payload (msgpack of a schem
 ``agilegs/<session>/candidates``       subscription  PoolIn, from a robot (replaces the pool)
 ``agilegs/<session>/decisions``        publication   SelectResponse, every decision
 ``agilegs/<session>/errors``           publication   ErrorBody, a frames/candidates refusal
+``agilegs/@instances/<id>/<op>``       queryable     one instance's :data:`INSTANCE_OPS`
+                                                     (scale-out: the same payloads as
+                                                     ``@service``)
 =====================================  ============  =======================================
 
 A query's reply is the operation's response model, or an error reply carrying an
@@ -19,7 +22,8 @@ msgpack (JSON is accepted and answered in kind when the query's encoding says
 ``application/json``). With a server token, queries and publications carry the attachment
 ``Bearer <token>``.
 
-``@service`` is a verbatim chunk: wildcards such as ``agilegs/*/select`` never match it.
+``@service`` and ``@instances`` are verbatim chunks: wildcards such as ``agilegs/*/select``
+never match them. An instance id is one key chunk matching :data:`INSTANCE_ID_PATTERN`.
 """
 
 from __future__ import annotations
@@ -33,10 +37,17 @@ __all__ = [
     "DECISIONS",
     "ERRORS",
     "FRAMES",
+    "INSTANCES",
+    "INSTANCE_ID_PATTERN",
+    "INSTANCE_OPS",
     "PREFIX",
     "SERVICE",
     "SERVICE_OPS",
     "SESSION_OPS",
+    "check_instance_id",
+    "instance_key",
+    "instances_wildcard",
+    "parse_instance_key",
     "parse_session_key",
     "service_key",
     "session_key",
@@ -100,3 +111,44 @@ def parse_session_key(key: str) -> tuple[str, str]:
     if len(parts) != 3 or parts[0] != PREFIX:
         raise ValueError(f"key {key!r} is not {PREFIX}/<session>/<op>")
     return parts[1], parts[2]
+
+
+# ----------------------------------------------------------------------------- instances
+INSTANCES = "@instances"
+"""Verbatim key chunk under which instances answer (``agilegs/@instances/<id>/<op>``)."""
+
+INSTANCE_ID_PATTERN = r"^[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}$"
+"""An instance id: one Zenoh key chunk of letters, digits, ``_``, ``-`` and ``.``."""
+
+INSTANCE_OPS: tuple[str, ...] = ("health", "create_session", "list_sessions")
+
+_INSTANCE_RE = re.compile(INSTANCE_ID_PATTERN)
+
+
+def check_instance_id(instance: str, field: str = "instance") -> str:
+    """``instance`` if it is a valid instance id, else ValueError naming ``field``."""
+    if not isinstance(instance, str) or not _INSTANCE_RE.match(instance):
+        raise ValueError(f"{field} {instance!r} must match {INSTANCE_ID_PATTERN}")
+    return instance
+
+
+def instance_key(instance: str, op: str) -> str:
+    """``agilegs/@instances/<instance>/<op>`` for ``op`` in :data:`INSTANCE_OPS`."""
+    if op not in INSTANCE_OPS:
+        raise ValueError(f"op {op!r} is not one of {INSTANCE_OPS}")
+    return f"{PREFIX}/{INSTANCES}/{check_instance_id(instance)}/{op}"
+
+
+def instances_wildcard(op: str = "health") -> str:
+    """``agilegs/@instances/*/<op>``: every instance's ``op``."""
+    if op not in INSTANCE_OPS:
+        raise ValueError(f"op {op!r} is not one of {INSTANCE_OPS}")
+    return f"{PREFIX}/{INSTANCES}/*/{op}"
+
+
+def parse_instance_key(key: str) -> tuple[str, str]:
+    """``(instance, op)`` of ``agilegs/@instances/<instance>/<op>``; ValueError otherwise."""
+    parts = str(key).split("/")
+    if len(parts) != 4 or parts[0] != PREFIX or parts[1] != INSTANCES:
+        raise ValueError(f"key {key!r} is not {PREFIX}/{INSTANCES}/<instance>/<op>")
+    return check_instance_id(parts[2], "key"), parts[3]

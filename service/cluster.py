@@ -80,6 +80,15 @@ from pydantic import BaseModel, ValidationError
 from agilegs.schemas import codec, keys
 from agilegs.schemas import models as m
 from agilegs.schemas.errors import ErrorBody
+from agilegs.schemas.keys import (
+    INSTANCE_ID_PATTERN,
+    INSTANCE_OPS,
+    INSTANCES,
+    check_instance_id,
+    instance_key,
+    instances_wildcard,
+    parse_instance_key,
+)
 from agilegs.schemas.ops import OPERATIONS, Operation
 
 from .core import ServiceError, validation_error
@@ -91,7 +100,9 @@ if TYPE_CHECKING:
 __all__ = [
     "INSTANCES",
     "INSTANCE_ID_PATTERN",
+    "INSTANCE_OPS",
     "ClusterNode",
+    "check_instance_id",
     "default_instance_id",
     "instance_key",
     "instances_wildcard",
@@ -101,21 +112,12 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-INSTANCES = "@instances"
-"""Verbatim key chunk under which instances answer (``agilegs/@instances/<id>/<op>``)."""
-
-INSTANCE_ID_PATTERN = r"^[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}$"
-"""An instance id: one Zenoh key chunk of letters, digits, ``_``, ``-`` and ``.``."""
-
-INSTANCE_OPS: tuple[str, ...] = ("health", "create_session", "list_sessions")
-
 PROBE_TIMEOUT = 2.0
 """Seconds to wait for the live instances' health replies (they answer inline)."""
 
 SYNC_INTERVAL = 1.0
 """Seconds between two checks that the declared sessions match the loaded ones."""
 
-_INSTANCE_RE = re.compile(INSTANCE_ID_PATTERN)
 _SESSION_RE = re.compile(m.SESSION_ID_PATTERN)
 
 # on_query(query, op, session, local, reply_key): the Zenoh adapter's answering entry point
@@ -123,35 +125,6 @@ QueryHandler = Callable[[Any, str, "str | None", bool, "str | None"], None]
 
 
 # ============================================================================ keys and policy
-def check_instance_id(instance: str, field: str = "instance") -> str:
-    """``instance`` if it is a valid instance id, else ValueError naming ``field``."""
-    if not isinstance(instance, str) or not _INSTANCE_RE.match(instance):
-        raise ValueError(f"{field} {instance!r} must match {INSTANCE_ID_PATTERN}")
-    return instance
-
-
-def instance_key(instance: str, op: str) -> str:
-    """``agilegs/@instances/<instance>/<op>`` for ``op`` in :data:`INSTANCE_OPS`."""
-    if op not in INSTANCE_OPS:
-        raise ValueError(f"op {op!r} is not one of {INSTANCE_OPS}")
-    return f"{keys.PREFIX}/{INSTANCES}/{check_instance_id(instance)}/{op}"
-
-
-def instances_wildcard(op: str = "health") -> str:
-    """``agilegs/@instances/*/<op>``: every instance's ``op``."""
-    if op not in INSTANCE_OPS:
-        raise ValueError(f"op {op!r} is not one of {INSTANCE_OPS}")
-    return f"{keys.PREFIX}/{INSTANCES}/*/{op}"
-
-
-def parse_instance_key(key: str) -> tuple[str, str]:
-    """``(instance, op)`` of ``agilegs/@instances/<instance>/<op>``; ValueError otherwise."""
-    parts = str(key).split("/")
-    if len(parts) != 4 or parts[0] != keys.PREFIX or parts[1] != INSTANCES:
-        raise ValueError(f"key {key!r} is not {keys.PREFIX}/{INSTANCES}/<instance>/<op>")
-    return check_instance_id(parts[2], "key"), parts[3]
-
-
 def session_queryable_key(session: str) -> str:
     """``agilegs/<session>/*``: every operation of one session."""
     if not _SESSION_RE.match(session):

@@ -18,10 +18,10 @@ from fastapi.responses import Response
 
 from agilegs.schemas import codec
 from agilegs.schemas.errors import ErrorBody
+from agilegs.schemas.keys import INSTANCE_ID_PATTERN
 from agilegs.schemas.models import SESSION_ID_PATTERN
 from agilegs.schemas.ops import OPERATIONS, Operation
 
-from .cluster import INSTANCE_ID_PATTERN
 from .core import ServiceCore, ServiceError
 from .metrics import Metrics
 from .settings import Settings
