@@ -19,7 +19,9 @@ slot, instead of the model fitted to Hhat; ``@start_view``: that typical model w
 Fisher value from one Fisher pass instead of Hhat) are timed. Each
 record holds ``median_ms`` (wall clock, what ``Selection.latency_ms`` says),
 ``cpu_median_ms`` (process CPU time, less sensitive to other load on a shared machine),
-``stages_ms`` (per-stage medians), ``eig_percentile`` and,
+``stages_ms`` (per-stage medians), ``eig_percentile``, for anchor methods
+``proxy_spearman`` (the rank correlation of the anchor's proxy psi of every pool candidate
+with the exact phi, mean over events) and,
 for shortlist methods, ``head_eig_percentile`` (the percentile of the shortlist's first,
 i.e. what AGILE-GS picks from that shortlist).
 """
@@ -93,6 +95,15 @@ def _load_map(path: str, max_gaussians: int, seed: int) -> Any:
         idx = torch.sort(torch.randperm(len(gmap), generator=gen)[:max_gaussians]).values
         gmap = gmap.subset(idx)
     return gmap
+
+
+def _spearman(a: torch.Tensor, b: torch.Tensor) -> float:
+    """Spearman rank correlation of two score vectors [D] (ties broken by index)."""
+    if a.numel() < 2:
+        return float("nan")
+    ra = a.argsort(stable=True).argsort().to(torch.float64)
+    rb = b.argsort(stable=True).argsort().to(torch.float64)
+    return float(torch.corrcoef(torch.stack([ra, rb]))[0, 1])
 
 
 def _method_list(spec: str) -> list[str]:
@@ -221,6 +232,10 @@ def run(args: argparse.Namespace) -> int:
                 )
             if sel.psi_trace:
                 rec.setdefault("psi_gain", []).append(sel.psi_trace[-1] / sel.psi_trace[0])
+            pool_psi = sel.details.get("pool_proxy_psi")
+            if pool_psi and len(pool_psi) == len(pool):
+                proxy = torch.tensor([pool_psi[i] for i in range(len(pool))], dtype=torch.float64)
+                rec.setdefault("spearman", []).append(_spearman(proxy, phi_all))
             log.info(
                 "event %d %-26s %9.1f ms  pick %3d  eig pct %5.1f",
                 event,
@@ -255,6 +270,8 @@ def run(args: argparse.Namespace) -> int:
             out["shortlist_best_eig_percentile"] = statistics.fmean(rec["shortlist_best_pct"])
         if rec.get("psi_gain"):
             out["psi_gain"] = statistics.fmean(rec["psi_gain"])
+        if rec.get("spearman"):
+            out["proxy_spearman"] = statistics.fmean(rec["spearman"])
         methods_out[name] = out
     fr = methods_out["fisherrf"]["median_ms"]
     fr_cpu = methods_out["fisherrf"]["cpu_median_ms"]
@@ -298,17 +315,19 @@ def _print_table(methods: dict[str, Any]) -> None:
 
     lines = [
         "| method | median ms | anchor | scoring | leverage | rerank | FisherRF / method "
-        "| CPU ms | FisherRF / method (CPU) | EIG pct | head pct |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| CPU ms | FisherRF / method (CPU) | EIG pct | head pct | proxy Spearman |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, m in methods.items():
         s = m["stages_ms"]
         head = m.get("head_eig_percentile")
+        rho = m.get("proxy_spearman")
         lines.append(
             f"| {name} | {m['median_ms']:.1f} | {s['anchor']:.1f} | {s['scoring']:.1f} | "
             f"{s['leverage']:.1f} | {s['rerank']:.1f} | {m['speedup_vs_fisherrf']:.1f}x | "
             f"{m['cpu_median_ms']:.1f} | {m['cpu_speedup_vs_fisherrf']:.1f}x | "
             f"{m['eig_percentile']:.1f} | "
-            f"{'' if head is None or math.isnan(head) else f'{head:.1f}'} |"
+            f"{'' if head is None or math.isnan(head) else f'{head:.1f}'} | "
+            f"{'' if rho is None or math.isnan(rho) else f'{rho:.2f}'} |"
         )
     sys.stdout.write("\n".join(lines) + "\n")
