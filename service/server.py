@@ -58,13 +58,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="fsync before acknowledging (AGILEGS_FSYNC, the default)")
     f.add_argument("--no-fsync", dest="fsync", action="store_const", const=False,
                    help="skip fsync (state survives a killed process, not a power cut)")
+    m = parser.add_mutually_exclusive_group()
+    m.add_argument("--mapper", dest="mapper", action="store_const", const=True,
+                   help="train sessions' maps from the images they receive (AGILEGS_MAPPER, "
+                        "the default)")
+    m.add_argument("--no-mapper", dest="mapper", action="store_const", const=False,
+                   help="keep maps as pushed: images are stored, not trained on")
+    a("--mapper-steps-per-view", type=int,
+      help="mapper training steps per view with an image (AGILEGS_MAPPER_STEPS_PER_VIEW, 100)")
+    a("--mapper-burst", type=int,
+      help="mapper steps between two publications of the map (AGILEGS_MAPPER_BURST, 20)")
     a("--log-level", help="log level (AGILEGS_LOG_LEVEL, default info)")
 
 
 _FIELDS = ("host", "port", "state_dir", "zenoh", "zenoh_mode", "instance_id", "forward_timeout",
            "workers", "torch_threads", "max_body_bytes",
            "max_pool_size", "max_image_pixels", "max_sessions", "max_gaussians", "max_views",
-           "max_shortlist", "fsync", "log_level")
+           "max_shortlist", "fsync", "mapper", "mapper_steps_per_view", "mapper_burst",
+           "log_level")
 
 
 def build_settings(args: argparse.Namespace) -> Any:

@@ -49,3 +49,18 @@ def test_bench_render_runs_small() -> None:
     )
     assert proc.returncode == 0, proc.stderr
     assert "fisher" in proc.stdout and "32²" in proc.stdout
+
+
+def test_serve_mapper_flags(monkeypatch: pytest.MonkeyPatch) -> None:
+    from agilegs.service.server import build_settings
+
+    monkeypatch.setenv("AGILEGS_MAPPER_BURST", "7")
+    args = build_parser().parse_args(
+        ["serve", "--no-mapper", "--mapper-steps-per-view", "25", "--no-zenoh"]
+    )
+    s = build_settings(args)
+    assert (s.mapper, s.mapper_steps_per_view, s.mapper_burst, s.zenoh) == (False, 25, 7, False)
+    defaults = build_settings(build_parser().parse_args(["serve"]))
+    assert defaults.mapper is True and defaults.mapper_steps_per_view == 100
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["serve", "--mapper", "--no-mapper"])
