@@ -115,3 +115,23 @@ def test_online_sampling_keeps_high_leverage_rows() -> None:
         picks = online_ridge_leverage(b, 4, 1.0, generator=torch.Generator().manual_seed(seed))
         hits += sum(1 for i in picks if i >= 20)
     assert hits >= 30  # of 40 slots; a uniform sampler would average 40 * 4 / 24 ~ 7
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_greedy_with_prior_rows_matches_naive_logdet(dtype: torch.dtype) -> None:
+    g = torch.Generator().manual_seed(5)
+    b = torch.randn(40, 6, generator=g, dtype=torch.float64).to(dtype)
+    prior = torch.randn(3, 6, generator=g, dtype=torch.float64).to(dtype) * 2.0
+    fast = greedy_ridge_leverage(b, 8, 0.3, prior)
+    assert fast == naive_logdet_greedy(b, 8, 0.3, prior)
+    # an empty prior is the plain greedy
+    assert greedy_ridge_leverage(b, 8, 0.3, prior[:0]) == greedy_ridge_leverage(b, 8, 0.3)
+
+
+def test_prior_rows_push_the_first_pick_away_from_what_is_held() -> None:
+    b = torch.tensor([[3.0, 0.0], [2.9, 0.1], [0.0, 1.0]], dtype=torch.float64)
+    assert greedy_ridge_leverage(b, 1, 1e-2) == [0]
+    held = torch.tensor([[3.0, 0.0]], dtype=torch.float64)  # row 0 is already acquired
+    assert greedy_ridge_leverage(b, 1, 1e-2, held) == [2]
+    with pytest.raises(ValueError, match="prior"):
+        greedy_ridge_leverage(b, 1, 1e-2, torch.zeros(1, 3, dtype=torch.float64))

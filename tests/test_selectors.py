@@ -243,3 +243,19 @@ def test_single_candidate_pool(world) -> None:
     for method in METHODS:
         sel = select(method, gmap, h, pool[:1], INTR, acquired=acq)
         assert sel.index == 0
+
+
+def test_leverage_shortlist_is_conditioned_on_the_acquired_views(world) -> None:
+    """A candidate at an acquired pose repeats its coverage: conditioned, it is not picked."""
+    gmap, h, pool, acq, _ = world
+    plain_cfg = SelectConfig(scoring=ScoringConfig(condition_on_acquired=False))
+    first = select("agile", gmap, h, pool, INTR, config=plain_cfg, acquired=acq)
+    k = first.index
+    held = torch.cat([acq, pool[k : k + 1]])  # the plain pick, as if acquired already
+    cond = select("agile", gmap, h, pool, INTR, acquired=held)
+    plain = select("agile", gmap, h, pool, INTR, config=plain_cfg, acquired=held)
+    assert cond.anchor_c2w is not None and plain.anchor_c2w is not None
+    torch.testing.assert_close(cond.anchor_c2w, plain.anchor_c2w)  # same anchor, same rows
+    assert k not in cond.shortlist[:1]
+    # the gains are the conditional leverages: lower with the acquired rows in S_0
+    assert cond.scores[cond.shortlist[0]] <= plain.scores[plain.shortlist[0]] + 1e-12

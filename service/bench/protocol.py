@@ -32,7 +32,7 @@ Profiles (:data:`PROFILES`; the numbers are those of the dataclasses below):
 - ``paper``: 10 initial views, one selection every 200 steps, 30K steps (149 selections,
   the pool permitting), 3DGS's training settings; for a GPU (``--device cuda``).
 - ``cpu``: 64x64 images, ground truth subsampled to 3000 Gaussians, a pool of 180 cameras
-  and 8 test cameras, 4 initial views, one selection every 50 steps up to 12 views (8
+  and 24 test cameras, 4 initial views, one selection every 50 steps up to 12 views (8
   events), 500 steps (densification every 90 steps up to step 400), SH degree 0, at most
   2500 Gaussians in the map, 1 torch thread. The
   pool is large enough that the shortlist (N = 10) is a small part of it, as in the paper
@@ -177,7 +177,7 @@ PROFILES: dict[str, Profile] = {
     "cpu": Profile(
         name="cpu",
         scene=SceneOptions(width=64, height=64, fov_deg=50.0, max_gaussians=3000,
-                           pool_size=180, test_count=8),
+                           pool_size=180, test_count=24),
         initial_views=4,
         interval=50,
         total_steps=500,

@@ -32,10 +32,26 @@ def _check_b(b: Tensor, budget: int, ridge: float) -> None:
         raise ValueError(f"ridge must be a positive finite number, got {ridge!r}")
 
 
-def greedy_ridge_leverage(b: Tensor, budget: int, ridge: float) -> list[int]:
+def _prior_matrix(prior: Tensor | None, dim: int, ridge: float, x: Tensor) -> Tensor:
+    """``S_0 = ridge I + P^T P`` for prior rows P [A, d] (None or A = 0: ``ridge I``)."""
+    s0 = torch.eye(dim, dtype=torch.float64, device=x.device) * float(ridge)
+    if prior is not None and prior.shape[0]:
+        if prior.ndim != 2 or prior.shape[1] != dim:
+            raise ValueError(f"prior must be rows [A, {dim}], got {list(prior.shape)}")
+        if not torch.isfinite(prior).all():
+            raise ValueError("prior contains NaN or infinite values")
+        p = prior.detach().to(torch.float64).to(x.device)
+        s0 = s0 + p.T @ p
+    return s0
+
+
+def greedy_ridge_leverage(
+    b: Tensor, budget: int, ridge: float, prior: Tensor | None = None
+) -> list[int]:
     """Greedy conditional ridge-leverage selection (paper Algorithm 1, lines 6-10).
 
-    Starting from ``S_0 = ridge * I``, repeatedly picks
+    Starting from ``S_0 = ridge * I`` (plus ``P^T P`` for ``prior`` rows P [A, d]: the
+    shortlist is then conditioned on rows already held, e.g. the acquired views), repeatedly picks
     ``argmax_{v not chosen} b_v^T S^-1 b_v`` (ties to the lowest index) and applies the
     Sherman-Morrison update ``S^-1 <- S^-1 - z z^T / (1 + b^T z)``, ``z = S^-1 b``. The
     scores of all rows are downdated in O(D d) per step, so the whole loop is O(N D d).
@@ -46,6 +62,7 @@ def greedy_ridge_leverage(b: Tensor, budget: int, ridge: float) -> list[int]:
         b: projected profiles, one row per candidate [D, d].
         budget: number of rows to pick (N >= 1); at most D are returned.
         ridge: lambda_G > 0.
+        prior: rows [A, d] already in the set (None: none, the paper's plain greedy).
 
     Returns:
         The picked row indices, in pick order.
@@ -53,8 +70,12 @@ def greedy_ridge_leverage(b: Tensor, budget: int, ridge: float) -> list[int]:
     _check_b(b, budget, ridge)
     x = b.detach().to(torch.float64)
     n_rows, dim = x.shape
-    s_inv = torch.eye(dim, dtype=torch.float64, device=x.device) / float(ridge)
-    scores = (x * x).sum(dim=1) / float(ridge)  # b^T S0^-1 b
+    if prior is None or prior.shape[0] == 0:
+        s_inv = torch.eye(dim, dtype=torch.float64, device=x.device) / float(ridge)
+    else:
+        s_inv = torch.linalg.inv(_prior_matrix(prior, dim, ridge, x))
+        s_inv = 0.5 * (s_inv + s_inv.T)
+    scores = ((x @ s_inv) * x).sum(dim=1)  # b^T S0^-1 b
     taken = torch.zeros(n_rows, dtype=torch.bool, device=x.device)
     picks: list[int] = []
     neg_inf = torch.tensor(-math.inf, dtype=torch.float64, device=x.device)
@@ -70,15 +91,18 @@ def greedy_ridge_leverage(b: Tensor, budget: int, ridge: float) -> list[int]:
     return picks
 
 
-def naive_logdet_greedy(b: Tensor, budget: int, ridge: float) -> list[int]:
+def naive_logdet_greedy(
+    b: Tensor, budget: int, ridge: float, prior: Tensor | None = None
+) -> list[int]:
     """Reference for ``greedy_ridge_leverage``: greedy on log det, one slogdet per candidate.
 
     O(N D d^3); for tests only. Ties (equal log det to 1e-12 relative) go to the lowest index.
+    ``prior`` rows [A, d] start the sum, as in ``greedy_ridge_leverage``.
     """
     _check_b(b, budget, ridge)
     x = b.detach().to(torch.float64)
     n_rows, dim = x.shape
-    s = torch.eye(dim, dtype=torch.float64) * float(ridge)
+    s = _prior_matrix(prior, dim, ridge, x).cpu()
     picks: list[int] = []
     for _ in range(min(int(budget), n_rows)):
         best, best_val = -1, -math.inf

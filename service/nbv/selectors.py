@@ -95,6 +95,11 @@ class ScoringConfig:
             mode (None: the pool's median camera distance from its centre, so that moving one
             radian along an orbit counts the same as turning by one radian).
         near: near plane of the frustum tests (0.01 world units).
+        condition_on_acquired: the ``leverage`` shortlist starts from the acquired views'
+            rows (scored against the anchor like the candidates): ``S_0 = lambda_G I +
+            B_acq^T B_acq`` instead of ``lambda_G I``, so that a candidate repeating what an
+            acquired view already covers of the anchor's volume has low leverage (True; the
+            paper conditions on the shortlist only, which is False).
     """
 
     grid: int = 64
@@ -111,6 +116,7 @@ class ScoringConfig:
     online_oversample: float = 1.0
     rot_weight: float | None = None
     near: float = 0.01
+    condition_on_acquired: bool = True
 
     def validate(self) -> None:
         for name in ("grid", "max_samples", "jl_dim"):
@@ -561,7 +567,20 @@ def select(
             bmax = float((b.to(torch.float64) ** 2).sum(1).max())
             ridge = sc.ridge if sc.ridge_absolute else sc.ridge * max(bmax, 1e-30)
             if config.shortlist == "leverage":
-                loc, gains = _greedy_with_gains(b, n_short, ridge)
+                prior = None
+                if sc.condition_on_acquired and acquired is not None and acquired.shape[0]:
+                    cov_acq = coverage_matrix(
+                        x,
+                        acquired.detach().to(dt),
+                        anchor_c2w,
+                        intrinsics,
+                        sigma_p=sigma_p,
+                        gamma=sc.gamma,
+                        eps=sc.eps * radius,
+                        near=sc.near,
+                    )
+                    prior = cov_acq.m @ pi
+                loc, gains = _greedy_with_gains(b, n_short, ridge, prior)
             elif config.shortlist == "topnorm":
                 loc = topnorm_shortlist(b, n_short)
                 norms = b.to(torch.float64).norm(dim=1)
@@ -603,11 +622,17 @@ def select(
     )
 
 
-def _greedy_with_gains(b: Tensor, budget: int, ridge: float) -> tuple[list[int], list[float]]:
+def _greedy_with_gains(
+    b: Tensor, budget: int, ridge: float, prior: Tensor | None = None
+) -> tuple[list[int], list[float]]:
     """``greedy_ridge_leverage`` plus each pick's conditional leverage b^T S^-1 b."""
-    picks = greedy_ridge_leverage(b, budget, ridge)
+    picks = greedy_ridge_leverage(b, budget, ridge, prior)
     x = b.detach().to(torch.float64)
-    s_inv = torch.eye(x.shape[1], dtype=torch.float64, device=x.device) / ridge
+    s0 = torch.eye(x.shape[1], dtype=torch.float64, device=x.device) * ridge
+    if prior is not None and prior.shape[0]:
+        pr = prior.detach().to(torch.float64)
+        s0 = s0 + pr.T @ pr
+    s_inv = torch.linalg.inv(s0)
     gains = []
     for v in picks:
         z = s_inv @ x[v]
