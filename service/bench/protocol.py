@@ -400,6 +400,7 @@ def run_progressive(
     embodied_k: int | None = None,
     device: torch.device | str = "cpu",
     progress: ProgressFn | None = None,
+    on_event: Callable[[dict[str, Any]], None] | None = None,
 ) -> dict[str, Any]:
     """One (method, seed) run of the progressive protocol on ``scene``; the run's record.
 
@@ -412,6 +413,10 @@ def run_progressive(
             view are eligible (None: the whole remaining pool).
         device: where the map is trained and the selection runs.
         progress: called as ``progress(steps_done, total_steps, note)`` during the run.
+        on_event: called before each selection with its inputs (keys ``gmap``, ``candidates``
+            [R, 4, 4] the remaining pool, ``remaining`` their pool indices, ``acquired`` the
+            acquired poses [A, 4, 4], ``intrinsics``, ``config``, ``background`` [3],
+            ``event``), for diagnostics such as ``agilegs bench proxy``.
 
     Returns:
         The JSON-ready record (see the module docstring).
@@ -505,6 +510,17 @@ def run_progressive(
         else:
             h_acc = init_information(gmap, profile.lam)
         h_ms = (time.perf_counter() - t0) * 1e3
+        if on_event is not None:
+            on_event({
+                "gmap": gmap,
+                "candidates": candidates_all[remaining].to(gmap.dtype),
+                "remaining": remaining,
+                "acquired": candidates_all[acquired].to(gmap.dtype),
+                "intrinsics": scene.intrinsics,
+                "config": cfg,
+                "background": bg.to(gmap.dtype),
+                "event": event,
+            })
         t0 = time.perf_counter()
         c0 = time.process_time()
         sel = select(

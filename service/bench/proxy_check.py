@@ -1,0 +1,175 @@
+"""``agilegs bench proxy``: how well the anchor's choices follow the exact EIG on trained maps.
+
+The progressive protocol (``bench run``) is driven by one method (``--driver``, Random by
+default, so that every configuration sees the same maps); before each of its selections,
+Hhat is formed from the acquired views on the current map, the exact phi of every remaining
+candidate is computed (FisherRF's scores), and each anchor configuration selects on the same
+inputs. Reported per configuration, per event and as means over all events and scenes:
+
+- ``spearman``: rank correlation of the proxy psi of every remaining candidate with phi;
+- ``agile_pct``: percentile of AGILE-GS's pick (the shortlist's first) within phi;
+- ``plus_pct``: that of the shortlist's best view under phi (AGILE-GS+'s pick);
+- ``agile_sep_deg`` / ``plus_sep_deg``: the angle, seen from the map centre, between that
+  view and the nearest acquired view (small: a near-duplicate of what is held).
+
+Configurations: ``fitted`` (the defaults), ``typical`` (``AnchorConfig.model="typical"``),
+``unconditioned`` (``ScoringConfig.condition_on_acquired=False``) and ``paper`` (both: the
+typical model and the plain greedy). Each keeps its own warm-start state along the run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import logging
+import statistics
+import sys
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+
+log = logging.getLogger(__name__)
+
+__all__ = ["CONFIGS", "add_arguments", "run"]
+
+CONFIGS: dict[str, dict[str, dict[str, Any]]] = {
+    "fitted": {},
+    "typical": {"anchor": {"model": "typical"}},
+    "unconditioned": {"scoring": {"condition_on_acquired": False}},
+    "paper": {"anchor": {"model": "typical"}, "scoring": {"condition_on_acquired": False}},
+}
+METRICS = ("spearman", "agile_pct", "plus_pct", "agile_sep_deg", "plus_sep_deg")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--scene", action="append", required=True, metavar="PATH",
+                        help="a scene as for bench run; repeat for several")
+    parser.add_argument("--profile", default="cpu", choices=("cpu", "tiny", "paper"),
+                        help="the protocol profile (as bench run)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--driver", default="random", help="the method that acquires the views")
+    parser.add_argument(
+        "--configs", default=",".join(CONFIGS), help=f"comma-separated subset of {list(CONFIGS)}"
+    )
+    parser.add_argument("--json", dest="json_out", default=None, help="write results here")
+
+
+def _ranks(x: Tensor) -> Tensor:
+    return x.argsort(stable=True).argsort().to(torch.float64)
+
+
+def spearman(a: Tensor, b: Tensor) -> float:
+    """Spearman rank correlation of two score vectors [D] (ties broken by index)."""
+    if a.numel() < 2:
+        return float("nan")
+    return float(torch.corrcoef(torch.stack([_ranks(a), _ranks(b)]))[0, 1])
+
+
+def percentile(phi: Tensor, v: int) -> float:
+    """Percentage of candidates whose phi is below candidate ``v``'s."""
+    return float((phi < phi[v]).to(torch.float64).mean() * 100)
+
+
+def separation_deg(view: Tensor, acquired: Tensor, centre: Tensor) -> float:
+    """Smallest angle (degrees, seen from ``centre``) between a pose [4, 4] and poses [A, 4, 4]."""
+    d = view[:3, 3] - centre
+    d = d / d.norm().clamp_min(1e-12)
+    a = acquired[:, :3, 3] - centre
+    a = a / a.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    return float(torch.rad2deg(torch.acos((a @ d).clamp(-1, 1))).min())
+
+
+def check_event(
+    ctx: dict[str, Any], configs: dict[str, dict[str, Any]], states: dict[str, Any], lam: float
+) -> dict[str, dict[str, float]]:
+    """Every configuration's figures on one event's inputs (see the module docstring)."""
+    from agilegs.service.nbv.camera import Camera
+    from agilegs.service.nbv.candidates import scene_center_radius
+    from agilegs.service.nbv.selectors import select
+
+    from .protocol import accumulated_information
+
+    gmap, cands, acq = ctx["gmap"], ctx["candidates"], ctx["acquired"]
+    intr, cfg0 = ctx["intrinsics"], ctx["config"]
+    cams = [Camera(c2w=p, intrinsics=intr) for p in acq]
+    h_acc = accumulated_information(gmap, cams, lam, ctx["background"])
+    fr = select("fisherrf", gmap, h_acc, cands, intr, config=cfg0, acquired=acq)
+    phi = torch.tensor([fr.scores[i] for i in range(cands.shape[0])], dtype=torch.float64)
+    centre, _ = scene_center_radius(gmap.means.detach())
+    out: dict[str, dict[str, float]] = {}
+    for name, over in configs.items():
+        cfg = copy.deepcopy(cfg0)
+        cfg.anchor = replace(cfg.anchor, **over.get("anchor", {}))
+        cfg.scoring = replace(cfg.scoring, **over.get("scoring", {}))
+        sel = select("agile", gmap, h_acc, cands, intr, config=cfg, acquired=acq,
+                     state=states.get(name))
+        states[name] = sel.state
+        pool_psi = sel.details.get("pool_proxy_psi") or {}
+        psi = torch.tensor([pool_psi.get(i, float("nan")) for i in range(len(phi))],
+                           dtype=torch.float64)
+        best = max(sel.shortlist, key=lambda v: float(phi[v]))
+        out[name] = {
+            "spearman": spearman(psi, phi) if bool(torch.isfinite(psi).all()) else float("nan"),
+            "agile_pct": percentile(phi, sel.index),
+            "plus_pct": percentile(phi, best),
+            "agile_sep_deg": separation_deg(cands[sel.index], acq, centre),
+            "plus_sep_deg": separation_deg(cands[best], acq, centre),
+        }
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    from .protocol import Variant, resolve_profile, run_progressive
+    from .scenes import load_bench_scene
+
+    names = [c.strip() for c in str(args.configs).split(",") if c.strip()]
+    for n in names:
+        if n not in CONFIGS:
+            raise SystemExit(f"--configs: unknown configuration {n!r} (known: {list(CONFIGS)})")
+    configs = {n: CONFIGS[n] for n in names}
+    overrides = ("pool_size", "resolution", "max_gaussians", "initial_views", "interval",
+                 "steps", "view_budget", "shortlist_size", "lam")
+    profile = resolve_profile(argparse.Namespace(profile=args.profile,
+                                                 **{k: None for k in overrides}))
+    if profile.threads:
+        torch.set_num_threads(profile.threads)
+    paths = list(args.scene)
+    results: dict[str, Any] = {"profile": profile.name, "seed": args.seed,
+                               "driver": args.driver, "scenes": {}}
+    for path in paths:
+        scene = load_bench_scene(path, profile.scene)
+        events: list[dict[str, Any]] = []
+        states: dict[str, Any] = {}
+
+        def on_event(ctx: dict[str, Any], events: list[dict[str, Any]] = events,
+                     states: dict[str, Any] = states, name: str = scene.name) -> None:
+            figs = check_event(ctx, configs, states, profile.lam)
+            events.append(figs)
+            log.info("%s event %d: %s", name, ctx["event"], "  ".join(
+                f"{n} rho {f['spearman']:+.2f} pick {f['agile_pct']:.0f}" for n, f in figs.items()))
+
+        run_progressive(scene, Variant(key=args.driver, method=args.driver), args.seed, profile,
+                        on_event=on_event)
+        results["scenes"][scene.name] = events
+    all_events = [e for evs in results["scenes"].values() for e in evs]
+    means = {
+        n: {m: statistics.fmean(e[n][m] for e in all_events) for m in METRICS}
+        for n in configs
+    }
+    results["means"] = means
+    results["events"] = len(all_events)
+    lines = ["| configuration | proxy Spearman | AGILE-GS pick pct | shortlist best pct "
+             "| pick sep. (deg) | best sep. (deg) |", "|---|---|---|---|---|---|"]
+    for n, f in means.items():
+        lines.append(f"| {n} | {f['spearman']:.2f} | {f['agile_pct']:.1f} | {f['plus_pct']:.1f} "
+                     f"| {f['agile_sep_deg']:.1f} | {f['plus_sep_deg']:.1f} |")
+    sys.stdout.write(f"{len(all_events)} events over {len(results['scenes'])} scenes, seed "
+                     f"{args.seed}, driver {args.driver}:\n" + "\n".join(lines) + "\n")
+    if args.json_out:
+        Path(args.json_out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json_out).write_text(json.dumps(results, indent=1))
+    return 0
