@@ -19,6 +19,7 @@ from agilegs.service.cli import build_parser
         ["bench", "latency", "--help"],
         ["bench", "run", "--help"],
         ["bench", "service", "--help"],
+        ["bench", "proxy", "--help"],
     ],
 )
 def test_subcommand_help(argv: list[str]) -> None:
