@@ -135,3 +135,17 @@ def test_prior_rows_push_the_first_pick_away_from_what_is_held() -> None:
     assert greedy_ridge_leverage(b, 1, 1e-2, held) == [2]
     with pytest.raises(ValueError, match="prior"):
         greedy_ridge_leverage(b, 1, 1e-2, torch.zeros(1, 3, dtype=torch.float64))
+
+
+def test_gains_are_the_conditional_leverages_at_pick_time() -> None:
+    from agilegs.service.nbv.leverage import greedy_ridge_leverage_gains
+
+    g = torch.Generator().manual_seed(9)
+    b = torch.randn(30, 5, generator=g, dtype=torch.float64)
+    prior = torch.randn(2, 5, generator=g, dtype=torch.float64)
+    picks, gains = greedy_ridge_leverage_gains(b, 6, 0.2, prior)
+    assert picks == greedy_ridge_leverage(b, 6, 0.2, prior)
+    s = 0.2 * torch.eye(5, dtype=torch.float64) + prior.T @ prior
+    for v, gain in zip(picks, gains):  # direct solve, no Sherman-Morrison
+        assert gain == pytest.approx(float(b[v] @ torch.linalg.solve(s, b[v])), rel=1e-9)
+        s = s + torch.outer(b[v], b[v])

@@ -97,7 +97,7 @@ def _load_map(path: str, max_gaussians: int, seed: int) -> Any:
     return gmap
 
 
-def _spearman(a: torch.Tensor, b: torch.Tensor) -> float:
+def spearman(a: torch.Tensor, b: torch.Tensor) -> float:
     """Spearman rank correlation of two score vectors [D] (ties broken by index)."""
     if a.numel() < 2:
         return float("nan")
@@ -235,7 +235,7 @@ def run(args: argparse.Namespace) -> int:
             pool_psi = sel.details.get("pool_proxy_psi")
             if pool_psi and len(pool_psi) == len(pool):
                 proxy = torch.tensor([pool_psi[i] for i in range(len(pool))], dtype=torch.float64)
-                rec.setdefault("spearman", []).append(_spearman(proxy, phi_all))
+                rec.setdefault("spearman", []).append(spearman(proxy, phi_all))
             log.info(
                 "event %d %-26s %9.1f ms  pick %3d  eig pct %5.1f",
                 event,

@@ -510,12 +510,14 @@ def run_progressive(
         else:
             h_acc = init_information(gmap, profile.lam)
         h_ms = (time.perf_counter() - t0) * 1e3
+        cands = candidates_all[remaining].to(gmap.dtype)
+        acq_poses = candidates_all[acquired].to(gmap.dtype)
         if on_event is not None:
             on_event({
                 "gmap": gmap,
-                "candidates": candidates_all[remaining].to(gmap.dtype),
+                "candidates": cands,
                 "remaining": remaining,
-                "acquired": candidates_all[acquired].to(gmap.dtype),
+                "acquired": acq_poses,
                 "intrinsics": scene.intrinsics,
                 "config": cfg,
                 "background": bg.to(gmap.dtype),
@@ -527,12 +529,11 @@ def run_progressive(
             variant.method,
             gmap,
             h_acc,
-            candidates_all[remaining].to(gmap.dtype),
+            cands,
             scene.intrinsics,
             config=cfg,
-            acquired=candidates_all[acquired].to(gmap.dtype),
-            current_pose=(candidates_all[acquired[-1]].to(gmap.dtype)
-                          if embodied_k is not None else None),
+            acquired=acq_poses,
+            current_pose=acq_poses[-1] if embodied_k is not None else None,
             state=state,
         )
         wall_ms = (time.perf_counter() - t0) * 1e3

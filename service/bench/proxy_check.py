@@ -32,9 +32,11 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from .latency import spearman
+
 log = logging.getLogger(__name__)
 
-__all__ = ["CONFIGS", "add_arguments", "run"]
+__all__ = ["CONFIGS", "add_arguments", "percentile", "run", "spearman"]
 
 CONFIGS: dict[str, dict[str, dict[str, Any]]] = {
     "fitted": {},
@@ -56,17 +58,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--configs", default=",".join(CONFIGS), help=f"comma-separated subset of {list(CONFIGS)}"
     )
     parser.add_argument("--json", dest="json_out", default=None, help="write results here")
-
-
-def _ranks(x: Tensor) -> Tensor:
-    return x.argsort(stable=True).argsort().to(torch.float64)
-
-
-def spearman(a: Tensor, b: Tensor) -> float:
-    """Spearman rank correlation of two score vectors [D] (ties broken by index)."""
-    if a.numel() < 2:
-        return float("nan")
-    return float(torch.corrcoef(torch.stack([_ranks(a), _ranks(b)]))[0, 1])
 
 
 def percentile(phi: Tensor, v: int) -> float:

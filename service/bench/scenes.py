@@ -259,16 +259,10 @@ def orbit_cameras(
     does not divide); on each orbit the azimuths are evenly spaced, offset by half a step
     plus ``azimuth_offset`` radians and by a quarter step more per orbit.
     """
+    from agilegs.service.nbv.candidates import orbit_frame
+
     f64 = torch.float64
-    c = torch.as_tensor(center, dtype=f64).reshape(3)
-    upv = torch.as_tensor(up, dtype=f64).reshape(3)
-    upv = upv / upv.norm()
-    helper = torch.tensor([1.0, 0.0, 0.0], dtype=f64)
-    if abs(float(helper @ upv)) > 0.9:
-        helper = torch.tensor([0.0, 0.0, 1.0], dtype=f64)
-    e1 = helper - (helper @ upv) * upv
-    e1 = e1 / e1.norm()
-    e2 = torch.linalg.cross(upv, e1)
+    c, upv, e1, e2 = orbit_frame(center, up)
     rings = len(elevations_deg)
     eyes = []
     for r, elev in enumerate(elevations_deg):

@@ -419,18 +419,12 @@ def typical_fisher_from_views(
 def information_weights(
     h_acc: dict[str, Tensor], typical: dict[str, Tensor], fields: tuple[str, ...]
 ) -> Tensor:
-    """c_i = sum_q log(1 + m_q / Hhat_iq) over Gaussian i's parameters in ``fields`` [N].
-
-    ``typical[name]`` is either one value per parameter slot (the field's shape without the
-    Gaussian axis) or one per Gaussian and slot (the field's shape).
-    """
+    """c_i = sum_q log(1 + m_q / Hhat_iq) over Gaussian i's parameters in ``fields`` [N]."""
     total: Tensor | None = None
     for name in fields:
         h = h_acc[name].detach()
         m = typical[name].to(h.dtype)
-        if m.shape != h.shape:
-            m = m.unsqueeze(0)
-        term = torch.log1p(m / h.clamp_min(1e-30))
+        term = torch.log1p(m.unsqueeze(0) / h.clamp_min(1e-30))
         term = term.reshape(h.shape[0], -1).sum(1)
         total = term if total is None else total + term
     assert total is not None

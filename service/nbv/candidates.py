@@ -28,6 +28,23 @@ def _rotate_about_axis(vectors: Tensor, axis: Tensor, angle: Tensor) -> Tensor:
     )
 
 
+def orbit_frame(
+    center: Sequence[float] | Tensor, up: Sequence[float] | Tensor
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The orbit frame (float64): centre [3], unit up [3] and an orthonormal basis e1, e2
+    (each [3]) of the plane perpendicular to up, with e2 = up x e1."""
+    f64 = torch.float64
+    c = torch.as_tensor(center, dtype=f64).reshape(3)
+    upv = torch.as_tensor(up, dtype=f64).reshape(3)
+    upv = upv / upv.norm()
+    helper = torch.tensor([1.0, 0.0, 0.0], dtype=f64)
+    if abs(float(helper @ upv)) > 0.9:
+        helper = torch.tensor([0.0, 0.0, 1.0], dtype=f64)
+    e1 = helper - (helper @ upv) * upv
+    e1 = e1 / e1.norm()
+    return c, upv, e1, torch.linalg.cross(upv, e1)
+
+
 def capture_pool(
     center: Sequence[float] | Tensor,
     radius: float,
@@ -68,16 +85,7 @@ def capture_pool(
         raise ValueError("elevations_deg must name at least one orbit")
     g = torch.Generator().manual_seed(int(seed))
     f64 = torch.float64
-    c = torch.as_tensor(center, dtype=f64).reshape(3)
-    upv = torch.as_tensor(up, dtype=f64).reshape(3)
-    upv = upv / upv.norm()
-    # an orthonormal basis (e1, e2) of the plane perpendicular to up
-    helper = torch.tensor([1.0, 0.0, 0.0], dtype=f64)
-    if abs(float(helper @ upv)) > 0.9:
-        helper = torch.tensor([0.0, 0.0, 1.0], dtype=f64)
-    e1 = helper - (helper @ upv) * upv
-    e1 = e1 / e1.norm()
-    e2 = torch.linalg.cross(upv, e1)
+    c, upv, e1, e2 = orbit_frame(center, up)
 
     elev = torch.tensor([math.radians(e) for e in elevations_deg], dtype=f64)
     weights = torch.cos(elev).clamp_min(0.2)

@@ -45,9 +45,9 @@ def _prior_matrix(prior: Tensor | None, dim: int, ridge: float, x: Tensor) -> Te
     return s0
 
 
-def greedy_ridge_leverage(
+def greedy_ridge_leverage_gains(
     b: Tensor, budget: int, ridge: float, prior: Tensor | None = None
-) -> list[int]:
+) -> tuple[list[int], list[float]]:
     """Greedy conditional ridge-leverage selection (paper Algorithm 1, lines 6-10).
 
     Starting from ``S_0 = ridge * I`` (plus ``P^T P`` for ``prior`` rows P [A, d]: the
@@ -65,7 +65,8 @@ def greedy_ridge_leverage(
         prior: rows [A, d] already in the set (None: none, the paper's plain greedy).
 
     Returns:
-        The picked row indices, in pick order.
+        The picked row indices, in pick order, and each pick's conditional leverage
+        ``b_v^T S^-1 b_v`` at the time it was picked.
     """
     _check_b(b, budget, ridge)
     x = b.detach().to(torch.float64)
@@ -78,17 +79,26 @@ def greedy_ridge_leverage(
     scores = ((x @ s_inv) * x).sum(dim=1)  # b^T S0^-1 b
     taken = torch.zeros(n_rows, dtype=torch.bool, device=x.device)
     picks: list[int] = []
+    gains: list[float] = []
     neg_inf = torch.tensor(-math.inf, dtype=torch.float64, device=x.device)
     for _ in range(min(int(budget), n_rows)):
         masked = torch.where(taken, neg_inf, scores)
         v = int(torch.argmax(masked))  # first maximal index on ties
         picks.append(v)
+        gains.append(float(scores[v]))
         taken[v] = True
         z = s_inv @ x[v]
         denom = 1.0 + torch.dot(x[v], z)
         s_inv = s_inv - torch.outer(z, z) / denom
         scores = scores - (x @ z) ** 2 / denom
-    return picks
+    return picks, gains
+
+
+def greedy_ridge_leverage(
+    b: Tensor, budget: int, ridge: float, prior: Tensor | None = None
+) -> list[int]:
+    """The picks of ``greedy_ridge_leverage_gains`` (see there), in pick order."""
+    return greedy_ridge_leverage_gains(b, budget, ridge, prior)[0]
 
 
 def naive_logdet_greedy(

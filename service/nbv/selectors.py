@@ -46,7 +46,7 @@ from .coverage import coverage_matrix, jl_projection, support_samples
 from .gaussians import FIELD_NAMES, GaussianMap
 from .information import fisher_diag
 from .leverage import (
-    greedy_ridge_leverage,
+    greedy_ridge_leverage_gains,
     online_ridge_leverage,
     topnorm_shortlist,
 )
@@ -547,9 +547,20 @@ def select(
                 generator=_generator(config.seed, event, 3),
             )
             sigma_p = sc.sigma_p if sc.sigma_p is not None else 0.5 * radius
+            # the acquired views' rows (scored like the candidates, rows are independent)
+            # condition the leverage shortlist: one coverage matrix for both
+            n_elig = len(eligible)
+            rows = pool[elig_t]
+            if (
+                config.shortlist == "leverage"
+                and sc.condition_on_acquired
+                and acquired is not None
+                and acquired.shape[0]
+            ):
+                rows = torch.cat([rows, acquired.detach().to(dt)])
             cov = coverage_matrix(
                 x,
-                pool[elig_t],
+                rows,
                 anchor_c2w,
                 intrinsics,
                 sigma_p=sigma_p,
@@ -558,29 +569,17 @@ def select(
                 near=sc.near,
             )
             pi = jl_projection(x.shape[0], sc.jl_dim, seed=config.seed, dtype=dt, device=x.device)
-            b = cov.m @ pi
+            b_all = cov.m @ pi
+            b, prior = b_all[:n_elig], b_all[n_elig:]
             lat["scoring"] = (time.perf_counter() - t0) * 1e3
             details["support_samples"] = int(x.shape[0])
-            details["rho"] = {v: float(r) for v, r in zip(eligible, cov.rho)}
+            details["rho"] = {v: float(r) for v, r in zip(eligible, cov.rho[:n_elig])}
             # ---- shortlist
             t1 = time.perf_counter()
             bmax = float((b.to(torch.float64) ** 2).sum(1).max())
             ridge = sc.ridge if sc.ridge_absolute else sc.ridge * max(bmax, 1e-30)
             if config.shortlist == "leverage":
-                prior = None
-                if sc.condition_on_acquired and acquired is not None and acquired.shape[0]:
-                    cov_acq = coverage_matrix(
-                        x,
-                        acquired.detach().to(dt),
-                        anchor_c2w,
-                        intrinsics,
-                        sigma_p=sigma_p,
-                        gamma=sc.gamma,
-                        eps=sc.eps * radius,
-                        near=sc.near,
-                    )
-                    prior = cov_acq.m @ pi
-                loc, gains = _greedy_with_gains(b, n_short, ridge, prior)
+                loc, gains = greedy_ridge_leverage_gains(b, n_short, ridge, prior)
             elif config.shortlist == "topnorm":
                 loc = topnorm_shortlist(b, n_short)
                 norms = b.to(torch.float64).norm(dim=1)
@@ -620,23 +619,3 @@ def select(
         state=new_state,
         details=details,
     )
-
-
-def _greedy_with_gains(
-    b: Tensor, budget: int, ridge: float, prior: Tensor | None = None
-) -> tuple[list[int], list[float]]:
-    """``greedy_ridge_leverage`` plus each pick's conditional leverage b^T S^-1 b."""
-    picks = greedy_ridge_leverage(b, budget, ridge, prior)
-    x = b.detach().to(torch.float64)
-    s0 = torch.eye(x.shape[1], dtype=torch.float64, device=x.device) * ridge
-    if prior is not None and prior.shape[0]:
-        pr = prior.detach().to(torch.float64)
-        s0 = s0 + pr.T @ pr
-    s_inv = torch.linalg.inv(s0)
-    gains = []
-    for v in picks:
-        z = s_inv @ x[v]
-        lev = float(torch.dot(x[v], z))
-        gains.append(lev)
-        s_inv = s_inv - torch.outer(z, z) / (1.0 + lev)
-    return picks, gains
