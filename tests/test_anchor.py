@@ -284,6 +284,8 @@ def test_bad_anchor_config_raises() -> None:
         ({"step_size": 0.0}, "step_size"),
         ({"num_starts": 0}, "num_starts"),
         ({"resolution": 2}, "resolution"),
+        ({"occlusion_dilation": 2}, "occlusion_dilation"),
+        ({"occlusion_dilation": 0}, "occlusion_dilation"),
     ]:
         with pytest.raises(ValueError, match=word):
             AnchorConfig(**kwargs).validate()  # type: ignore[arg-type]
@@ -379,3 +381,42 @@ def test_fitted_model_ranks_the_pool_like_the_exact_eig() -> None:
         gmap, h, pool, INTR, config=AnchorConfig(iterations=0), generator=gen
     )
     assert typical.extra["model"] == "typical"
+
+
+def test_occlusion_dilation_closes_gaps_between_occluder_points() -> None:
+    """A sample behind a sparse wall of occluder points leaks through a gap with dilation 1
+    and is hidden with 3; a sample in front of the wall stays visible either way."""
+    dt = torch.float64
+    cam = look_at(torch.tensor([0.0, 0.0, -4.0], dtype=dt), torch.zeros(3, dtype=dt))
+    # a wall at z = 0 facing the camera, points every other z-buffer cell (gaps between)
+    grid = 16
+    k = INTR
+    z_wall = 4.0
+    cells = torch.arange(1, grid, 2, dtype=dt)
+    px = (cells + 0.5) * k.width / grid
+    u, v = torch.meshgrid(px, px, indexing="xy")
+    x = (u.reshape(-1) - k.cx) / k.fx * z_wall
+    y = (v.reshape(-1) - k.cy) / k.fy * z_wall
+    cam_pts = torch.stack([x, y, torch.full_like(x, z_wall)], dim=1)
+    rot, t = cam[:3, :3], cam[:3, 3]
+    wall = cam_pts @ rot.T + t
+    # samples: one behind the wall in a gap cell, one in front of it
+    gap_px = (8 + 0.5) * k.width / grid  # an even cell index: between wall points
+    behind_c = torch.tensor(
+        [(gap_px - k.cx) / k.fx * 6.0, (gap_px - k.cy) / k.fy * 6.0, 6.0], dtype=dt
+    )
+    gap2_px = (12 + 0.5) * k.width / grid  # another gap, away from the first
+    front_c = torch.tensor(
+        [(gap2_px - k.cx) / k.fx * 2.0, (gap2_px - k.cy) / k.fy * 2.0, 2.0], dtype=dt
+    )
+    samples = torch.stack([behind_c, front_c]) @ rot.T + t
+    gmap = GaussianMap.from_points(samples, torch.rand(2, 3, dtype=dt), scale=0.01, opacity=0.9)
+    vis = {}
+    for dil in (1, 3):
+        proxy = ProxyPsi.build(
+            gmap, torch.ones(2, dtype=dt), INTR, num_samples=0, near=0.1, edge=1.6,
+            generator=None, occ_grid=grid, occ_tol=0.02, occ_dilation=dil, occluders=wall,
+        )
+        vis[dil] = proxy.visibility(cam.unsqueeze(0))[0].tolist()
+    assert vis[1] == [1.0, 1.0]  # the hidden sample leaks through the gap
+    assert vis[3] == [0.0, 1.0]  # covered; the near one is not

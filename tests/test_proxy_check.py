@@ -16,7 +16,7 @@ def test_spearman_and_percentile() -> None:
 
     a = torch.tensor([1.0, 2.0, 3.0, 4.0])
     assert spearman(a, a * 10) == 1.0 and spearman(a, -a) == -1.0
-    assert percentile(a, 3) == 75.0 and percentile(a, 0) == 0.0
+    assert percentile(a, 3) == 100.0 and percentile(a, 0) == 25.0
 
 
 def test_proxy_check_on_a_tiny_run(tmp_path: Path) -> None:

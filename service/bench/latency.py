@@ -149,7 +149,8 @@ def _config_for(name: str, base: Any) -> tuple[str, Any]:
     return method, cfg
 
 
-def _percentile(phi: torch.Tensor, value: float) -> float:
+def eig_percentile(phi: torch.Tensor, value: float) -> float:
+    """Percentage of the pool whose phi [D] is at or below ``value`` (100: the best view)."""
     return 100.0 * float((phi <= value + 1e-12 * abs(value)).to(torch.float64).mean())
 
 
@@ -223,12 +224,12 @@ def run(args: argparse.Namespace) -> int:
             rec["latency_ms"].append(sel.latency_ms["total"])
             rec["cpu_ms"].append(cpu_ms)
             rec["stages"].append(dict(sel.latency_ms))
-            rec["pct"].append(_percentile(phi_all, float(phi_all[sel.index])))
+            rec["pct"].append(eig_percentile(phi_all, float(phi_all[sel.index])))
             rec["picks"].append(sel.index)
             if sel.shortlist:
-                rec["head_pct"].append(_percentile(phi_all, float(phi_all[sel.shortlist[0]])))
+                rec["head_pct"].append(eig_percentile(phi_all, float(phi_all[sel.shortlist[0]])))
                 rec.setdefault("shortlist_best_pct", []).append(
-                    max(_percentile(phi_all, float(phi_all[i])) for i in sel.shortlist)
+                    max(eig_percentile(phi_all, float(phi_all[i])) for i in sel.shortlist)
                 )
             if sel.psi_trace:
                 rec.setdefault("psi_gain", []).append(sel.psi_trace[-1] / sel.psi_trace[0])

@@ -13,8 +13,10 @@ inputs. Reported per configuration, per event and as means over all events and s
   view and the nearest acquired view (small: a near-duplicate of what is held).
 
 Configurations: ``fitted`` (the defaults), ``typical`` (``AnchorConfig.model="typical"``),
-``unconditioned`` (``ScoringConfig.condition_on_acquired=False``) and ``paper`` (both: the
-typical model and the plain greedy). Each keeps its own warm-start state along the run.
+``unconditioned`` (``ScoringConfig.condition_on_acquired=False``), ``paper`` (both: the
+typical model and the plain greedy) and ``no_dilation`` (the proxy's earlier point z-buffer:
+``AnchorConfig.occlusion_dilation=1``, ``occlusion_tol=0.02``). Each keeps its own warm-start
+state along the run.
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from .latency import spearman
+from .latency import eig_percentile, spearman
 
 log = logging.getLogger(__name__)
 
@@ -43,6 +45,7 @@ CONFIGS: dict[str, dict[str, dict[str, Any]]] = {
     "typical": {"anchor": {"model": "typical"}},
     "unconditioned": {"scoring": {"condition_on_acquired": False}},
     "paper": {"anchor": {"model": "typical"}, "scoring": {"condition_on_acquired": False}},
+    "no_dilation": {"anchor": {"occlusion_dilation": 1, "occlusion_tol": 0.02}},
 }
 METRICS = ("spearman", "agile_pct", "plus_pct", "agile_sep_deg", "plus_sep_deg")
 
@@ -61,8 +64,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def percentile(phi: Tensor, v: int) -> float:
-    """Percentage of candidates whose phi is below candidate ``v``'s."""
-    return float((phi < phi[v]).to(torch.float64).mean() * 100)
+    """Percentage of candidates whose phi is at or below candidate ``v``'s (100: the best;
+    the same definition as ``bench latency``'s EIG percentile)."""
+    return eig_percentile(phi, float(phi[v]))
 
 
 def separation_deg(view: Tensor, acquired: Tensor, centre: Tensor) -> float:
