@@ -16,7 +16,8 @@ knearest, topnorm, online) and anchor variants that measure what each shortcut c
 best pool start under the proxy, no gradient steps; ``@cold``: no warm start;
 ``@typical``: the proxy's older observation model, one typical Fisher value per parameter
 slot, instead of the model fitted to Hhat; ``@start_view``: that typical model with its
-Fisher value from one Fisher pass instead of Hhat) are timed. Each
+Fisher value from one Fisher pass instead of Hhat; ``@no_dilation``: the proxy's earlier
+point z-buffer, each occluder one cell, 2% depth tolerance) are timed. Each
 record holds ``median_ms`` (wall clock, what ``Selection.latency_ms`` says),
 ``cpu_median_ms`` (process CPU time, less sensitive to other load on a shared machine),
 ``stages_ms`` (per-stage medians), ``eig_percentile``, for anchor methods
@@ -57,6 +58,7 @@ VARIANTS = (
     "agile_plus@all_gaussians",
     "agile_plus@start_view",
     "agile_plus@typical",
+    "agile_plus@no_dilation",
     "agile_plus@exact",
 )
 
@@ -146,6 +148,8 @@ def _config_for(name: str, base: Any) -> tuple[str, Any]:
         cfg.anchor = replace(cfg.anchor, model="typical", typical_fisher="start_view")
     elif variant == "typical":
         cfg.anchor = replace(cfg.anchor, model="typical")
+    elif variant == "no_dilation":
+        cfg.anchor = replace(cfg.anchor, occlusion_dilation=1, occlusion_tol=0.02)
     return method, cfg
 
 
