@@ -609,10 +609,11 @@ class ProxyPsi:
         k_d = self.occ_dilation
         if k_d > 1:
             # every occluder covers a k_d x k_d square: a min-filter of the depth buffer
-            far = torch.finfo(dt).max
-            zb = torch.where(torch.isinf(zbuf), far, zbuf).reshape(b, 1, g, g)
-            zb = -torch.nn.functional.max_pool2d(-zb, k_d, stride=1, padding=k_d // 2)
-            zbuf = torch.where(zb.reshape(-1) >= far, float("inf"), zb.reshape(-1))
+            # (empty cells hold +inf, which the max-pool of -zbuf handles as is)
+            zb = -torch.nn.functional.max_pool2d(
+                -zbuf.reshape(b, 1, g, g), k_d, stride=1, padding=k_d // 2
+            )
+            zbuf = zb.reshape(-1)
         n_occ = ox.shape[1]
         sc, sz = cell[:, n_occ:], z[:, n_occ:]
         vis = ok[:, n_occ:] & (sz <= zbuf[sc] * (1.0 + self.occ_tol))
