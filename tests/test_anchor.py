@@ -284,15 +284,17 @@ def test_bad_anchor_config_raises() -> None:
         ({"step_size": 0.0}, "step_size"),
         ({"num_starts": 0}, "num_starts"),
         ({"resolution": 2}, "resolution"),
-        ({"occlusion_dilation": 2}, "occlusion_dilation"),
-        ({"occlusion_dilation": 0}, "occlusion_dilation"),
+        ({"occlusion_tests": ((2, 0.02),)}, "occlusion_tests"),
+        ({"occlusion_tests": ((0, 0.02),)}, "occlusion_tests"),
+        ({"occlusion_tests": ((1, -0.1),)}, "occlusion_tests"),
+        ({"occlusion_tests": ()}, "occlusion_tests"),
     ]:
         with pytest.raises(ValueError, match=word):
             AnchorConfig(**kwargs).validate()  # type: ignore[arg-type]
 
 
 # ----------------------------------------------------------------------------- fitted model
-FIT_KW = dict(near=0.1, edge=1.6, num_occluders=0, occ_grid=48, occ_tol=0.02)
+FIT_KW = dict(near=0.1, edge=1.6, num_occluders=0, occ_grid=48)
 
 
 def _terms(gmap, poses):
@@ -412,11 +414,12 @@ def test_occlusion_dilation_closes_gaps_between_occluder_points() -> None:
     samples = torch.stack([behind_c, front_c]) @ rot.T + t
     gmap = GaussianMap.from_points(samples, torch.rand(2, 3, dtype=dt), scale=0.01, opacity=0.9)
     vis = {}
-    for dil in (1, 3):
+    for tests in (((1, 0.02),), ((3, 0.02),), ((1, 0.02), (3, 0.02))):
         proxy = ProxyPsi.build(
             gmap, torch.ones(2, dtype=dt), INTR, num_samples=0, near=0.1, edge=1.6,
-            generator=None, occ_grid=grid, occ_tol=0.02, occ_dilation=dil, occluders=wall,
+            generator=None, occ_grid=grid, occ_tests=tests, occluders=wall,
         )
-        vis[dil] = proxy.visibility(cam.unsqueeze(0))[0].tolist()
-    assert vis[1] == [1.0, 1.0]  # the hidden sample leaks through the gap
-    assert vis[3] == [0.0, 1.0]  # covered; the near one is not
+        vis[tests] = proxy.visibility(cam.unsqueeze(0))[0].tolist()
+    assert vis[((1, 0.02),)] == [1.0, 1.0]  # the hidden sample leaks through the gap
+    assert vis[((3, 0.02),)] == [0.0, 1.0]  # covered; the near one is not
+    assert vis[((1, 0.02), (3, 0.02))] == [0.5, 1.0]  # two tests: the mean

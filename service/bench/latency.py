@@ -16,8 +16,9 @@ knearest, topnorm, online) and anchor variants that measure what each shortcut c
 best pool start under the proxy, no gradient steps; ``@cold``: no warm start;
 ``@typical``: the proxy's older observation model, one typical Fisher value per parameter
 slot, instead of the model fitted to Hhat; ``@start_view``: that typical model with its
-Fisher value from one Fisher pass instead of Hhat; ``@no_dilation``: the proxy's earlier
-point z-buffer, each occluder one cell, 2% depth tolerance) are timed. Each
+Fisher value from one Fisher pass instead of Hhat; ``@point_zbuffer`` and
+``@mixed_zbuffer``: other visibility tests than the default's 3x3 occluder cover at 10%
+depth tolerance, each occluder on its own cell at 2%, or the mean of the two) are timed. Each
 record holds ``median_ms`` (wall clock, what ``Selection.latency_ms`` says),
 ``cpu_median_ms`` (process CPU time, less sensitive to other load on a shared machine),
 ``stages_ms`` (per-stage medians), ``eig_percentile``, for anchor methods
@@ -58,7 +59,8 @@ VARIANTS = (
     "agile_plus@all_gaussians",
     "agile_plus@start_view",
     "agile_plus@typical",
-    "agile_plus@no_dilation",
+    "agile_plus@point_zbuffer",
+    "agile_plus@mixed_zbuffer",
     "agile_plus@exact",
 )
 
@@ -148,8 +150,10 @@ def _config_for(name: str, base: Any) -> tuple[str, Any]:
         cfg.anchor = replace(cfg.anchor, model="typical", typical_fisher="start_view")
     elif variant == "typical":
         cfg.anchor = replace(cfg.anchor, model="typical")
-    elif variant == "no_dilation":
-        cfg.anchor = replace(cfg.anchor, occlusion_dilation=1, occlusion_tol=0.02)
+    elif variant == "point_zbuffer":
+        cfg.anchor = replace(cfg.anchor, occlusion_tests=((1, 0.02),))
+    elif variant == "mixed_zbuffer":
+        cfg.anchor = replace(cfg.anchor, occlusion_tests=((1, 0.02), (3, 0.10)))
     return method, cfg
 
 

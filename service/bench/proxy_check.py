@@ -14,9 +14,10 @@ inputs. Reported per configuration, per event and as means over all events and s
 
 Configurations: ``fitted`` (the defaults), ``typical`` (``AnchorConfig.model="typical"``),
 ``unconditioned`` (``ScoringConfig.condition_on_acquired=False``), ``paper`` (both: the
-typical model and the plain greedy) and ``no_dilation`` (the proxy's earlier point z-buffer:
-``AnchorConfig.occlusion_dilation=1``, ``occlusion_tol=0.02``). Each keeps its own warm-start
-state along the run.
+typical model and the plain greedy), and two other visibility tests than the default's
+(each occluder covers 3x3 z-buffer cells, 10% depth tolerance): ``point_zbuffer`` (each
+occluder its own cell, 2%) and ``mixed_zbuffer`` (the mean of the two tests). Each keeps its
+own warm-start state along the run.
 """
 
 from __future__ import annotations
@@ -45,7 +46,8 @@ CONFIGS: dict[str, dict[str, dict[str, Any]]] = {
     "typical": {"anchor": {"model": "typical"}},
     "unconditioned": {"scoring": {"condition_on_acquired": False}},
     "paper": {"anchor": {"model": "typical"}, "scoring": {"condition_on_acquired": False}},
-    "no_dilation": {"anchor": {"occlusion_dilation": 1, "occlusion_tol": 0.02}},
+    "point_zbuffer": {"anchor": {"occlusion_tests": ((1, 0.02),)}},
+    "mixed_zbuffer": {"anchor": {"occlusion_tests": ((1, 0.02), (3, 0.10))}},
 }
 METRICS = ("spearman", "agile_pct", "plus_pct", "agile_sep_deg", "plus_sep_deg")
 
