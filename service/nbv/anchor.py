@@ -109,12 +109,14 @@ class AnchorConfig:
             through the gaps between occluder points: along AGILE-GS+'s own acquisitions on
             the cpu benchmark's bob and teapot the ascent climbed to poses whose shortlist's
             best view was at EIG percentile 67-85, and AGILE-GS+ lost 0.9 dB to the 3x3 cover
-            there (README). The 3x3 cover closes real openings too (on boot, whose shaft is
-            seen from above, its pool ranking decays along its own acquisitions; on the plant's
-            ground truth it ranks the pool at Spearman 0.46 against the point test's 0.88).
-            The mean of the two, ``((1, 0.02), (3, 0.10))``, ranked the pool best on saved
-            trajectories but bought ~1 dB less on the cpu benchmark than the 3x3 cover alone
-            (README, ``agilegs bench proxy``, ``mixed_zbuffer``).
+            on spot, teapot and bob (README). The 3x3 cover fails elsewhere, we guess by
+            closing real openings too: on boot its pool ranking decays along its own
+            acquisitions (Spearman 0.83 to -0.14; the point test's stays at 0.34-0.82), and on
+            the plant's ground truth it ranks the pool at 0.46 against the point test's 0.88.
+            The mean of the two, ``((1, 0.02), (3, 0.10))``, ranked the pool best along
+            Random's acquisitions but AGILE-GS+ with it averaged 0.4 dB less over the six
+            cpu-benchmark scenes (+1.1 on boot, -0.4 to -1.0 on the others; README,
+            ``agilegs bench proxy``, ``mixed_zbuffer``).
         near_fraction: the proxy's soft near plane, as a fraction of the pool radius (0.05).
         edge_softness: width of the proxy's sigmoid image-bound test, as a fraction of the
             image width (0.05).
