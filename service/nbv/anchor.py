@@ -109,10 +109,10 @@ class AnchorConfig:
             through the gaps between occluder points: along AGILE-GS+'s own acquisitions on
             the cpu benchmark's bob and teapot the ascent climbed to poses whose shortlist's
             best view was at EIG percentile 67-85, and AGILE-GS+ lost 0.9 dB to the 3x3 cover
-            on spot, teapot and bob (README). The 3x3 cover fails elsewhere, we guess by
-            closing real openings too: on boot its pool ranking decays along its own
-            acquisitions (Spearman 0.83 to -0.14; the point test's stays at 0.34-0.82), and on
-            the plant's ground truth it ranks the pool at 0.46 against the point test's 0.88.
+            on spot, teapot and bob (README). The 3x3 cover fails elsewhere: on boot its pool
+            ranking decays along its own acquisitions (Spearman 0.83 to -0.14; the point
+            test's stays at 0.34-0.82; why is not established), and on the plant's ground
+            truth it ranks the pool at 0.46 against the point test's 0.88.
             The mean of the two, ``((1, 0.02), (3, 0.10))``, ranked the pool best along
             Random's acquisitions but AGILE-GS+ with it averaged 0.4 dB less over the six
             cpu-benchmark scenes (+1.1 on boot, -0.4 to -1.0 on the others; README,
