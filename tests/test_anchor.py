@@ -288,13 +288,14 @@ def test_bad_anchor_config_raises() -> None:
         ({"occlusion_tests": ((0, 0.02),)}, "occlusion_tests"),
         ({"occlusion_tests": ((1, -0.1),)}, "occlusion_tests"),
         ({"occlusion_tests": ()}, "occlusion_tests"),
+        ({"occlusion_tests": ((3, "0.1"),)}, "occlusion_tests"),
     ]:
         with pytest.raises(ValueError, match=word):
             AnchorConfig(**kwargs).validate()  # type: ignore[arg-type]
 
 
 # ----------------------------------------------------------------------------- fitted model
-FIT_KW = dict(near=0.1, edge=1.6, num_occluders=0, occ_grid=48)
+FIT_KW = dict(near=0.1, edge=1.6, num_occluders=0, occ_grid=48, occ_tests=((1, 0.02),))
 
 
 def _terms(gmap, poses):
@@ -386,8 +387,9 @@ def test_fitted_model_ranks_the_pool_like_the_exact_eig() -> None:
 
 
 def test_occlusion_dilation_closes_gaps_between_occluder_points() -> None:
-    """A sample behind a sparse wall of occluder points leaks through a gap with dilation 1
-    and is hidden with 3; a sample in front of the wall stays visible either way."""
+    """A sample behind a sparse wall of occluder points leaks through a gap when each occluder
+    covers its own cell and is hidden when it covers 3x3 cells; with both tests its visibility
+    is their mean; a sample in front of the wall stays visible in every case."""
     dt = torch.float64
     cam = look_at(torch.tensor([0.0, 0.0, -4.0], dtype=dt), torch.zeros(3, dtype=dt))
     # a wall at z = 0 facing the camera, points every other z-buffer cell (gaps between)

@@ -161,28 +161,33 @@ class AnchorConfig:
             raise ValueError(f"anchor.num_starts must be >= 1, got {self.num_starts}")
         if self.num_gaussians < 0:
             raise ValueError(f"anchor.num_gaussians must be >= 0, got {self.num_gaussians}")
-        _check_occlusion_tests(self.occlusion_tests, "anchor.occlusion_tests")
+        if not _valid_occlusion_tests(self.occlusion_tests):
+            raise ValueError(
+                "anchor.occlusion_tests must be a non-empty sequence of (cover, tolerance) "
+                "pairs, cover an odd integer >= 1 and tolerance a finite number >= 0, got "
+                f"{self.occlusion_tests!r}"
+            )
         if self.occluders < 0 or self.occlusion_grid < 1:
             raise ValueError("anchor.occluders must be >= 0 and anchor.occlusion_grid >= 1")
         if self.resolution is not None and self.resolution < 4:
             raise ValueError(f"anchor.resolution must be >= 4 pixels, got {self.resolution}")
 
 
-def _check_occlusion_tests(tests: Any, name: str) -> None:
-    ok = isinstance(tests, (tuple, list)) and len(tests) > 0
-    for t in tests if ok else ():
-        ok = ok and isinstance(t, (tuple, list)) and len(t) == 2
-        if ok:
-            cover, tol = t
-            ok = (
-                isinstance(cover, int) and not isinstance(cover, bool) and cover >= 1
-                and cover % 2 == 1 and float(tol) >= 0 and math.isfinite(float(tol))
-            )
-    if not ok:
-        raise ValueError(
-            f"{name} must be a non-empty sequence of (cover, tolerance) pairs, cover an odd "
-            f"integer >= 1 and tolerance >= 0, got {tests!r}"
-        )
+def _valid_occlusion_tests(tests: Any) -> bool:
+    """Whether ``tests`` is a non-empty sequence of (odd int cover >= 1, finite tol >= 0)."""
+    if not isinstance(tests, (tuple, list)) or not tests:
+        return False
+    for t in tests:
+        if not isinstance(t, (tuple, list)) or len(t) != 2:
+            return False
+        cover, tol = t
+        if isinstance(cover, bool) or not isinstance(cover, int) or cover < 1 or cover % 2 == 0:
+            return False
+        if isinstance(tol, bool) or not isinstance(tol, (int, float)):
+            return False
+        if not (math.isfinite(tol) and tol >= 0):
+            return False
+    return True
 
 
 # ----------------------------------------------------------------------------- envelope
@@ -371,7 +376,7 @@ def observation_rates(
     edge: float,
     num_occluders: int,
     occ_grid: int,
-    occ_tests: tuple[tuple[int, float], ...] = ((1, 0.02),),
+    occ_tests: tuple[tuple[int, float], ...],
     generator: torch.Generator | None = None,
     occluders: Tensor | None = None,
     chunk: int = 16,
