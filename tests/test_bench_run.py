@@ -12,7 +12,7 @@ import pytest
 import torch
 from PIL import Image
 
-from agilegs.service.bench import protocol
+from agilegs.service.bench import protocol, report
 from agilegs.service.bench.protocol import (
     PROFILES,
     Variant,
@@ -90,6 +90,13 @@ def test_tiny_run_writes_outputs_and_rerun_skips(tmp_path: Path) -> None:
     assert "## Ablation: AGILE-GS+ shortlist budget N" in table
     budget_rows = table.split("## Ablation: AGILE-GS+ shortlist budget N")[1]
     assert "| 2 |" in budget_rows and f"| {prof.shortlist_size} |" in budget_rows
+    # paired differences between the main methods (the budget variant is not one of them)
+    pair = res["paired_psnr"]["agile_plus"]["random"]
+    assert pair["n"] == 1 and pair["se"] is None
+    assert pair["mean"] == pytest.approx(
+        scene["runs"]["agile_plus"]["0"]["psnr"] - scene["runs"]["random"]["0"]["psnr"])
+    assert set(res["paired_psnr"]) == {"random", "agile_plus"}
+    assert "## Paired PSNR differences" in table
 
     pngs = ["psnr_vs_views.png", "latency.png", "trajectories_spot_10k.png"]
     for name in pngs:
@@ -110,6 +117,24 @@ def test_tiny_run_writes_outputs_and_rerun_skips(tmp_path: Path) -> None:
     # the skipped runs' results are still reported
     assert res2["scenes"]["spot_10k"]["runs"]["random"]["0"]["psnr"] == pytest.approx(
         res["scenes"]["spot_10k"]["runs"]["random"]["0"]["psnr"])
+
+
+def test_paired_differences() -> None:
+    runs = {
+        "a": {"x": {"0": {"psnr": 30.0}, "1": {"psnr": 31.0}}, "y": {"0": {"psnr": 29.0},
+                                                                    "1": {"psnr": 31.5}}},
+        "b": {"x": {"0": {"psnr": 20.0}, "2": {"psnr": 25.0}}, "y": {"0": {"psnr": 19.0},
+                                                                    "1": {"psnr": None}}},
+    }
+    out = report.paired_differences(runs, ["x", "y"])
+    xy = out["x"]["y"]  # pairs (a,0): +1, (a,1): -0.5, (b,0): +1; (b,1) has no y value
+    assert xy["n"] == 3 and xy["wins"] == 2
+    assert xy["mean"] == pytest.approx(0.5)
+    assert xy["se"] == pytest.approx(float(np.std([1.0, -0.5, 1.0], ddof=1)) / math.sqrt(3))
+    yx = out["y"]["x"]
+    assert yx["mean"] == pytest.approx(-0.5) and yx["wins"] == 1 and yx["n"] == 3
+    none = report.paired_differences({"a": {"x": {"0": {"psnr": 1.0}}}}, ["x", "z"])
+    assert none["x"]["z"] == {"mean": None, "se": None, "wins": 0, "n": 0}
 
 
 def test_same_seed_same_initialisation_and_embodied_restriction() -> None:

@@ -8,6 +8,10 @@
   acquisition order), ``curve``, ``path_length``, ``mean_index_jump``, ...), and
   ``summary[<variant>]`` (mean and std over seeds);
 - ``summary[<variant>]``: the averages over scenes (the paper's "Avg." columns);
+- ``paired_psnr[<a>][<b>]``: for the main methods, the PSNR of a minus that of b over the
+  (scene, seed) runs both have (same seed: same initial views, training seed and test views,
+  so the differences are paired): ``mean``, ``se`` (the standard error of that mean; None
+  with one pair), ``wins`` (pairs where a is higher) and ``n``;
 - ``invocation``: which (scene, variant, seed) runs this call executed and which it skipped.
 
 Statistics: ``*_mean`` is the mean over seeds, ``*_std`` their sample standard deviation
@@ -17,8 +21,9 @@ averages over scenes weight scenes equally.
 ``table.md`` lays the means ± std out as the paper's main results table (one PSNR / SSIM /
 LPIPS column group per scene, then the average PSNR and the average selection time per
 event), followed by a latency table (with FisherRF's latency over each method's), the
-acquisition trajectories (path length, mean frame-index jump) and, when they were run, the
-shortlist-strategy and shortlist-budget ablations laid out as the paper's two ablation tables.
+acquisition trajectories (path length, mean frame-index jump), the paired PSNR differences
+between the main methods and, when they were run, the shortlist-strategy and shortlist-budget
+ablations laid out as the paper's two ablation tables.
 """
 
 from __future__ import annotations
@@ -31,7 +36,7 @@ from typing import Any
 
 from agilegs.service.bench.scenes import BenchScene
 
-__all__ = ["build_results", "scene_summary", "render_table", "mean_std"]
+__all__ = ["build_results", "scene_summary", "render_table", "mean_std", "paired_differences"]
 
 MAIN_ORDER = ("random", "fisherrf", "cover", "agile", "agile_plus")
 
@@ -91,6 +96,41 @@ def _summarise_runs(runs: Mapping[int, Mapping[str, Any]]) -> dict[str, Any]:
     return out
 
 
+def paired_differences(
+    runs: Mapping[str, Mapping[str, Mapping[str, Mapping[str, Any]]]],
+    keys: Sequence[str],
+    metric: str = "psnr",
+) -> dict[str, dict[str, dict[str, Any]]]:
+    """Paired differences of ``metric`` between every two of ``keys``.
+
+    ``runs[scene][variant][seed]`` are run records. For a != b: ``mean`` of
+    ``run_a[metric] - run_b[metric]`` over the (scene, seed) pairs where both ran (with a
+    value), ``se`` its standard error (sample std / sqrt(n); None when n < 2), ``wins`` the
+    pairs where a is strictly higher, ``n`` the pairs; ``mean`` None when n = 0.
+    """
+    out: dict[str, dict[str, dict[str, Any]]] = {}
+    for a in keys:
+        for b in keys:
+            if a == b:
+                continue
+            diffs: list[float] = []
+            for by_variant in runs.values():
+                ra, rb = by_variant.get(a, {}), by_variant.get(b, {})
+                for seed in sorted(set(ra) & set(rb)):
+                    va, vb = ra[seed].get(metric), rb[seed].get(metric)
+                    if va is None or vb is None or math.isnan(va) or math.isnan(vb):
+                        continue
+                    diffs.append(float(va) - float(vb))
+            n = len(diffs)
+            out.setdefault(a, {})[b] = {
+                "mean": statistics.fmean(diffs) if n else None,
+                "se": statistics.stdev(diffs) / math.sqrt(n) if n > 1 else None,
+                "wins": sum(d > 0 for d in diffs),
+                "n": n,
+            }
+    return out
+
+
 def build_results(
     *,
     records: Mapping[tuple[str, str, int], Mapping[str, Any]],
@@ -144,6 +184,8 @@ def build_results(
         o["fisherrf_over_method_cpu"] = (fr_cpu / cm) if fr_cpu and cm else None
     from agilegs.service.bench.protocol import RESULTS_FORMAT
 
+    main_keys = [v["key"] for v in variants if v.get("group") == "main" and v["key"] in overall]
+    paired = paired_differences({n: out_scenes[n]["runs"] for n in out_scenes}, main_keys)
     return {
         "format": RESULTS_FORMAT,
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
@@ -154,6 +196,7 @@ def build_results(
         "variants": [dict(v) for v in variants],
         "scenes": out_scenes,
         "summary": overall,
+        "paired_psnr": paired,
         "invocation": dict(invocation),
     }
 
@@ -228,6 +271,7 @@ def render_table(results: Mapping[str, Any]) -> str:
         lines += _main_table(results, scenes, keys)
         lines += _latency_table(results, keys)
         lines += _trajectory_table(results, keys, emb)
+        lines += _paired_table(results, keys)
     # the ablations' reference rows (the paper's settings) are the main agile / agile_plus runs
     sl = _variants_in(results, "shortlist")
     if sl:
@@ -318,6 +362,35 @@ def _latency_table(results: Mapping[str, Any], keys: list[str]) -> list[str]:
             f"{'–' if ratio is None else f'{ratio:.1f}×'} | "
             f"{'–' if ratio_cpu is None else f'{ratio_cpu:.1f}×'} |"
         )
+    return rows + [""]
+
+
+def _paired_table(results: Mapping[str, Any], keys: list[str]) -> list[str]:
+    paired = results.get("paired_psnr") or {}
+    keys = [k for k in keys if k in paired]
+    if len(keys) < 2:
+        return []
+    rows = [
+        "## Paired PSNR differences",
+        "",
+        "Row minus column, in dB, over the (scene, seed) runs both have (one seed gives every "
+        "method the same initial views, training seed and test views, so the differences are "
+        "paired): mean ± its standard error, and (runs where the row is higher / runs). A "
+        "difference within about two standard errors of 0 is within the seeds' noise.",
+        "",
+        "| row − column | " + " | ".join(_display(k) for k in keys) + " |",
+        "|---|" + "---|" * len(keys),
+    ]
+    for a in keys:
+        cells = []
+        for b in keys:
+            d = paired[a].get(b) if a != b else None
+            if d is None or d["mean"] is None:
+                cells.append("–")
+                continue
+            se = "" if d["se"] is None else f" ± {d['se']:.2f}"
+            cells.append(f"{d['mean']:+.2f}{se} ({d['wins']}/{d['n']})")
+        rows.append(f"| {_display(a)} | " + " | ".join(cells) + " |")
     return rows + [""]
 
 
