@@ -386,7 +386,7 @@ def test_fitted_model_ranks_the_pool_like_the_exact_eig() -> None:
     assert typical.extra["model"] == "typical"
 
 
-def test_occlusion_dilation_closes_gaps_between_occluder_points() -> None:
+def test_occluder_cover_closes_gaps_between_occluder_points() -> None:
     """A sample behind a sparse wall of occluder points leaks through a gap when each occluder
     covers its own cell and is hidden when it covers 3x3 cells; with both tests its visibility
     is their mean; a sample in front of the wall stays visible in every case."""

@@ -123,11 +123,12 @@ def test_paired_differences() -> None:
     runs = {
         "a": {"x": {"0": {"psnr": 30.0}, "1": {"psnr": 31.0}}, "y": {"0": {"psnr": 29.0},
                                                                     "1": {"psnr": 31.5}}},
-        "b": {"x": {"0": {"psnr": 20.0}, "2": {"psnr": 25.0}}, "y": {"0": {"psnr": 19.0},
-                                                                    "1": {"psnr": None}}},
+        "b": {"x": {"0": {"psnr": 20.0}, "1": {"psnr": 22.0}, "2": {"psnr": 25.0}},
+              "y": {"0": {"psnr": 19.0}, "1": {"psnr": None}}},
     }
     out = report.paired_differences(runs, ["x", "y"])
-    xy = out["x"]["y"]  # pairs (a,0): +1, (a,1): -0.5, (b,0): +1; (b,1) has no y value
+    # pairs (a,0): +1, (a,1): -0.5, (b,0): +1; (b,1) has no y value, (b,2) no y run
+    xy = out["x"]["y"]
     assert xy["n"] == 3 and xy["wins"] == 2
     assert xy["mean"] == pytest.approx(0.5)
     assert xy["se"] == pytest.approx(float(np.std([1.0, -0.5, 1.0], ddof=1)) / math.sqrt(3))

@@ -115,7 +115,7 @@ class AnchorConfig:
             truth it ranks the pool at 0.46 against the point test's 0.88.
             The mean of the two, ``((1, 0.02), (3, 0.10))``, ranked the pool best along
             Random's acquisitions but AGILE-GS+ with it averaged 0.4 dB less over the six
-            cpu-benchmark scenes (+1.1 on boot, -0.4 to -1.0 on the others; README,
+            cpu-benchmark scenes (seeds 0 and 1) (+1.1 on boot, -0.4 to -1.0 on the others; README,
             ``agilegs bench proxy``, ``mixed_zbuffer``).
         near_fraction: the proxy's soft near plane, as a fraction of the pool radius (0.05).
         edge_softness: width of the proxy's sigmoid image-bound test, as a fraction of the
