@@ -45,6 +45,7 @@ from typing import Any
 import torch
 
 from agilegs.service.data import bundled_scene
+from agilegs.service.nbv.anchor import MIXED_ZBUFFER, POINT_ZBUFFER
 
 log = logging.getLogger(__name__)
 
@@ -151,9 +152,9 @@ def _config_for(name: str, base: Any) -> tuple[str, Any]:
     elif variant == "typical":
         cfg.anchor = replace(cfg.anchor, model="typical")
     elif variant == "point_zbuffer":
-        cfg.anchor = replace(cfg.anchor, occlusion_tests=((1, 0.02),))
+        cfg.anchor = replace(cfg.anchor, occlusion_tests=POINT_ZBUFFER)
     elif variant == "mixed_zbuffer":
-        cfg.anchor = replace(cfg.anchor, occlusion_tests=((1, 0.02), (3, 0.10)))
+        cfg.anchor = replace(cfg.anchor, occlusion_tests=MIXED_ZBUFFER)
     return method, cfg
 
 

@@ -35,6 +35,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from agilegs.service.nbv.anchor import MIXED_ZBUFFER, POINT_ZBUFFER
+
 from .latency import eig_percentile, spearman
 
 log = logging.getLogger(__name__)
@@ -46,8 +48,8 @@ CONFIGS: dict[str, dict[str, dict[str, Any]]] = {
     "typical": {"anchor": {"model": "typical"}},
     "unconditioned": {"scoring": {"condition_on_acquired": False}},
     "paper": {"anchor": {"model": "typical"}, "scoring": {"condition_on_acquired": False}},
-    "point_zbuffer": {"anchor": {"occlusion_tests": ((1, 0.02),)}},
-    "mixed_zbuffer": {"anchor": {"occlusion_tests": ((1, 0.02), (3, 0.10))}},
+    "point_zbuffer": {"anchor": {"occlusion_tests": POINT_ZBUFFER}},
+    "mixed_zbuffer": {"anchor": {"occlusion_tests": MIXED_ZBUFFER}},
 }
 METRICS = ("spearman", "agile_pct", "plus_pct", "agile_sep_deg", "plus_sep_deg")
 

@@ -55,6 +55,13 @@ from .gaussians import FIELD_NAMES, GaussianMap
 from .rasterize import covariance_3d
 from .se3 import se3_exp
 
+#: the proxy's visibility tests by name (``AnchorConfig.occlusion_tests``): the default, each
+#: occluder covering 3x3 cells at 10% depth tolerance; the point z-buffer, each occluder on its
+#: own cell at 2%; and the mean of the two. The benchmarks' variants use these names.
+COVER_ZBUFFER: tuple[tuple[int, float], ...] = ((3, 0.10),)
+POINT_ZBUFFER: tuple[tuple[int, float], ...] = ((1, 0.02),)
+MIXED_ZBUFFER: tuple[tuple[int, float], ...] = POINT_ZBUFFER + COVER_ZBUFFER
+
 PsiMode = Literal["proxy", "exact"]
 TypicalFisher = Literal["h_acc", "start_view"]
 ProxyModel = Literal["fitted", "typical"]
@@ -137,7 +144,7 @@ class AnchorConfig:
     envelope_margin: float = 0.05
     occluders: int = 2000
     occlusion_grid: int = 48
-    occlusion_tests: tuple[tuple[int, float], ...] = ((3, 0.10),)
+    occlusion_tests: tuple[tuple[int, float], ...] = COVER_ZBUFFER
     near_fraction: float = 0.05
     edge_softness: float = 0.05
 
@@ -520,7 +527,7 @@ class ProxyPsi:
     occluders: Tensor | None = None
     occ_grid: int = 64
     rate: Tensor | None = None
-    occ_tests: tuple[tuple[int, float], ...] = ((1, 0.02),)
+    occ_tests: tuple[tuple[int, float], ...] = POINT_ZBUFFER
 
     @classmethod
     def build(
@@ -535,7 +542,7 @@ class ProxyPsi:
         generator: torch.Generator | None,
         num_occluders: int = 0,
         occ_grid: int = 64,
-        occ_tests: tuple[tuple[int, float], ...] = ((1, 0.02),),
+        occ_tests: tuple[tuple[int, float], ...] = POINT_ZBUFFER,
         min_opacity: float = 0.05,
         rate: Tensor | None = None,
         slots: int = 1,
