@@ -27,15 +27,14 @@ from agilegs.schemas.errors import ErrorBody
 from . import _requests as rq
 from ._ops import ObservationLike, PoolLike, SyncOperations
 from ._requests import Call
-from ._zenoh import peer_config
 from .errors import (
-    AgileGSError,
     ProtocolError,
     RequestTimeout,
     SessionUnavailableError,
     TransportError,
     error_from_body,
 )
+from .zenoh_rpc import first_answer, open_session
 
 __all__ = ["ZenohClient"]
 
@@ -72,7 +71,7 @@ class ZenohClient(SyncOperations):
         self._attachment = f"Bearer {token}".encode() if token else None
         self._session: Any = None
         try:
-            self._session = zenoh.open(peer_config(listen, connect, mode))
+            self._session = open_session(listen, connect, mode)
         except zenoh.ZError as exc:
             raise TransportError(f"cannot open a Zenoh session: {exc}") from exc
         self._subscribers: list[Any] = []
@@ -103,47 +102,26 @@ class ZenohClient(SyncOperations):
 
             raise ValidationError(422, "invalid", str(exc), "session") from None
 
-    def create_session(self, intrinsics: Any, *, instance: str | None = None,
-                       **kwargs: Any) -> m.SessionInfo:
-        """Create a session (the arguments of :meth:`Client.create_session`); ``instance``
-        names the server instance to create it on (default: the one with the fewest
-        sessions, ties by smallest id)."""
-        call = rq.create_session(intrinsics, instance=instance, **kwargs)
-        return self._send(call)  # type: ignore[return-value]
-
     def _send(self, call: Call, parameters: str | None = None) -> BaseModel:
         if parameters is None and call.params:
             parameters = "&".join(f"{k}={v}" for k, v in call.params.items())
         key = self._key(call)
-        selector = key if parameters is None else f"{key}?{parameters}"
         payload = codec.dump(call.body, codec.MSGPACK) if call.body is not None else None
-        kwargs: dict[str, Any] = {"timeout": self.timeout, "encoding": codec.MSGPACK}
-        if payload is not None:
-            kwargs["payload"] = payload
-        if self._attachment is not None:
-            kwargs["attachment"] = self._attachment
-        t0 = time.monotonic()
         try:
-            replies = self._session.get(selector, **kwargs)
-            for reply in replies:
-                if reply.ok is not None:
-                    sample = reply.ok
-                    kind = codec.media_type(str(sample.encoding)) or codec.MSGPACK
-                    try:
-                        return call.op.response.model_validate(
-                            codec.load(sample.payload.to_bytes(), kind))
-                    except (codec.DecodeError, PydanticValidationError) as exc:
-                        raise ProtocolError(
-                            f"{call.op.name}: the reply does not match "
-                            f"{call.op.response.__name__}: {exc}") from exc
-                err = reply.err
-                err_kind = codec.media_type(str(err.encoding)) if err.encoding is not None else None
-                raise error_from_body(None, err.payload.to_bytes(), err_kind or codec.MSGPACK)
-        except AgileGSError:
-            raise
+            ans, timed_out = first_answer(self._session, key, payload=payload,
+                                          parameters=parameters, attachment=self._attachment,
+                                          timeout=self.timeout)
         except Exception as exc:
             raise TransportError(f"{call.op.name}: zenoh query on {key} failed: {exc}") from exc
-        if time.monotonic() - t0 >= self.timeout * 0.99:
+        if ans is not None and ans.ok:
+            try:
+                return call.op.response.model_validate(ans.load())
+            except (codec.DecodeError, PydanticValidationError) as exc:
+                raise ProtocolError(f"{call.op.name}: the reply does not match "
+                                    f"{call.op.response.__name__}: {exc}") from exc
+        if ans is not None:
+            raise error_from_body(None, ans.payload, ans.kind)
+        if timed_out:
             raise RequestTimeout(f"{call.op.name}: no reply on {key} within {self.timeout} s")
         if call.op.scope == "session" and self._any_server():
             raise SessionUnavailableError(

@@ -18,7 +18,9 @@ code                      status  meaning
 ``instance_unavailable``  404     scale-out: no live instance has the requested id
 ``method_not_allowed``    405     the route exists but not with this method
 ``not_acceptable``        406     Accept names no type the server produces
-``conflict``              409     the session's state forbids it (id taken, empty pool, ...)
+``conflict``              409     the session's state forbids it (id taken, view has a frame)
+``empty_pool``            409     a selection on an empty candidate pool
+``map_empty``             409     a selection on a session without Gaussians
 ``payload_too_large``     413     body over the ``max_body_bytes`` setting
 ``limit_exceeded``        413     a value over a server limit (pool size, pixels, ...)
 ``unsupported_media``     415     Content-Type is neither JSON nor msgpack
@@ -33,9 +35,59 @@ code                      status  meaning
 
 from __future__ import annotations
 
+from enum import StrEnum
+
 from pydantic import BaseModel, ConfigDict, Field
 
-__all__ = ["ErrorBody", "ErrorInfo", "ErrorItem"]
+__all__ = ["ERROR_STATUS", "ErrorBody", "ErrorCode", "ErrorInfo", "ErrorItem"]
+
+
+class ErrorCode(StrEnum):
+    """The stable machine-readable error codes (the table above)."""
+
+    BAD_REQUEST = "bad_request"
+    UNAUTHORIZED = "unauthorized"
+    NOT_FOUND = "not_found"
+    SESSION_UNAVAILABLE = "session_unavailable"
+    INSTANCE_UNAVAILABLE = "instance_unavailable"
+    METHOD_NOT_ALLOWED = "method_not_allowed"
+    NOT_ACCEPTABLE = "not_acceptable"
+    CONFLICT = "conflict"
+    EMPTY_POOL = "empty_pool"
+    MAP_EMPTY = "map_empty"
+    PAYLOAD_TOO_LARGE = "payload_too_large"
+    LIMIT_EXCEEDED = "limit_exceeded"
+    UNSUPPORTED_MEDIA = "unsupported_media"
+    INVALID = "invalid"
+    TOO_MANY = "too_many"
+    INTERNAL = "internal"
+    BAD_GATEWAY = "bad_gateway"
+    UNAVAILABLE = "unavailable"
+    GATEWAY_TIMEOUT = "gateway_timeout"
+
+
+ERROR_STATUS: dict[ErrorCode, int] = {
+    ErrorCode.BAD_REQUEST: 400,
+    ErrorCode.UNAUTHORIZED: 401,
+    ErrorCode.NOT_FOUND: 404,
+    ErrorCode.SESSION_UNAVAILABLE: 404,
+    ErrorCode.INSTANCE_UNAVAILABLE: 404,
+    ErrorCode.METHOD_NOT_ALLOWED: 405,
+    ErrorCode.NOT_ACCEPTABLE: 406,
+    ErrorCode.CONFLICT: 409,
+    ErrorCode.EMPTY_POOL: 409,
+    ErrorCode.MAP_EMPTY: 409,
+    ErrorCode.PAYLOAD_TOO_LARGE: 413,
+    ErrorCode.LIMIT_EXCEEDED: 413,
+    ErrorCode.UNSUPPORTED_MEDIA: 415,
+    ErrorCode.INVALID: 422,
+    ErrorCode.TOO_MANY: 429,
+    ErrorCode.INTERNAL: 500,
+    ErrorCode.BAD_GATEWAY: 502,
+    ErrorCode.UNAVAILABLE: 503,
+    ErrorCode.GATEWAY_TIMEOUT: 504,
+}
+"""The HTTP status that goes with each code."""
 
 
 class ErrorItem(BaseModel):
@@ -53,7 +105,11 @@ class ErrorInfo(BaseModel):
     model_config = ConfigDict(extra="ignore")
 
     status: int = Field(description="HTTP status (also sent in Zenoh error replies)")
-    code: str = Field(description="stable error code, see the module documentation")
+    code: str = Field(
+        description="stable error code (:class:`ErrorCode`; a client keeps codes it does not "
+        "know as text)",
+        json_schema_extra={"enum": [c.value for c in ErrorCode]},
+    )
     message: str = Field(description="human-readable reason")
     field: str | None = Field(default=None, description="path of the offending input, if any")
     errors: list[ErrorItem] = Field(default_factory=list, description="every problem found")

@@ -81,9 +81,12 @@ def _det3(m: list[list[float]]) -> float:
 
 
 def quaternion_xyzw_to_matrix(q: list[float] | np.ndarray) -> np.ndarray:
-    """Rotation matrix [3, 3] of the quaternion ``q`` = (x, y, z, w) (normalised first)."""
+    """Rotation matrix [3, 3] of the quaternion ``q`` = (x, y, z, w) (normalised first);
+    ValueError for a zero or non-finite quaternion."""
     x, y, z, w = (float(v) for v in q)
     n = math.sqrt(x * x + y * y + z * z + w * w)
+    if not math.isfinite(n) or n < 1e-12:
+        raise ValueError(f"quaternion {[x, y, z, w]} has zero or non-finite norm")
     x, y, z, w = x / n, y / n, z / n, w / n
     return np.array(
         [

@@ -15,6 +15,16 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints, model_validator
 
 from .arrays import B64Bytes, NDArray
+from .config import (
+    FIELD_NAMES,
+    METHODS,
+    SHORTLISTS,
+    FieldName,
+    MapperConfigPatch,
+    Method,
+    SelectConfigPatch,
+    ShortlistStrategy,
+)
 from .geometry import Bounds, Intrinsics, Pose
 
 __all__ = [
@@ -62,13 +72,6 @@ SESSION_ID_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
 SessionId = Annotated[str, StringConstraints(pattern=SESSION_ID_PATTERN)]
 """A session id: 1 to 64 characters from ``[A-Za-z0-9_-]`` (safe in URLs and Zenoh keys)."""
 
-Method = Literal["random", "fisherrf", "cover", "agile", "agile_plus"]
-METHODS: tuple[str, ...] = ("random", "fisherrf", "cover", "agile", "agile_plus")
-ShortlistStrategy = Literal["leverage", "knearest", "topnorm", "online"]
-SHORTLISTS: tuple[str, ...] = ("leverage", "knearest", "topnorm", "online")
-FieldName = Literal["means", "log_scales", "quats", "opacity_logits", "sh"]
-FIELD_NAMES: tuple[str, ...] = ("means", "log_scales", "quats", "opacity_logits", "sh")
-
 Id = Annotated[int, Field(ge=0, le=2**53)]
 MAX_POOL_WIRE = 100_000  # the schema's own cap; the server's pool_size setting is lower
 MAX_OBSERVATIONS_WIRE = 256
@@ -104,12 +107,9 @@ class SelectDefaults(BaseModel):
     fields: list[FieldName] | None = Field(
         default=None, description="parameter blocks entering the information (None: all five)"
     )
-    config: dict[str, Any] = Field(
-        default_factory=dict,
-        description=(
-            "further SelectConfig fields by name, e.g. {'anchor': {'steps': 3}}; unknown "
-            "names are rejected"
-        ),
+    config: SelectConfigPatch = Field(
+        default_factory=SelectConfigPatch,
+        description="further SelectConfig fields, e.g. {'anchor': {'iterations': 1}}",
     )
 
     @model_validator(mode="after")
@@ -173,12 +173,10 @@ class MapperOptions(BaseModel):
         description="training steps per view with an image (None: the server's "
                     "AGILEGS_MAPPER_STEPS_PER_VIEW)",
     )
-    config: dict[str, Any] = Field(
-        default_factory=dict,
-        description=(
-            "MapperConfig fields by name (3DGS training settings), e.g. {'background': "
-            "[1, 1, 1], 'sh_degree': 0, 'densify_from': 50}; unknown names are rejected"
-        ),
+    config: MapperConfigPatch = Field(
+        default_factory=MapperConfigPatch,
+        description="MapperConfig fields (3DGS training settings), e.g. {'background': "
+        "[1, 1, 1], 'sh_degree': 0, 'densify_from': 50}",
     )
 
 
@@ -597,7 +595,7 @@ class SelectRequest(BaseModel):
     embodied_k: int | None = Field(default=None, ge=1, le=100_000)
     seed: int | None = Field(default=None, ge=0, le=2**63 - 1)
     fields: list[FieldName] | None = None
-    config: dict[str, Any] | None = Field(
+    config: SelectConfigPatch | None = Field(
         default=None, description="SelectConfig fields, merged over the session's config"
     )
     current_id: Id | None = Field(default=None, description="the current view, a candidate id")

@@ -15,11 +15,11 @@ from collections.abc import Sequence
 
 # (command path, module, help)
 COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
-    (("serve",), "agilegs.service.server", "run the NBV server (HTTP and Zenoh)"),
+    (("serve",), "agilegs.service.serve", "run the NBV server (HTTP and Zenoh)"),
     (("demo",), "agilegs.service.demo", "closed-loop demo on the bundled scene"),
     (("bench", "render"), "agilegs.service.bench.render_bench", "rasterizer and Fisher timings"),
     (("bench", "latency"), "agilegs.service.bench.latency", "selection latency of every method"),
-    (("bench", "run"), "agilegs.service.bench.protocol", "the paper's progressive protocol"),
+    (("bench", "run"), "agilegs.service.bench.run_cli", "the paper's progressive protocol"),
     (("bench", "service"), "agilegs.service.bench.service_bench", "transport overhead"),
     (("bench", "proxy"), "agilegs.service.bench.proxy_check",
      "how the anchor's choices follow the exact EIG on trained maps"),

@@ -71,12 +71,12 @@ import logging
 import re
 import socket
 import threading
-import time
 from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any
 
 from pydantic import BaseModel, ValidationError
 
+from agilegs.client.zenoh_rpc import first_answer, query
 from agilegs.schemas import codec, keys
 from agilegs.schemas import models as m
 from agilegs.schemas.errors import ErrorBody
@@ -91,10 +91,12 @@ from agilegs.schemas.keys import (
 )
 from agilegs.schemas.ops import OPERATIONS, Operation
 
-from .core import ServiceError, validation_error
+from .errors import ServiceError
 
 if TYPE_CHECKING:
-    from .core import ServiceCore
+    from concurrent.futures import Executor
+
+    from .sessions.registry import SessionRegistry
     from .settings import Settings
 
 __all__ = [
@@ -167,17 +169,20 @@ class ClusterNode:
     """This instance's part of the cluster: its id, the Zenoh declarations of the sessions it
     owns, placement, and forwarding of what it does not own (see the module docstring).
 
-    Both transports dispatch through :meth:`call`. Until :meth:`attach` is given a Zenoh
-    session (and after :meth:`detach`), everything runs locally, as on a single server.
+    The gateway routes every operation through :meth:`route`. Until :meth:`attach` is given
+    a Zenoh session (and after :meth:`detach`), everything runs locally, as on a single server.
 
     Args:
-        core: this instance's sessions.
+        registry: this instance's sessions.
         settings: ``instance_id`` (default :func:`default_instance_id` of the host and the HTTP
             port), ``forward_timeout`` (seconds a forwarded operation may take), ``token``.
+        executor: where ``@service`` queries are answered (the gateway's worker threads).
     """
 
-    def __init__(self, core: ServiceCore, settings: Settings) -> None:
-        self.core = core
+    def __init__(self, registry: SessionRegistry, settings: Settings, executor: Executor
+                 ) -> None:
+        self.registry = registry
+        self.executor = executor
         self.settings = settings
         given = getattr(settings, "instance_id", None)
         self.instance_id = check_instance_id(
@@ -264,7 +269,7 @@ class ClusterNode:
             z = self._z
             if z is None:
                 return
-            want = {sid for sid, s in list(self.core.sessions.items()) if not s.closed}
+            want = {sid for sid, s in list(self.registry.sessions.items()) if not s.closed}
             for sid in sorted(set(self._owned) - want):
                 for entity in self._owned.pop(sid):
                     try:
@@ -303,7 +308,7 @@ class ClusterNode:
                 out[iid] = m.Health.model_validate(data)
             except (ValueError, ValidationError):
                 log.warning("cluster: ignoring a malformed health reply on %s", key)
-        out[self.instance_id] = self.core.health()
+        out[self.instance_id] = self.registry.health()
         if len(out) > 1:
             self._seen_others = True
         return out
@@ -320,20 +325,20 @@ class ClusterNode:
         return min(self.instances())
 
     # ------------------------------------------------------------------ dispatch
-    def call(self, op: str, session: str | None, payload: Any, *, t0: float | None = None,
-             instance: str | None = None, local: bool = False) -> BaseModel:
-        """Run ``op`` where it belongs; the arguments of :meth:`ServiceCore.call`, plus:
+    def route(self, op: str, session: str | None, req: BaseModel | None, *,
+              run_local: Callable[[], BaseModel], instance: str | None = None,
+              local: bool = False) -> BaseModel:
+        """Run a validated request where it belongs: ``run_local`` here, or forwarded to the
+        instance that owns the session (the owner's refusal is re-raised with its status,
+        code, message and field).
 
         Args:
             instance: for ``create_session``, the instance to create it on (else the policy).
             local: run it here whatever the cluster holds (queries on ``@instances/<me>``).
-
-        Returns the response model; raises :class:`ServiceError` (a forwarded refusal is
-        re-raised with the owner's status, code, message and field).
         """
-        spec = OPERATIONS.get(op)
-        if spec is None or local:
-            return self._local(op, session, payload, t0)
+        spec = OPERATIONS[op]
+        if local:
+            return self._local(op, run_local)
         if instance is not None and op == "create_session":
             try:
                 check_instance_id(instance)
@@ -341,50 +346,38 @@ class ClusterNode:
                 raise ServiceError(422, "invalid", str(exc), "query.instance") from None
         if spec.scope == "session":
             if (self._z is None or session is None or not _SESSION_RE.match(session)
-                    or session in self.core.sessions):
-                return self._local(op, session, payload, t0)
-            return self._forward_session(spec, session, payload, t0)
+                    or session in self.registry.sessions):
+                return self._local(op, run_local)
+            return self._forward_session(spec, session, req, run_local)
         if op == "list_sessions" and self._z is not None:
             return self._merged_list()
         if op == "create_session" and self._z is not None:
-            body = self._request_bytes(spec, payload)
-            self._check_id_free(payload)
+            assert isinstance(req, m.SessionCreate)
+            body = codec.dump(req, codec.MSGPACK)
+            self._check_id_free(req.id)
             if instance is None:
-                return self._place(spec, payload, body, t0)
+                return self._place(body, run_local)
             if instance != self.instance_id:
                 return self._create_on(instance, body)
         elif op == "create_session" and instance not in (None, self.instance_id):
             raise instance_unavailable(str(instance))
-        return self._local(op, session, payload, t0)
+        return self._local(op, run_local)
 
-    def _local(self, op: str, session: str | None, payload: Any, t0: float | None
-               ) -> BaseModel:
-        result = self.core.call(op, session, payload, t0=t0)
+    def _local(self, op: str, run_local: Callable[[], BaseModel]) -> BaseModel:
+        result = run_local()
         if op in ("create_session", "delete_session"):
             self.sync()  # declared before the reply leaves: the session is found at once
         return result
 
-    def _request_bytes(self, spec: Operation, payload: Any) -> bytes | None:
-        """Validate ``payload`` as the owner would (same 422) and encode it as msgpack."""
-        if spec.request is None:
-            return None
-        if payload is None:
-            raise ServiceError(422, "invalid", "a request body is required", "body")
-        try:
-            req = spec.request.model_validate(payload)
-        except ValidationError as exc:
-            raise validation_error(exc) from None
-        return codec.dump(req, codec.MSGPACK)
-
-    def _forward_session(self, spec: Operation, session: str, payload: Any,
-                         t0: float | None) -> BaseModel:
-        body = self._request_bytes(spec, payload)
+    def _forward_session(self, spec: Operation, session: str, req: BaseModel | None,
+                         run_local: Callable[[], BaseModel]) -> BaseModel:
+        body = codec.dump(req, codec.MSGPACK) if req is not None else None
         got = self._forward(keys.session_key(session, spec.name), body, spec)
         if got is not None:
             return got
         live = sorted(self.instances())
         if not self.in_cluster:  # a lone server: the session simply does not exist
-            return self._local(spec.name, session, payload, t0)
+            return self._local(spec.name, run_local)
         raise session_unavailable(session, live)
 
     def _create_on(self, instance: str, body: bytes | None) -> BaseModel:
@@ -394,21 +387,20 @@ class ClusterNode:
             raise instance_unavailable(instance)
         return got
 
-    def _check_id_free(self, payload: Any) -> None:
+    def _check_id_free(self, sid: str | None) -> None:
         """409 if the requested session id is held here or by another live instance."""
-        sid = payload.get("id") if isinstance(payload, dict) else None
-        if isinstance(sid, str) and (sid in self.core.sessions or self._remote_replies(
+        if sid is not None and (sid in self.registry.sessions or self._remote_replies(
                 keys.session_key(sid, "get_session"), PROBE_TIMEOUT)):
             raise ServiceError(409, "conflict", f"session {sid!r} already exists", "body.id")
 
-    def _place(self, spec: Operation, payload: Any, body: bytes | None, t0: float | None
-               ) -> BaseModel:
+    def _place(self, body: bytes, run_local: Callable[[], BaseModel]) -> BaseModel:
+        spec = OPERATIONS["create_session"]
         loads = {iid: h.sessions for iid, h in self.instances().items()}
         refusal: ServiceError | None = None
         for target in placement_order(loads):
             try:
                 if target == self.instance_id:
-                    return self._local(spec.name, None, payload, t0)
+                    return self._local(spec.name, run_local)
                 got = self._forward(instance_key(target, "create_session"), body, spec)
             except ServiceError as err:
                 if err.status != 429:
@@ -421,7 +413,7 @@ class ClusterNode:
         raise refusal or ServiceError(503, "unavailable", "no instance could take the session")
 
     def _merged_list(self) -> m.SessionList:
-        out = list(self.core.list_sessions().sessions)
+        out = list(self.registry.list_sessions().sessions)
         seen = {s.id for s in out}
         for key, data in self._remote_replies(instances_wildcard("list_sessions"),
                                               min(self.forward_timeout, 10.0)):
@@ -437,18 +429,6 @@ class ClusterNode:
         return m.SessionList(sessions=out)
 
     # ------------------------------------------------------------------ Zenoh gets
-    def _get_kwargs(self, timeout: float, body: bytes | None) -> dict[str, Any]:
-        import zenoh
-
-        kwargs: dict[str, Any] = {"timeout": timeout, "encoding": codec.MSGPACK,
-                                  "consolidation": zenoh.ConsolidationMode.NONE,
-                                  "allowed_destination": zenoh.Locality.REMOTE}
-        if body is not None:
-            kwargs["payload"] = body
-        if self._attachment is not None:
-            kwargs["attachment"] = self._attachment
-        return kwargs
-
     def _remote_replies(self, key: str, timeout: float) -> list[tuple[str, Any]]:
         """The decoded ok replies of other instances to a get on ``key`` (errors skipped)."""
         z = self._z
@@ -456,13 +436,12 @@ class ClusterNode:
             return []
         out = []
         try:
-            for reply in z.get(key, **self._get_kwargs(timeout, None)):
-                if reply.ok is None:
+            for ans in query(z, key, timeout=timeout, attachment=self._attachment,
+                             remote_only=True, every_reply=True):
+                if not ans.ok:
                     continue
-                sample = reply.ok
-                kind = codec.media_type(str(sample.encoding)) or codec.MSGPACK
                 try:
-                    out.append((str(sample.key_expr), codec.load(sample.payload.to_bytes(), kind)))
+                    out.append((ans.key, ans.load()))
                 except codec.DecodeError:
                     log.warning("cluster: undecodable reply on %s", key)
         except Exception:
@@ -474,38 +453,30 @@ class ClusterNode:
         z = self._z
         if z is None:
             return None
-        t0 = time.monotonic()
         try:
-            for reply in z.get(key, **self._get_kwargs(self.forward_timeout, body)):
-                if reply.ok is not None:
-                    sample = reply.ok
-                    kind = codec.media_type(str(sample.encoding)) or codec.MSGPACK
-                    try:
-                        return spec.response.model_validate(
-                            codec.load(sample.payload.to_bytes(), kind))
-                    except (codec.DecodeError, ValidationError) as exc:
-                        raise ServiceError(502, "bad_gateway", f"{spec.name}: the owner's answer "
-                                           f"on {key} is malformed: {exc}") from None
-                err = reply.err
-                err_kind = (codec.media_type(str(err.encoding)) if err.encoding is not None
-                            else None) or codec.MSGPACK
-                try:
-                    info = ErrorBody.model_validate(
-                        codec.load(err.payload.to_bytes(), err_kind)).error
-                except (codec.DecodeError, ValidationError):
-                    raise ServiceError(502, "bad_gateway", f"{spec.name}: the owner's error "
-                                       f"reply on {key} is malformed") from None
-                raise ServiceError(info.status, info.code, info.message, info.field,
-                                   list(info.errors))
-        except ServiceError:
-            raise
+            ans, timed_out = first_answer(z, key, payload=body, attachment=self._attachment,
+                                          timeout=self.forward_timeout, remote_only=True,
+                                          every_reply=True)
         except Exception as exc:
             raise ServiceError(502, "bad_gateway", f"{spec.name}: forwarding on {key} failed "
                                f"({type(exc).__name__}: {exc})") from exc
-        if time.monotonic() - t0 >= self.forward_timeout * 0.99:
-            raise ServiceError(504, "gateway_timeout", f"{spec.name}: the instance that owns it "
-                               f"did not answer within {self.forward_timeout:g} s")
-        return None
+        if ans is None:
+            if timed_out:
+                raise ServiceError(504, "gateway_timeout", f"{spec.name}: the instance that "
+                                   f"owns it did not answer within {self.forward_timeout:g} s")
+            return None
+        if ans.ok:
+            try:
+                return spec.response.model_validate(ans.load())
+            except (codec.DecodeError, ValidationError) as exc:
+                raise ServiceError(502, "bad_gateway", f"{spec.name}: the owner's answer "
+                                   f"on {key} is malformed: {exc}") from None
+        try:
+            info = ErrorBody.model_validate(ans.load()).error
+        except (codec.DecodeError, ValidationError):
+            raise ServiceError(502, "bad_gateway", f"{spec.name}: the owner's error "
+                               f"reply on {key} is malformed") from None
+        raise ServiceError(info.status, info.code, info.message, info.field, list(info.errors))
 
     # ------------------------------------------------------------------ @service queries
     def _on_service_query(self, query: Any, op: str) -> None:
@@ -517,7 +488,7 @@ class ClusterNode:
             on_query(query, op, None, False, None)
             return
         try:
-            self.core.executor.submit(self._answer_if_coordinator, query, op)
+            self.executor.submit(self._answer_if_coordinator, query, op)
         except RuntimeError:  # stopping: let the adapter say so
             on_query(query, op, None, False, None)
 

@@ -32,15 +32,13 @@ import argparse
 import json
 import logging
 import math
-import os
-import socket
-import subprocess
-import sys
 import tempfile
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
+
+from agilegs.service.launch import ServerProcess
 
 if TYPE_CHECKING:
     import numpy as np
@@ -116,13 +114,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 # ============================================================================ helpers
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that was free a moment ago."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def attribution(scene: str) -> str:
     """The attribution line of a bundled scene (from ``scenes/ATTRIBUTION.md``), or a note
     for a scene file of one's own."""
@@ -141,62 +132,6 @@ def attribution(scene: str) -> str:
     if len(cells) >= 4:
         return f"Scene: {cells[3]} ({cells[2]}). {credit}".strip()
     return f"Scene: {file.name}. {credit}".strip()
-
-
-class Server:
-    """``agilegs serve`` in a subprocess on 127.0.0.1 (HTTP only), stopped by :meth:`stop`."""
-
-    def __init__(self, state_dir: Path, log_path: Path, *, threads: int) -> None:
-        self.port = free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        self.state_dir = state_dir
-        self.log_path = log_path
-        self.threads = threads
-        self.proc: subprocess.Popen[bytes] | None = None
-
-    def start(self, timeout: float = 120.0) -> None:
-        import httpx
-
-        cmd = [sys.executable, "-m", "agilegs.service.cli", "serve", "--host", "127.0.0.1",
-               "--port", str(self.port), "--state-dir", str(self.state_dir), "--no-zenoh",
-               "--log-level", "warning"]
-        env = {k: v for k, v in os.environ.items() if not k.startswith("AGILEGS_")}
-        env.update({"AGILEGS_TORCH_THREADS": str(self.threads), "AGILEGS_MAPPER": "1",
-                    "AGILEGS_MAPPER_BURST": "10"})
-        self._log = open(self.log_path, "wb")
-        self.proc = subprocess.Popen(cmd, env=env, stdout=self._log, stderr=subprocess.STDOUT)
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if self.proc.poll() is not None:
-                raise RuntimeError(f"the server exited with {self.proc.returncode}:\n"
-                                   f"{self.log_tail()}")
-            try:
-                if httpx.get(self.url + "/healthz", timeout=1.0).status_code == 200:
-                    return
-            except httpx.TransportError:
-                pass
-            time.sleep(0.1)
-        raise RuntimeError(f"the server did not answer /healthz in {timeout:.0f} s:\n"
-                           f"{self.log_tail()}")
-
-    def log_tail(self, chars: int = 3000) -> str:
-        try:
-            return self.log_path.read_text(errors="replace")[-chars:]
-        except OSError:
-            return ""
-
-    def stop(self) -> None:
-        """Terminate, wait, kill if it lingers."""
-        proc, self.proc = self.proc, None
-        if proc is not None and proc.poll() is None:
-            proc.terminate()
-            try:
-                proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(timeout=10)
-        if getattr(self, "_log", None) is not None:
-            self._log.close()
 
 
 # ============================================================================ the robot
@@ -355,15 +290,19 @@ def run(args: argparse.Namespace) -> int:
                   f"{size.events} events, {size.steps_per_view} mapper steps per view",
                   soft_wrap=True)
     with tempfile.TemporaryDirectory(prefix="agilegs-demo-") as tmp:
-        server = Server(Path(tmp) / "state", out / "server.log", threads=args.server_threads)
+        server = ServerProcess(
+            Path(tmp) / "state", zenoh=False, log_path=out / "server.log",
+            args=["--log-level", "warning"],
+            env={"AGILEGS_TORCH_THREADS": str(args.server_threads), "AGILEGS_MAPPER": "1",
+                 "AGILEGS_MAPPER_BURST": "10"})
         try:
-            server.start()
+            server.start(timeout=120.0)
             console.print(f"server: {server.url} (pid {server.proc.pid if server.proc else '?'}"
                           f", log {out / 'server.log'})", soft_wrap=True)
             results = closed_loop(server.url, robot, size, int(args.seed), console)
         except Exception as exc:
             log.error("demo failed: %s", exc)
-            tail = server.log_tail()
+            tail = server.log()[-3000:]
             if tail:
                 console.print(f"[dim]server log (tail):[/dim]\n{tail}", soft_wrap=True,
                               markup=False)

@@ -1,109 +1,58 @@
-"""``agilegs serve``: the NBV server, FastAPI on uvicorn, with Zenoh on by default.
+"""One NBV server instance: HTTP (FastAPI on uvicorn) and Zenoh, each optional.
 
-Every flag has an ``AGILEGS_*`` environment variable (see :mod:`agilegs.service.settings`);
-a flag given on the command line wins. The bearer token is read from ``AGILEGS_TOKEN`` only
-(a command line is visible to every user of the machine).
+:class:`Server` wires one instance together: the sessions (:class:`SessionRegistry
+<agilegs.service.sessions.registry.SessionRegistry>`), the request pipeline
+(:class:`~agilegs.service.gateway.Gateway`), the cluster node that routes operations to the
+instance owning a session (:class:`~agilegs.service.cluster.ClusterNode`), the Zenoh
+transport (:class:`~agilegs.service.zenoh_adapter.ZenohAdapter`) and the metrics; the HTTP
+transport is an app around it (:func:`agilegs.service.http_app.create_app`).
+
+The command ``agilegs serve`` that runs one is :mod:`agilegs.service.serve`.
 """
 
 from __future__ import annotations
 
-import argparse
 import logging
-from typing import Any
 
-__all__ = ["add_arguments", "build_settings", "run"]
+from .cluster import ClusterNode
+from .gateway import Gateway
+from .metrics import Metrics
+from .sessions.registry import SessionRegistry
+from .settings import Settings
+from .zenoh_adapter import ZenohAdapter
+
+__all__ = ["Server"]
 
 log = logging.getLogger(__name__)
 
 
-def _endpoints(text: str) -> list[str]:
-    return [e.strip() for e in text.split(",") if e.strip()]
+class Server:
+    """One server instance: sessions, gateway, cluster node, Zenoh, metrics.
 
+    Args:
+        settings: the server's settings.
+    """
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    a = parser.add_argument
-    a("--host", help="HTTP bind address (AGILEGS_HOST, default 127.0.0.1)")
-    a("--port", type=int, help="HTTP port (AGILEGS_PORT, default 8000)")
-    a("--state-dir", help="persistent state folder (AGILEGS_STATE_DIR, default ./agilegs-state)")
-    z = parser.add_mutually_exclusive_group()
-    z.add_argument("--zenoh", dest="zenoh", action="store_const", const=True,
-                   help="serve over Zenoh too (AGILEGS_ZENOH, the default)")
-    z.add_argument("--no-zenoh", dest="zenoh", action="store_const", const=False,
-                   help="HTTP only")
-    a("--zenoh-listen", action="append", type=_endpoints, metavar="ENDPOINTS",
-      help="Zenoh listen endpoints, comma-separated or repeated "
-           "(AGILEGS_ZENOH_LISTEN, default tcp/127.0.0.1:7447)")
-    a("--zenoh-connect", action="append", type=_endpoints, metavar="ENDPOINTS",
-      help="Zenoh peers / routers to connect to (AGILEGS_ZENOH_CONNECT)")
-    # --- several instances (issue 6, see agilegs.service.cluster)
-    a("--zenoh-mode", choices=["peer", "client", "router"],
-      help="Zenoh mode (AGILEGS_ZENOH_MODE, default peer; client: through a zenohd router)")
-    a("--instance-id", help="this instance's id in a cluster "
-                            "(AGILEGS_INSTANCE_ID, default <hostname>-<port>)")
-    a("--forward-timeout", type=float, help="seconds an operation forwarded to the instance "
-                                            "owning a session may take (AGILEGS_FORWARD_TIMEOUT)")
-    # ---
-    a("--workers", type=int, help="worker threads for session work (AGILEGS_WORKERS, 16)")
-    a("--torch-threads", type=int, help="torch intra-op threads, 0 = default "
-                                        "(AGILEGS_TORCH_THREADS)")
-    a("--max-body-bytes", type=int, help="largest request body (AGILEGS_MAX_BODY_BYTES)")
-    a("--max-pool-size", type=int, help="most candidates per pool (AGILEGS_MAX_POOL_SIZE)")
-    a("--max-image-pixels", type=int, help="most pixels per image (AGILEGS_MAX_IMAGE_PIXELS)")
-    a("--max-sessions", type=int, help="most sessions (AGILEGS_MAX_SESSIONS)")
-    a("--max-gaussians", type=int, help="most Gaussians per session (AGILEGS_MAX_GAUSSIANS)")
-    a("--max-views", type=int, help="most views per session (AGILEGS_MAX_VIEWS)")
-    a("--max-shortlist", type=int, help="largest shortlist size (AGILEGS_MAX_SHORTLIST)")
-    f = parser.add_mutually_exclusive_group()
-    f.add_argument("--fsync", dest="fsync", action="store_const", const=True,
-                   help="fsync before acknowledging (AGILEGS_FSYNC, the default)")
-    f.add_argument("--no-fsync", dest="fsync", action="store_const", const=False,
-                   help="skip fsync (state survives a killed process, not a power cut)")
-    m = parser.add_mutually_exclusive_group()
-    m.add_argument("--mapper", dest="mapper", action="store_const", const=True,
-                   help="train sessions' maps from the images they receive (AGILEGS_MAPPER, "
-                        "the default)")
-    m.add_argument("--no-mapper", dest="mapper", action="store_const", const=False,
-                   help="keep maps as pushed: images are stored, not trained on")
-    a("--mapper-steps-per-view", type=int,
-      help="mapper training steps per view with an image (AGILEGS_MAPPER_STEPS_PER_VIEW, 100)")
-    a("--mapper-burst", type=int,
-      help="mapper steps between two publications of the map (AGILEGS_MAPPER_BURST, 20)")
-    a("--log-level", help="log level (AGILEGS_LOG_LEVEL, default info)")
+    def __init__(self, settings: Settings) -> None:
+        self.settings = settings
+        self.registry = SessionRegistry(settings)
+        self.metrics = Metrics(sessions=lambda: len(self.registry.sessions))
+        self.gateway = Gateway(self.registry, settings, self.metrics)
+        self.cluster = ClusterNode(self.registry, settings, self.gateway.executor)
+        self.gateway.router = self.cluster
+        self.zenoh: ZenohAdapter | None = None
 
+    def start(self) -> None:
+        """Load the sessions (the mapper starts with them) and join Zenoh when it is on."""
+        self.registry.load()
+        if self.settings.zenoh:
+            self.zenoh = ZenohAdapter(self.gateway, self.cluster, self.settings)
+            self.zenoh.start()
 
-_FIELDS = ("host", "port", "state_dir", "zenoh", "zenoh_mode", "instance_id", "forward_timeout",
-           "workers", "torch_threads", "max_body_bytes",
-           "max_pool_size", "max_image_pixels", "max_sessions", "max_gaussians", "max_views",
-           "max_shortlist", "fsync", "mapper", "mapper_steps_per_view", "mapper_burst",
-           "log_level")
-
-
-def build_settings(args: argparse.Namespace) -> Any:
-    """Settings from the environment, overridden by the flags given."""
-    from .settings import Settings
-
-    overrides: dict[str, Any] = {}
-    for name in _FIELDS:
-        value = getattr(args, name, None)
-        if value is not None:
-            overrides[name] = value
-    for name in ("zenoh_listen", "zenoh_connect"):
-        value = getattr(args, name, None)
-        if value is not None:
-            overrides[name] = [e for group in value for e in group]
-    return Settings(**overrides)
-
-
-def run(args: argparse.Namespace) -> int:
-    import uvicorn
-
-    from .http_app import create_app
-
-    settings = build_settings(args)
-    settings.warn_if_unsafe()
-    app = create_app(settings)
-    log.info("agilegs serve: http://%s:%d (state in %s, zenoh %s)", settings.host, settings.port,
-             settings.state_dir, "on" if settings.zenoh else "off")
-    uvicorn.run(app, host=settings.host, port=settings.port, log_level=settings.log_level.lower(),
-                access_log=False, timeout_graceful_shutdown=10)
-    return 0
+    def close(self) -> None:
+        """Leave Zenoh, stop the mapper and the worker threads."""
+        if self.zenoh is not None:
+            self.zenoh.close()
+            self.zenoh = None
+        self.registry.close()
+        self.gateway.close()

@@ -12,7 +12,7 @@ import logging
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import Field, SecretStr, field_validator
+from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 __all__ = ["Settings"]
@@ -30,12 +30,13 @@ class Settings(BaseSettings):
     host: str = Field(default="127.0.0.1", description="HTTP bind address")
     port: int = Field(default=8000, ge=0, le=65535, description="HTTP port (0: any free port)")
     state_dir: Path = Field(default=Path("agilegs-state"), description="persistent state folder")
+    http: bool = Field(default=True, description="serve over HTTP")
     zenoh: bool = Field(default=True, description="serve over Zenoh as well")
     zenoh_listen: Endpoints = Field(
         default_factory=lambda: ["tcp/127.0.0.1:7447"], description="Zenoh listen endpoints"
     )
     zenoh_connect: Endpoints = Field(default_factory=list, description="Zenoh peers to connect")
-    # --- several instances (issue 6, see agilegs.service.cluster)
+    # several instances (see agilegs.service.cluster)
     zenoh_mode: Literal["peer", "client", "router"] = Field(
         default="peer", description="Zenoh mode: peer, or client of a router (zenohd)"
     )
@@ -47,7 +48,6 @@ class Settings(BaseSettings):
         default=120.0, gt=0, description="seconds an operation forwarded to another instance "
                                          "may take"
     )
-    # ---
     token: SecretStr | None = Field(
         default=None, description="bearer token required on every request when set"
     )
@@ -84,6 +84,12 @@ class Settings(BaseSettings):
                 return json.loads(text)
             return [v.strip() for v in text.split(",") if v.strip()]
         return value
+
+    @model_validator(mode="after")
+    def _some_transport(self) -> Settings:
+        if not (self.http or self.zenoh):
+            raise ValueError("serve over HTTP, Zenoh or both (AGILEGS_HTTP, AGILEGS_ZENOH)")
+        return self
 
     @field_validator("token", mode="before")
     @classmethod

@@ -2,7 +2,7 @@
 
 One :class:`Trainer` per server (a single worker thread) serves every session with work,
 round-robin, one burst at a time. Each session holds a :class:`SessionTrainer` (attached as
-``SessionCore.mapper``; :meth:`SessionCore.on_observation` wakes the worker) that owns a
+``Session.mapper``; :meth:`Session.on_observation` wakes the worker) that owns a
 :class:`~agilegs.service.mapper.Mapper`, built lazily from the session's published Gaussians
 and its acquired views that have an image (images and depth read back from the store).
 
@@ -16,7 +16,7 @@ the steps done. A burst:
    train ``min(AGILEGS_MAPPER_BURST, pending)`` steps (L1 + D-SSIM, densify / prune, as
    :class:`~agilegs.service.mapper.MapperConfig` says);
 2. under the session lock: publish a snapshot of the trained map through
-   :meth:`SessionCore.replace_map`, which persists it (Gaussians, Ĥ and the mapper's progress
+   :meth:`Session.replace_map`, which persists it (Gaussians, Ĥ and the mapper's progress
    in the manifest, one atomic commit) before swapping it in. Selections never see a
    half-trained map, and a map replaced meanwhile by a trainer's push wins (the burst is
    dropped). When a selection holds the lock and steps are still pending, the worker trains
@@ -47,7 +47,7 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -56,47 +56,23 @@ from torch import Tensor
 
 from agilegs.schemas import models as m
 
-from .mapper import Mapper, MapperConfig, TopologyChange
+from .mapper import Mapper, TopologyChange
 from .nbv.camera import Camera
 from .nbv.gaussians import GaussianMap
+from .sessions.convert import nbv_intrinsics
+from .sessions.mapper_state import image_views, mapper_config, mapper_options, steps_per_view
 
 if TYPE_CHECKING:
-    from .core import ServiceCore, SessionCore
+    from .sessions.session import Session
+    from .settings import Settings
     from .store import SessionRecord
 
-__all__ = [
-    "SessionTrainer",
-    "Trainer",
-    "compose_src",
-    "initial_mapper_state",
-    "mapper_config",
-    "mapper_status",
-]
+__all__ = ["SessionTrainer", "Trainer", "compose_src"]
 
 log = logging.getLogger(__name__)
 
 
 # ============================================================================ helpers
-def mapper_config(config: Mapping[str, Any], *, max_gaussians: int | None = None
-                  ) -> MapperConfig:
-    """A validated :class:`MapperConfig` from ``MapperOptions.config`` (fields by name).
-
-    Args:
-        config: MapperConfig fields by name (JSON values; ``background`` as a 3-list).
-        max_gaussians: the server's cap; the mapper never grows a map beyond it.
-
-    Raises:
-        ValueError: naming the option (``mapper.config.<name>: ...``).
-    """
-    from .core import _build_dataclass
-
-    cfg: MapperConfig = _build_dataclass(MapperConfig, dict(config), "mapper.config", {})
-    if max_gaussians is not None and (cfg.max_gaussians is None
-                                      or cfg.max_gaussians > max_gaussians):
-        cfg = dataclasses.replace(cfg, max_gaussians=int(max_gaussians))
-    return cfg
-
-
 def compose_src(prev: Tensor, src: Tensor) -> Tensor:
     """Compose two topology changes: ``prev`` [N_mid] relates the middle set to a base set,
     ``src`` [N_new] the new set to the middle one; returns [N_new] relating the new set to the
@@ -109,47 +85,14 @@ def compose_src(prev: Tensor, src: Tensor) -> Tensor:
     return torch.where(s >= 0, prev[s.clamp_min(0)], torch.full_like(s, -1))
 
 
-def initial_mapper_state(options: m.MapperOptions) -> dict[str, Any]:
-    """The ``SessionRecord.mapper`` of a new session: its options and no progress."""
-    return {"options": options.model_dump(mode="json"), "steps": 0, "last_loss": None}
-
-
-def _options(rec: SessionRecord) -> m.MapperOptions:
-    state = rec.mapper or {}
-    return m.MapperOptions.model_validate(state.get("options") or {})
-
-
-def _image_views(rec: SessionRecord) -> int:
-    return sum(1 for v in rec.views if v.image_file is not None)
-
-
-def _steps_per_view(options: m.MapperOptions, default: int) -> int:
-    return int(options.steps_per_view if options.steps_per_view is not None else default)
-
-
-def mapper_status(rec: SessionRecord, default_steps_per_view: int) -> m.MapperStatus:
-    """The status of a session whose mapper does not run (server or session mapper off)."""
-    state = rec.mapper or {}
-    options = _options(rec)
-    steps = int(state.get("steps", 0))
-    spv = _steps_per_view(options, default_steps_per_view)
-    views = _image_views(rec)
-    return m.MapperStatus(
-        enabled=False, state="off", steps=steps, published_steps=steps,
-        pending_steps=max(0, spv * views - steps), steps_per_view=spv, views=views,
-        num_gaussians=len(rec.gmap), last_loss=state.get("last_loss"), error=None,
-        options=options,
-    )
-
-
 # ============================================================================ per session
 class SessionTrainer:
-    """A session's mapper and training progress (``SessionCore.mapper``).
+    """A session's mapper and training progress (``Session.mapper``).
 
     Written by the trainer's worker thread only; the request threads read the counters.
     """
 
-    def __init__(self, trainer: Trainer, session: SessionCore) -> None:
+    def __init__(self, trainer: Trainer, session: Session) -> None:
         self.trainer = trainer
         self.session = session
         state = session.record.mapper or {}
@@ -166,23 +109,23 @@ class SessionTrainer:
         self.error_owed: int | None = None
 
     # ------------------------------------------------------------------ hook
-    def integrate(self, session: SessionCore, views: list[Any]) -> None:
-        """``SessionCore.on_observation``: new frames are persisted; wake the worker."""
+    def integrate(self, session: Session, views: list[Any]) -> None:
+        """``Session.on_observation``: new frames are persisted; wake the worker."""
         self.trainer.wake()
 
     # ------------------------------------------------------------------ accounting
     @property
     def options(self) -> m.MapperOptions:
-        return _options(self.session.record)
+        return mapper_options(self.session.record)
 
     def steps_per_view(self, options: m.MapperOptions | None = None) -> int:
-        return _steps_per_view(options or self.options,
-                               self.trainer.core.settings.mapper_steps_per_view)
+        return steps_per_view(options or self.options,
+                               self.trainer.settings.mapper_steps_per_view)
 
     def owed(self, rec: SessionRecord | None = None) -> int:
         """Steps owed to the views sent: steps_per_view x views with an image."""
         rec = rec or self.session.record
-        return self.steps_per_view(_options(rec)) * _image_views(rec)
+        return self.steps_per_view(mapper_options(rec)) * image_views(rec)
 
     def pending(self, rec: SessionRecord | None = None) -> int:
         return max(0, self.owed(rec) - self.steps)
@@ -204,8 +147,8 @@ class SessionTrainer:
         """The progress as of record ``rec`` (default: the current one): ``idle`` only once
         ``rec`` is (or follows) the publication holding every step owed."""
         rec = rec or self.session.record
-        options = _options(rec)
-        views = _image_views(rec)
+        options = mapper_options(rec)
+        views = image_views(rec)
         published = int((rec.mapper or {}).get("steps", 0))
         if not options.enabled:
             state: m.MapperState = "off"
@@ -256,8 +199,6 @@ class SessionTrainer:
         self.dirty = False
 
     def _load_view(self, view: Any, rec: SessionRecord) -> tuple[Camera, Tensor, Tensor | None]:
-        from .core import nbv_intrinsics
-
         s = self.session
         img = s.view_image(view.id)
         assert img is not None
@@ -276,9 +217,9 @@ class SessionTrainer:
         """Bring the mapper up to ``rec``: build it, take over a replaced map, add new views.
         Runs outside the session lock (records are immutable)."""
         if self.mapper is None:
-            options = _options(rec)
+            options = mapper_options(rec)
             cfg = mapper_config(options.config,
-                                max_gaussians=self.trainer.core.settings.max_gaussians)
+                                max_gaussians=self.trainer.settings.max_gaussians)
             extend = cfg.extend_from_depth
             empty = len(rec.gmap) == 0
             mapper = Mapper(rec.gmap, dataclasses.replace(cfg, extend_from_depth=extend and empty))
@@ -356,16 +297,19 @@ class SessionTrainer:
 
 # ============================================================================ the worker
 class Trainer:
-    """The background worker of a :class:`~agilegs.service.core.ServiceCore`.
+    """The background worker that trains every session's map.
 
     Args:
-        core: the service core; its settings give ``mapper_steps_per_view`` and
-            ``mapper_burst``.
+        sessions: returns the sessions to serve (the registry's, at the time of the call).
+        settings: the server's ``mapper_steps_per_view``, ``mapper_burst`` and
+            ``max_gaussians``.
         idle_wait: seconds the worker sleeps when no session has work, unless woken.
     """
 
-    def __init__(self, core: ServiceCore, *, idle_wait: float = 5.0) -> None:
-        self.core = core
+    def __init__(self, sessions: Callable[[], list[Session]], settings: Settings, *,
+                 idle_wait: float = 5.0) -> None:
+        self.sessions = sessions
+        self.settings = settings
         self.idle_wait = float(idle_wait)
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -373,7 +317,7 @@ class Trainer:
         self._last: str | None = None  # round-robin position
 
     # ------------------------------------------------------------------ lifecycle
-    def attach(self, session: SessionCore) -> SessionTrainer:
+    def attach(self, session: Session) -> SessionTrainer:
         st = SessionTrainer(self, session)
         session.mapper = st
         return st
@@ -405,8 +349,7 @@ class Trainer:
     # ------------------------------------------------------------------ loop
     def _next(self) -> SessionTrainer | None:
         """The next session with work, round-robin after the last one served."""
-        sessions = [s for s in list(self.core.sessions.values())
-                    if isinstance(s.mapper, SessionTrainer)]
+        sessions = [s for s in self.sessions() if isinstance(s.mapper, SessionTrainer)]
         if not sessions:
             return None
         ids = [s.id for s in sessions]
@@ -432,7 +375,7 @@ class Trainer:
     def burst(self, st: SessionTrainer) -> int:
         """One burst on ``st``'s session: sync, train, publish. Returns the steps taken."""
         s = st.session
-        burst = self.core.settings.mapper_burst
+        burst = self.settings.mapper_burst
         t0 = time.perf_counter()
         try:
             rec = s.record

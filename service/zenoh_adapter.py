@@ -1,35 +1,34 @@
-"""The Zenoh transport: queryables, subscriptions and the decision publication.
+"""The Zenoh transport: queryables, subscriptions and the decision publication, as glue over
+the gateway.
 
-Key expressions come from :mod:`agilegs.schemas.keys`. A query's payload is decoded (msgpack,
-or JSON when the query's encoding says so), handed to :meth:`ServiceCore.call` in a worker
-thread, and answered with the operation's response or an error reply carrying the same
-:class:`~agilegs.schemas.errors.ErrorBody` as over HTTP. Frames and pools published by a
-robot are applied in arrival order by one thread; a refused one is published on
-``agilegs/<session>/errors``. Every decision (over HTTP or Zenoh) is published on
-``agilegs/<session>/decisions``.
+Key expressions come from :mod:`agilegs.schemas.keys`. A query becomes a gateway
+:class:`~agilegs.service.gateway.Request` (its payload msgpack, or JSON when the query's
+encoding says so; its attachment the credentials) run in a worker thread, and is answered with
+the reply or an error reply carrying the same :class:`~agilegs.schemas.errors.ErrorBody` as
+over HTTP. Frames and pools published by a robot are applied in arrival order by one thread; a
+refused one is published on ``agilegs/<session>/errors``. Every decision made on this
+instance (over HTTP or Zenoh) is published on ``agilegs/<session>/decisions``.
 
 Which keys this instance declares (the ``@service`` and ``@instances/<id>`` queryables, and
-each owned session's queryable and subscribers) and where an operation runs (here, or
-forwarded to the instance that owns the session) is :mod:`agilegs.service.cluster`'s business.
+each owned session's queryable and subscribers) is :mod:`agilegs.service.cluster`'s business.
 """
 
 from __future__ import annotations
 
-import hashlib
-import hmac
 import logging
 import queue
 import threading
 import time
 from typing import Any
 
-from agilegs.client._zenoh import peer_config
+from agilegs.client.zenoh_rpc import open_session
 from agilegs.schemas import codec, keys
+from agilegs.schemas.errors import ErrorCode
 from agilegs.schemas.models import SelectResponse
 
 from .cluster import ClusterNode
-from .core import ServiceCore, ServiceError
-from .metrics import Metrics
+from .errors import ServiceError
+from .gateway import Gateway, Request
 from .settings import Settings
 
 __all__ = ["ZenohAdapter"]
@@ -39,34 +38,35 @@ log = logging.getLogger(__name__)
 _STOP = object()
 
 
-class ZenohAdapter:
-    """Serves the core over Zenoh (peer mode) until :meth:`close`."""
+def _kind(encoding: Any) -> str:
+    """JSON when a Zenoh encoding says so, msgpack otherwise."""
+    text = str(encoding) if encoding is not None else ""
+    return codec.JSON if text.split(";", 1)[0] == codec.JSON else codec.MSGPACK
 
-    def __init__(self, core: ServiceCore, settings: Settings, metrics: Metrics | None = None,
-                 cluster: ClusterNode | None = None) -> None:
-        self.core = core
-        # issue 6: which keys this instance declares, and where an operation runs
-        self.cluster = cluster if cluster is not None else ClusterNode(core, settings)
+
+class ZenohAdapter:
+    """Serves the gateway over Zenoh until :meth:`close`.
+
+    Args:
+        gateway: the request pipeline.
+        cluster: which keys this instance declares (it joins the cluster on :meth:`start`).
+        settings: the Zenoh mode and endpoints.
+    """
+
+    def __init__(self, gateway: Gateway, cluster: ClusterNode, settings: Settings) -> None:
+        self.gateway = gateway
+        self.cluster = cluster
         self.settings = settings
-        self.metrics = metrics
-        token = settings.token_value()
-        self._digest = hashlib.sha256(token.encode()).digest() if token else None
         self.session: Any = None
-        self._entities: list[Any] = []
         self._inbox: queue.Queue[Any] = queue.Queue()
         self._worker: threading.Thread | None = None
         self._closing = False
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
-        import zenoh
-
         mode = self.settings.zenoh_mode
         listen = [] if mode == "client" else self.settings.zenoh_listen
-        conf = peer_config(listen, self.settings.zenoh_connect, mode)
-        self.session = zenoh.open(conf)
-        # issue 6: the @service, @instances/<id> and per-session queryables and the
-        # per-session subscribers are declared by the cluster node (service/cluster.py)
+        self.session = open_session(listen, self.settings.zenoh_connect, mode)
         try:
             self.cluster.attach(self.session, on_query=self._on_query,
                                 on_session_query=self._on_session_query,
@@ -78,8 +78,8 @@ class ZenohAdapter:
         self._worker = threading.Thread(target=self._drain, name="agilegs-zenoh-inbox",
                                         daemon=True)
         self._worker.start()
-        self.core.decision_listeners.append(self.publish_decision)
-        self.core.zenoh_enabled = True
+        self.gateway.decision_hooks.append(self.publish_decision)
+        self.gateway.registry.zenoh_enabled = True
         log.info("zenoh: %s %r, listening on %s, connecting to %s", mode,
                  self.cluster.instance_id, listen, self.settings.zenoh_connect)
 
@@ -87,16 +87,10 @@ class ZenohAdapter:
         """Undeclare everything and close the session (a declared callback left behind
         would keep the process from exiting)."""
         self._closing = True
-        if self.publish_decision in self.core.decision_listeners:
-            self.core.decision_listeners.remove(self.publish_decision)
-        self.core.zenoh_enabled = False
+        if self.publish_decision in self.gateway.decision_hooks:
+            self.gateway.decision_hooks.remove(self.publish_decision)
+        self.gateway.registry.zenoh_enabled = False
         self.cluster.detach()
-        for entity in reversed(self._entities):
-            try:
-                entity.undeclare()
-            except Exception:  # already gone with the session
-                log.debug("undeclare failed", exc_info=True)
-        self._entities.clear()
         self._inbox.put(_STOP)
         if self._worker is not None:
             self._worker.join(timeout=10)
@@ -124,74 +118,49 @@ class ZenohAdapter:
             self._answer(query, op, session, t0, local, reply_key)
             return
         try:
-            self.core.executor.submit(self._answer, query, op, session, t0, local, reply_key)
+            self.gateway.executor.submit(self._answer, query, op, session, t0, local,
+                                         reply_key)
         except RuntimeError:  # the executor is shut down: the server is stopping
-            self._reply_error(query, ServiceError(503, "unavailable", "the server is stopping"),
-                              codec.MSGPACK, op)
+            err = ServiceError(503, ErrorCode.UNAVAILABLE, "the server is stopping")
+            reply = self.gateway.error_reply(err, codec.MSGPACK, "zenoh", op)
+            self._reply(query, reply.body, reply.media_type, None, ok=False)
             query.drop()
 
     def _answer(self, query: Any, op: str, session: str | None, t0: float, local: bool = False,
                 reply_key: str | None = None) -> None:
-        kind = codec.MSGPACK
         try:
-            enc = query.encoding
-            if enc is not None and str(enc).split(";", 1)[0] == codec.JSON:
-                kind = codec.JSON
-            if op not in keys.SESSION_OPS and op not in keys.SERVICE_OPS:
-                raise ServiceError(404, "not_found", f"unknown operation {op!r}", "key")
-            self._check_auth(query.attachment)
-            raw = query.payload.to_bytes() if query.payload is not None else b""
-            payload = None
-            if len(raw) > self.settings.max_body_bytes:
-                limit = self.settings.max_body_bytes
-                raise ServiceError(413, "payload_too_large",
-                                   f"payload exceeds max_body_bytes ({limit})", "body")
-            if raw:
-                try:
-                    payload = codec.load(raw, kind)
-                except codec.DecodeError as exc:
-                    raise ServiceError(400, "bad_request", str(exc), "body") from None
-            instance = query.parameters.get("instance") if op == "create_session" else None
-            result = self.cluster.call(op, session, payload, t0=t0, instance=instance,
-                                       local=local)
-            query.reply(reply_key or query.key_expr, codec.dump(result, kind), encoding=kind)
-            self._count(op, 200)
-        except ServiceError as err:
-            self._reply_error(query, err, kind, op)
-        except Exception as exc:
-            log.exception("zenoh: internal error on %s", op)
-            self._reply_error(query, ServiceError(500, "internal",
-                                                  f"internal error ({type(exc).__name__})"),
-                              kind, op)
+            kind = _kind(query.encoding)
+            params = {}
+            if op == "create_session" and query.parameters.get("instance") is not None:
+                params["instance"] = query.parameters.get("instance")
+            reply = self.gateway.handle(Request(
+                op=op, session=session,
+                body=query.payload.to_bytes() if query.payload is not None else b"",
+                content_type=kind, accept=kind,
+                credentials=query.attachment.to_bytes() if query.attachment is not None
+                else None,
+                credentials_field="attachment", params=params, transport="zenoh", t0=t0,
+                local=local,
+            ))
+            self._reply(query, reply.body, reply.media_type, reply_key, ok=reply.ok)
         finally:
             query.drop()
 
-    def _reply_error(self, query: Any, err: ServiceError, kind: str, op: str) -> None:
+    @staticmethod
+    def _reply(query: Any, body: bytes, kind: str, reply_key: str | None, *, ok: bool) -> None:
         try:
-            query.reply_err(codec.dump(err.body(), kind), encoding=kind)
+            if ok:
+                query.reply(reply_key or query.key_expr, body, encoding=kind)
+            else:
+                query.reply_err(body, encoding=kind)
         except Exception:
-            log.debug("zenoh: could not send an error reply", exc_info=True)
-        self._count(op, err.status, err.code)
-
-    def _count(self, op: str, status: int, code: str | None = None) -> None:
-        if self.metrics is not None:
-            self.metrics.observe_request("zenoh", op, status, code)
-
-    def _check_auth(self, attachment: Any) -> None:
-        if self._digest is None:
-            return
-        given = attachment.to_bytes() if attachment is not None else b""
-        ok = given[:7].lower() == b"bearer " and hmac.compare_digest(
-            hashlib.sha256(given[7:].strip()).digest(), self._digest)
-        if not ok:
-            raise ServiceError(401, "unauthorized", "missing or wrong bearer token "
-                               "(the attachment 'Bearer <token>')", "attachment")
+            log.debug("zenoh: could not send a reply", exc_info=True)
 
     # ------------------------------------------------------------------ subscriptions
     def _on_sample(self, sample: Any) -> None:
         if not self._closing:
             self._inbox.put((str(sample.key_expr), sample.payload.to_bytes(),
-                             str(sample.encoding) if sample.encoding is not None else None,
+                             _kind(sample.encoding),
                              sample.attachment.to_bytes() if sample.attachment is not None
                              else None))
 
@@ -200,43 +169,25 @@ class ZenohAdapter:
             item = self._inbox.get()
             if item is _STOP:
                 return
-            key, raw, encoding, attachment = item
+            key, raw, kind, attachment = item
             try:
                 session, topic = keys.parse_session_key(key)
             except ValueError:
                 continue
             op = "add_observations" if topic == keys.FRAMES else "set_pool"
-            kind = codec.JSON if (encoding or "").split(";", 1)[0] == codec.JSON else codec.MSGPACK
-            try:
-                if self._digest is not None:
-                    given = attachment or b""
-                    if not (given[:7].lower() == b"bearer " and hmac.compare_digest(
-                            hashlib.sha256(given[7:].strip()).digest(), self._digest)):
-                        raise ServiceError(401, "unauthorized", "missing or wrong bearer token",
-                                           "attachment")
-                if len(raw) > self.settings.max_body_bytes:
-                    raise ServiceError(413, "payload_too_large", "payload exceeds max_body_bytes",
-                                       "body")
-                try:
-                    payload = codec.load(raw, kind)
-                except codec.DecodeError as exc:
-                    raise ServiceError(400, "bad_request", str(exc), "body") from None
-                self.core.call(op, session, payload)
-                self._count(op, 200)
-            except ServiceError as err:
-                self._count(op, err.status, err.code)
-                self._publish_error(session, err)
-            except Exception as exc:
-                log.exception("zenoh: internal error on a %s message", topic)
-                self._publish_error(session, ServiceError(500, "internal",
-                                                          f"internal error ({type(exc).__name__})"))
+            reply = self.gateway.handle(Request(
+                op=op, session=session, body=raw, content_type=kind, accept=codec.MSGPACK,
+                credentials=attachment, credentials_field="attachment", transport="zenoh",
+                local=True,
+            ))
+            if not reply.ok:
+                self._publish(keys.session_key(session, keys.ERRORS), reply.body)
 
-    def _publish_error(self, session: str, err: ServiceError) -> None:
+    def _publish(self, key: str, body: bytes) -> None:
         try:
-            self.session.put(keys.session_key(session, keys.ERRORS),
-                             codec.dump(err.body(), codec.MSGPACK), encoding=codec.MSGPACK)
+            self.session.put(key, body, encoding=codec.MSGPACK)
         except Exception:
-            log.debug("zenoh: could not publish an error", exc_info=True)
+            log.debug("zenoh: could not publish on %s", key, exc_info=True)
 
     # ------------------------------------------------------------------ decisions
     def publish_decision(self, session: str, resp: SelectResponse) -> None:

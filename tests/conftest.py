@@ -1,101 +1,44 @@
-"""Generic fixtures: free ports, and a real ``agilegs serve`` subprocess on 127.0.0.1."""
+"""Shared fixtures: free ports, a real ``agilegs serve`` subprocess (the e2e tests), an
+in-process server behind an httpx transport (the service tests), camera rings."""
 
 from __future__ import annotations
 
-import os
-import signal
-import socket
-import subprocess
-import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
-import httpx
 import numpy as np
 import pytest
+from inprocess import InProcess, serve_in_process
+
+from agilegs.service.launch import ServerProcess as _Launcher
+from agilegs.service.launch import free_port
+
+__all__ = ["ROOT", "SHARED_SCENES", "SMALL_INTRINSICS", "InProcess", "ServerProcess", "free_port",
+           "ring_poses"]
+
+ROOT = Path(__file__).resolve().parents[1]
+"""The repository's root."""
+SHARED_SCENES = ROOT.parent / "shared" / "data" / "scenes"
+"""The shared ground-truth scenes beside the checkout (tests that need them skip without)."""
 
 
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that was free a moment ago."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+class ServerProcess(_Launcher):
+    """The launcher with the tests' defaults: one torch thread, the mapper off unless a test
+    asks for it (these tests check exact state)."""
+
+    def __init__(self, state_dir: Path, *, env: dict[str, str] | None = None,
+                 **kwargs: Any) -> None:
+        super().__init__(state_dir, env={"AGILEGS_TORCH_THREADS": "1", "AGILEGS_MAPPER": "0",
+                                         **(env or {})}, **kwargs)
 
 
-class ServerProcess:
-    """``agilegs serve`` in a subprocess, on free ports, with its own state folder.
-
-    ``env`` adds ``AGILEGS_*`` settings; ``zenoh=False`` serves HTTP only.
-    """
-
-    def __init__(self, state_dir: Path, *, zenoh: bool = True, env: dict[str, str] | None = None,
-                 log_path: Path | None = None) -> None:
-        self.state_dir = Path(state_dir)
-        self.port = free_port()
-        self.zenoh_port = free_port() if zenoh else None
-        self.env = dict(env or {})
-        self.log_path = log_path or self.state_dir.parent / f"serve-{self.port}.log"
-        self.proc: subprocess.Popen[bytes] | None = None
-
-    @property
-    def url(self) -> str:
-        return f"http://127.0.0.1:{self.port}"
-
-    @property
-    def zenoh_endpoint(self) -> str:
-        assert self.zenoh_port is not None
-        return f"tcp/127.0.0.1:{self.zenoh_port}"
-
-    def start(self, timeout: float = 60.0) -> ServerProcess:
-        cmd = [sys.executable, "-m", "agilegs.service.cli", "serve", "--host", "127.0.0.1",
-               "--port", str(self.port), "--state-dir", str(self.state_dir)]
-        if self.zenoh_port is None:
-            cmd.append("--no-zenoh")
-        else:
-            cmd += ["--zenoh-listen", self.zenoh_endpoint]
-        env = {k: v for k, v in os.environ.items() if not k.startswith("AGILEGS_")}
-        # the background mapper is off unless a test asks for it: these tests check exact state
-        env.update({"AGILEGS_TORCH_THREADS": "1", "AGILEGS_MAPPER": "0", **self.env})
-        self._log = open(self.log_path, "ab")
-        self.proc = subprocess.Popen(cmd, env=env, stdout=self._log, stderr=subprocess.STDOUT)
-        deadline = time.monotonic() + timeout
-        headers = {}
-        if "AGILEGS_TOKEN" in self.env:
-            headers["authorization"] = f"Bearer {self.env['AGILEGS_TOKEN']}"
-        while time.monotonic() < deadline:
-            if self.proc.poll() is not None:
-                raise RuntimeError(f"server exited with {self.proc.returncode}: "
-                                   f"{self.log_path.read_text()[-3000:]}")
-            try:
-                if httpx.get(self.url + "/healthz", headers=headers, timeout=1).status_code == 200:
-                    return self
-            except httpx.TransportError:
-                pass
-            time.sleep(0.1)
-        self.stop()
-        raise RuntimeError(f"server did not start: {self.log_path.read_text()[-3000:]}")
-
-    def kill(self) -> None:
-        """SIGKILL: no shutdown code runs."""
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGKILL)
-            self.proc.wait(timeout=30)
-        self.proc = None
-
-    def stop(self) -> None:
-        """SIGTERM, then SIGKILL after 20 s."""
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(timeout=10)
-        self.proc = None
-
-    def log(self) -> str:
-        return self.log_path.read_text(errors="replace")
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Every test under ``tests/e2e`` (subprocesses, clusters, the demo, deploy files) is
+    ``slow``: ``pytest -m "not slow"`` is the fast lane."""
+    for item in items:
+        if "e2e" in Path(str(item.fspath)).parts:
+            item.add_marker(pytest.mark.slow)
 
 
 @pytest.fixture(scope="session")
@@ -105,6 +48,29 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerProcess]:
     srv = ServerProcess(root / "state", env={"AGILEGS_MAX_BODY_BYTES": str(8 * 2**20)}).start()
     yield srv
     srv.stop()
+
+
+@pytest.fixture
+def api(tmp_path: Path) -> Iterator[InProcess]:
+    """A fresh in-process server (HTTP only, the mapper off, bodies up to 8 MiB)."""
+    with serve_in_process(tmp_path / "state", max_body_bytes=8 * 2**20) as srv:
+        yield srv
+
+
+@pytest.fixture
+def api_factory(tmp_path: Path) -> Iterator[object]:
+    """``api_factory(**settings)``: in-process servers of one's own, stopped at the end."""
+    from contextlib import ExitStack
+
+    with ExitStack() as stack:
+        count = [0]
+
+        def make(**settings: Any) -> InProcess:
+            count[0] += 1
+            return stack.enter_context(serve_in_process(tmp_path / f"state{count[0]}",
+                                                        **settings))
+
+        yield make
 
 
 @pytest.fixture

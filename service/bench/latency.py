@@ -3,29 +3,23 @@
 Loads a scene as the current map (seeded subsample to at most ``--max-gaussians``), builds a
 pool as a capture would (``capture_pool``: orbits at three elevations with near-duplicates)
 plus a few evenly spread acquired views, forms Hhat = lambda + sum of their Fisher, and then,
-for each of ``--events`` selection events, times every method on the same map, Hhat and pool
-in this one process. FisherRF runs first at each event; its phi over the whole pool is the
-yardstick for every method's ``eig_percentile``: the percentage of pool candidates whose phi
-is at most the chosen one's (100 = FisherRF's pick), averaged over events. After each event
-FisherRF's pick is acquired (Hhat updated, the view leaves the pool), so every method sees
-the same sequence of states; each method keeps its own warm-start state across events.
+for each of ``--events`` selection events, times every entry on the same map, Hhat and pool
+in this one process. The exact EIG phi of every pool candidate (the full-pool method's
+scores when it is timed, else computed untimed) is the yardstick of every entry's
+``eig_percentile``: the percentage of pool candidates whose phi is at most the chosen one's
+(100 = the full-pool pick), averaged over events. After each event the full-pool pick is
+acquired (Hhat updated, the view leaves the pool), so every entry sees the same sequence of
+states; each keeps its own warm-start state across events.
 
-Besides the five methods, the shortlist ablations (``agile_<s>`` and ``agile_plus_<s>`` for
-knearest, topnorm, online) and anchor variants that measure what each shortcut costs
-(``agile_plus@exact``: exact psi; ``@all_gaussians``: no importance sampling; ``@no_ascent``:
-best pool start under the proxy, no gradient steps; ``@cold``: no warm start;
-``@typical``: the proxy's older observation model, one typical Fisher value per parameter
-slot, instead of the model fitted to Hhat; ``@start_view``: that typical model with its
-Fisher value from one Fisher pass instead of Hhat; ``@point_zbuffer`` and
-``@mixed_zbuffer``: other visibility tests than the default's 3x3 occluder cover at 10%
-depth tolerance, each occluder on its own cell at 2%, or the mean of the two) are timed. Each
-record holds ``median_ms`` (wall clock, what ``Selection.latency_ms`` says),
-``cpu_median_ms`` (process CPU time, less sensitive to other load on a shared machine),
-``stages_ms`` (per-stage medians), ``eig_percentile``, for anchor methods
-``proxy_spearman`` (the rank correlation of the anchor's proxy psi of every pool candidate
-with the exact phi, mean over events) and,
-for shortlist methods, ``head_eig_percentile`` (the percentile of the shortlist's first,
-i.e. what AGILE-GS picks from that shortlist).
+Entries are methods and variants (:mod:`agilegs.service.bench.variants`): by default the
+methods, the shortlist ablations (``agile@knearest``, ``agile_plus@topnorm``, ...) and the
+anchor variants that measure what each shortcut costs (:data:`VARIANTS`). Each record holds
+``median_ms`` (wall clock, what ``Selection.latency_ms`` says), ``cpu_median_ms`` (process CPU
+time, less sensitive to other load on a shared machine), ``stages_ms`` (per-stage medians),
+``eig_percentile``, for anchor methods ``proxy_spearman`` (the rank correlation of the
+anchor's proxy psi of every pool candidate with the exact phi, mean over events) and, for
+shortlist methods, ``head_eig_percentile`` (the percentile of the shortlist's first, i.e.
+what AGILE-GS picks from that shortlist).
 """
 
 from __future__ import annotations
@@ -37,22 +31,35 @@ import math
 import os
 import platform
 import statistics
+import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from agilegs.service.data import bundled_scene
-from agilegs.service.nbv.anchor import MIXED_ZBUFFER, POINT_ZBUFFER
+from agilegs.service.nbv.camera import Camera, Intrinsics
+from agilegs.service.nbv.candidates import capture_pool, scene_center_radius
+from agilegs.service.nbv.gaussians import GaussianMap
+from agilegs.service.nbv.information import (
+    accumulate_information,
+    eig_scores,
+    fisher_diag,
+    init_information,
+)
+from agilegs.service.nbv.methods import method_names
+from agilegs.service.nbv.selectors import SelectConfig, select
+
+from .variants import parse_variant
 
 log = logging.getLogger(__name__)
 
-DEFAULT_SCENE = str(bundled_scene("spot"))  # the issue's runs pass --scene explicitly
-BASE_METHODS = ("fisherrf", "random", "cover", "agile", "agile_plus")
+DEFAULT_SCENE = str(bundled_scene("spot"))
+REFERENCE = "fisherrf"
+"""The full-pool exact EIG: its phi of every candidate is every entry's yardstick."""
 ABLATIONS = tuple(
-    f"{m}_{s}" for s in ("knearest", "topnorm", "online") for m in ("agile", "agile_plus")
+    f"{m}@{s}" for s in ("knearest", "topnorm", "online") for m in ("agile", "agile_plus")
 )
 VARIANTS = (
     "agile_plus@no_ascent",
@@ -92,8 +99,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _load_map(path: str, max_gaussians: int, seed: int) -> Any:
-    from agilegs.service.nbv.gaussians import GaussianMap
-
     gmap = GaussianMap.load(path)
     if 0 < max_gaussians < len(gmap):
         gen = torch.Generator().manual_seed(seed)
@@ -112,50 +117,24 @@ def spearman(a: torch.Tensor, b: torch.Tensor) -> float:
 
 
 def _method_list(spec: str) -> list[str]:
+    """The entries to time: ``all``, ``base`` (the methods), ``fast`` (all but the exact-psi
+    variant) or comma-separated method names and variant keys, in any order."""
+    base = list(method_names())
     if spec == "all":
-        return list(BASE_METHODS + ABLATIONS + VARIANTS)
+        return base + list(ABLATIONS + VARIANTS)
     if spec == "fast":
-        return [m for m in BASE_METHODS + ABLATIONS + VARIANTS if m != "agile_plus@exact"]
+        return base + [m for m in ABLATIONS + VARIANTS if m != "agile_plus@exact"]
     if spec == "base":
-        return list(BASE_METHODS)
-    names = [s.strip() for s in spec.split(",") if s.strip()]
-    known = set(BASE_METHODS + ABLATIONS + VARIANTS)
+        return base
+    names = list(dict.fromkeys(s.strip() for s in spec.split(",") if s.strip()))
+    if not names:
+        raise SystemExit("--methods: name at least one method")
     for n in names:
-        if n not in known:
-            raise SystemExit(f"--methods: unknown name {n!r} (known: {sorted(known)})")
-    if "fisherrf" not in names:
-        names.insert(0, "fisherrf")  # the yardstick of every percentile
+        try:
+            parse_variant(n)
+        except ValueError as exc:
+            raise SystemExit(f"--methods: {exc}") from None
     return names
-
-
-def _config_for(name: str, base: Any) -> tuple[str, Any]:
-    """(select method, SelectConfig) of a benchmark entry."""
-    from agilegs.service.nbv.selectors import SelectConfig
-
-    assert isinstance(base, SelectConfig)
-    method, _, variant = name.partition("@")
-    cfg = replace(base, anchor=replace(base.anchor), scoring=replace(base.scoring))
-    for s in ("knearest", "topnorm", "online"):
-        if method.endswith("_" + s):
-            method = method[: -len(s) - 1]
-            cfg.shortlist = s  # type: ignore[assignment]
-    if variant == "exact":
-        cfg.anchor = replace(cfg.anchor, psi="exact", num_starts=1, iterations=3, warm_start=True)
-    elif variant == "all_gaussians":
-        cfg.anchor = replace(cfg.anchor, num_gaussians=0)
-    elif variant == "no_ascent":
-        cfg.anchor = replace(cfg.anchor, iterations=0)
-    elif variant == "cold":
-        cfg.anchor = replace(cfg.anchor, warm_start=False)
-    elif variant == "start_view":
-        cfg.anchor = replace(cfg.anchor, model="typical", typical_fisher="start_view")
-    elif variant == "typical":
-        cfg.anchor = replace(cfg.anchor, model="typical")
-    elif variant == "point_zbuffer":
-        cfg.anchor = replace(cfg.anchor, occlusion_tests=POINT_ZBUFFER)
-    elif variant == "mixed_zbuffer":
-        cfg.anchor = replace(cfg.anchor, occlusion_tests=MIXED_ZBUFFER)
-    return method, cfg
 
 
 def eig_percentile(phi: torch.Tensor, value: float) -> float:
@@ -164,15 +143,6 @@ def eig_percentile(phi: torch.Tensor, value: float) -> float:
 
 
 def run(args: argparse.Namespace) -> int:
-    from agilegs.service.nbv.camera import Camera, Intrinsics
-    from agilegs.service.nbv.candidates import capture_pool, scene_center_radius
-    from agilegs.service.nbv.information import (
-        accumulate_information,
-        fisher_diag,
-        init_information,
-    )
-    from agilegs.service.nbv.selectors import SelectConfig, select
-
     if args.threads > 0:
         torch.set_num_threads(args.threads)
     if args.pool < 1 or args.shortlist < 1 or args.events < 1 or args.acquired < 0:
@@ -214,17 +184,22 @@ def run(args: argparse.Namespace) -> int:
         for n in names
     }
     states: dict[str, dict[str, Any] | None] = {n: None for n in names}
+    variants = {n: parse_variant(n, args.shortlist) for n in names}
+    order = sorted(names, key=lambda n: n != REFERENCE)  # the yardstick first, when timed
     for event in range(args.events):
         phi_all: torch.Tensor | None = None
-        for name in names:
-            method, cfg = _config_for(name, base)
+        if REFERENCE not in names:  # the yardstick, untimed
+            phi_all = eig_scores(gmap, h_acc, pool, intr)
+        for name in order:
+            v = variants[name]
             cpu0 = time.process_time()
             sel = select(
-                method, gmap, h_acc, pool, intr, config=cfg, acquired=acquired, state=states[name]
+                v.method, gmap, h_acc, pool, intr, config=v.config(base), acquired=acquired,
+                state=states[name],
             )
             cpu_ms = (time.process_time() - cpu0) * 1e3
             states[name] = sel.state
-            if name == "fisherrf":
+            if name == REFERENCE:
                 phi_all = torch.tensor(
                     [sel.scores[i] for i in range(len(pool))], dtype=torch.float64
                 )
@@ -254,7 +229,7 @@ def run(args: argparse.Namespace) -> int:
                 sel.index,
                 rec["pct"][-1],
             )
-        # acquire FisherRF's pick: the same trajectory for every method
+        # acquire the full-EIG pick: the same trajectory for every method
         assert phi_all is not None
         nxt = int(torch.argmax(phi_all))
         with torch.no_grad():
@@ -283,11 +258,12 @@ def run(args: argparse.Namespace) -> int:
         if rec.get("spearman"):
             out["proxy_spearman"] = statistics.fmean(rec["spearman"])
         methods_out[name] = out
-    fr = methods_out["fisherrf"]["median_ms"]
-    fr_cpu = methods_out["fisherrf"]["cpu_median_ms"]
-    for out in methods_out.values():
-        out["speedup_vs_fisherrf"] = fr / max(out["median_ms"], 1e-9)
-        out["cpu_speedup_vs_fisherrf"] = fr_cpu / max(out["cpu_median_ms"], 1e-9)
+    if REFERENCE in methods_out:
+        fr = methods_out[REFERENCE]["median_ms"]
+        fr_cpu = methods_out[REFERENCE]["cpu_median_ms"]
+        for out in methods_out.values():
+            out["speedup_vs_fisherrf"] = fr / max(out["median_ms"], 1e-9)
+            out["cpu_speedup_vs_fisherrf"] = fr_cpu / max(out["cpu_median_ms"], 1e-9)
     result = {
         "config": {
             "scene": str(args.scene),
@@ -321,8 +297,6 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _print_table(methods: dict[str, Any]) -> None:
-    import sys
-
     lines = [
         "| method | median ms | anchor | scoring | leverage | rerank | FisherRF / method "
         "| CPU ms | FisherRF / method (CPU) | EIG pct | head pct | proxy Spearman |",
@@ -334,10 +308,14 @@ def _print_table(methods: dict[str, Any]) -> None:
         rho = m.get("proxy_spearman")
         lines.append(
             f"| {name} | {m['median_ms']:.1f} | {s['anchor']:.1f} | {s['scoring']:.1f} | "
-            f"{s['leverage']:.1f} | {s['rerank']:.1f} | {m['speedup_vs_fisherrf']:.1f}x | "
-            f"{m['cpu_median_ms']:.1f} | {m['cpu_speedup_vs_fisherrf']:.1f}x | "
+            f"{s['leverage']:.1f} | {s['rerank']:.1f} | {_ratio(m, 'speedup_vs_fisherrf')} | "
+            f"{m['cpu_median_ms']:.1f} | {_ratio(m, 'cpu_speedup_vs_fisherrf')} | "
             f"{m['eig_percentile']:.1f} | "
             f"{'' if head is None or math.isnan(head) else f'{head:.1f}'} | "
             f"{'' if rho is None or math.isnan(rho) else f'{rho:.2f}'} |"
         )
     sys.stdout.write("\n".join(lines) + "\n")
+
+
+def _ratio(m: dict[str, Any], key: str) -> str:
+    return f"{m[key]:.1f}x" if key in m else ""

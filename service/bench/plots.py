@@ -24,6 +24,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from agilegs.service.bench.scenes import BenchScene  # noqa: E402
+from agilegs.service.bench.variants import display_name  # noqa: E402
 
 log = logging.getLogger(__name__)
 
@@ -39,8 +40,6 @@ COLORS = {
 
 
 def _name(key: str) -> str:
-    from agilegs.service.bench.protocol import display_name
-
     return display_name(key)
 
 

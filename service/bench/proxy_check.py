@@ -12,45 +12,47 @@ inputs. Reported per configuration, per event and as means over all events and s
 - ``agile_sep_deg`` / ``plus_sep_deg``: the angle, seen from the map centre, between that
   view and the nearest acquired view (small: a near-duplicate of what is held).
 
-Configurations: ``fitted`` (the defaults), ``typical`` (``AnchorConfig.model="typical"``),
-``unconditioned`` (``ScoringConfig.condition_on_acquired=False``), ``paper`` (both: the
-typical model and the plain greedy), and two other visibility tests than the default's
-(each occluder covers 3x3 z-buffer cells, 10% depth tolerance): ``point_zbuffer`` (each
-occluder its own cell, 2%) and ``mixed_zbuffer`` (the mean of the two tests). Each keeps its
+Configurations are ``default`` (the defaults) or variant options of ``agile``
+(:mod:`agilegs.service.bench.variants`), joined by ``+`` to combine them: for example
+``typical``, ``unconditioned``, ``typical+unconditioned``, ``point_zbuffer``. Each keeps its
 own warm-start state along the run.
 """
 
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import logging
 import statistics
 import sys
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import torch
 from torch import Tensor
 
-from agilegs.service.nbv.anchor import MIXED_ZBUFFER, POINT_ZBUFFER
+from agilegs.service.nbv.camera import Camera
+from agilegs.service.nbv.candidates import scene_center_radius
+from agilegs.service.nbv.selectors import select
 
 from .latency import eig_percentile, spearman
+from .profiles import resolve_profile
+from .protocol import accumulated_information, run_progressive
+from .scenes import load_bench_scene
+from .variants import Variant, parse_variant
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CONFIGS", "add_arguments", "percentile", "run", "spearman"]
+__all__ = ["DEFAULT_CONFIGS", "add_arguments", "config_variant", "percentile", "run", "spearman"]
 
-CONFIGS: dict[str, dict[str, dict[str, Any]]] = {
-    "fitted": {},
-    "typical": {"anchor": {"model": "typical"}},
-    "unconditioned": {"scoring": {"condition_on_acquired": False}},
-    "paper": {"anchor": {"model": "typical"}, "scoring": {"condition_on_acquired": False}},
-    "point_zbuffer": {"anchor": {"occlusion_tests": POINT_ZBUFFER}},
-    "mixed_zbuffer": {"anchor": {"occlusion_tests": MIXED_ZBUFFER}},
-}
+DEFAULT_CONFIGS = ("default", "typical", "unconditioned", "point_zbuffer", "mixed_zbuffer")
+
+
+def config_variant(name: str) -> Variant:
+    """The ``agile`` variant a configuration name stands for (``default``: the defaults)."""
+    return parse_variant("agile" if name == "default" else f"agile@{name}")
+
+
 METRICS = ("spearman", "agile_pct", "plus_pct", "agile_sep_deg", "plus_sep_deg")
 
 
@@ -62,7 +64,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--driver", default="random", help="the method that acquires the views")
     parser.add_argument(
-        "--configs", default=",".join(CONFIGS), help=f"comma-separated subset of {list(CONFIGS)}"
+        "--configs", default=",".join(DEFAULT_CONFIGS),
+        help="comma-separated configurations: default, or agile variant options joined by + "
+        "(e.g. typical+unconditioned)"
     )
     parser.add_argument("--json", dest="json_out", default=None, help="write results here")
 
@@ -83,15 +87,9 @@ def separation_deg(view: Tensor, acquired: Tensor, centre: Tensor) -> float:
 
 
 def check_event(
-    ctx: dict[str, Any], configs: dict[str, dict[str, Any]], states: dict[str, Any], lam: float
+    ctx: dict[str, Any], configs: dict[str, Variant], states: dict[str, Any], lam: float
 ) -> dict[str, dict[str, float]]:
     """Every configuration's figures on one event's inputs (see the module docstring)."""
-    from agilegs.service.nbv.camera import Camera
-    from agilegs.service.nbv.candidates import scene_center_radius
-    from agilegs.service.nbv.selectors import select
-
-    from .protocol import accumulated_information
-
     gmap, cands, acq = ctx["gmap"], ctx["candidates"], ctx["acquired"]
     intr, cfg0 = ctx["intrinsics"], ctx["config"]
     cams = [Camera(c2w=p, intrinsics=intr) for p in acq]
@@ -100,12 +98,9 @@ def check_event(
     phi = torch.tensor([fr.scores[i] for i in range(cands.shape[0])], dtype=torch.float64)
     centre, _ = scene_center_radius(gmap.means.detach())
     out: dict[str, dict[str, float]] = {}
-    for name, over in configs.items():
-        cfg = copy.deepcopy(cfg0)
-        cfg.anchor = replace(cfg.anchor, **over.get("anchor", {}))
-        cfg.scoring = replace(cfg.scoring, **over.get("scoring", {}))
-        sel = select("agile", gmap, h_acc, cands, intr, config=cfg, acquired=acq,
-                     state=states.get(name))
+    for name, variant in configs.items():
+        sel = select(variant.method, gmap, h_acc, cands, intr, config=variant.config(cfg0),
+                     acquired=acq, state=states.get(name))
         states[name] = sel.state
         pool_psi = sel.details.get("pool_proxy_psi") or {}
         psi = torch.tensor([pool_psi.get(i, float("nan")) for i in range(len(phi))],
@@ -122,14 +117,12 @@ def check_event(
 
 
 def run(args: argparse.Namespace) -> int:
-    from .protocol import Variant, resolve_profile, run_progressive
-    from .scenes import load_bench_scene
-
     names = [c.strip() for c in str(args.configs).split(",") if c.strip()]
-    for n in names:
-        if n not in CONFIGS:
-            raise SystemExit(f"--configs: unknown configuration {n!r} (known: {list(CONFIGS)})")
-    configs = {n: CONFIGS[n] for n in names}
+    try:
+        configs = {n: config_variant(n) for n in names}
+        driver = parse_variant(args.driver)
+    except ValueError as exc:
+        raise SystemExit(f"--configs / --driver: {exc}") from None
     overrides = ("pool_size", "resolution", "max_gaussians", "initial_views", "interval",
                  "steps", "view_budget", "shortlist_size", "lam")
     profile = resolve_profile(argparse.Namespace(profile=args.profile,
@@ -151,8 +144,7 @@ def run(args: argparse.Namespace) -> int:
             log.info("%s event %d: %s", name, ctx["event"], "  ".join(
                 f"{n} rho {f['spearman']:+.2f} pick {f['agile_pct']:.0f}" for n, f in figs.items()))
 
-        run_progressive(scene, Variant(key=args.driver, method=args.driver), args.seed, profile,
-                        on_event=on_event)
+        run_progressive(scene, driver, args.seed, profile, on_event=on_event)
         results["scenes"][scene.name] = events
     all_events = [e for evs in results["scenes"].values() for e in evs]
     means = {

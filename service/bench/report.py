@@ -34,7 +34,9 @@ import time
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
+from agilegs.service.bench.profiles import RESULTS_FORMAT
 from agilegs.service.bench.scenes import BenchScene
+from agilegs.service.bench.variants import SHORTLIST_DISPLAY, display_name
 
 __all__ = ["build_results", "scene_summary", "render_table", "mean_std", "paired_differences"]
 
@@ -182,8 +184,6 @@ def build_results(
         o["fisherrf_over_method"] = (fr / lm) if fr and lm else None
         cm = o.get("cpu_ms_mean")
         o["fisherrf_over_method_cpu"] = (fr_cpu / cm) if fr_cpu and cm else None
-    from agilegs.service.bench.protocol import RESULTS_FORMAT
-
     main_keys = [v["key"] for v in variants if v.get("group") == "main" and v["key"] in overall]
     paired = paired_differences({n: out_scenes[n]["runs"] for n in out_scenes}, main_keys)
     return {
@@ -203,8 +203,6 @@ def build_results(
 
 # ----------------------------------------------------------------------------- markdown
 def _display(key: str) -> str:
-    from agilegs.service.bench.protocol import display_name
-
     return display_name(key)
 
 
@@ -431,8 +429,6 @@ def _ablation_rows(results: Mapping[str, Any], keys: list[str], ref: str | None,
 
 
 def _shortlist_table(results: Mapping[str, Any], keys: list[str], ref: str) -> list[str]:
-    from agilegs.service.bench.protocol import SHORTLIST_DISPLAY
-
     order = {f"{ref}@knearest": 0, f"{ref}@online": 1, f"{ref}@topnorm": 2, ref: 3}
     keys = sorted(keys, key=lambda k: order.get(k, 9))
     by_key = {v["key"]: v for v in results["variants"]}

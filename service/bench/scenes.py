@@ -459,7 +459,7 @@ def _random_points(poses: Tensor, opt: SceneOptions) -> tuple[Tensor, Tensor]:
 
 
 def _load_transforms_scene(path: Path, opt: SceneOptions) -> BenchScene:
-    from agilegs.service.data.loaders import load_transforms_json
+    from agilegs.service.data.transforms import load_transforms_json
 
     folder = path.parent if path.is_file() else path
     if path.is_file():
@@ -513,7 +513,7 @@ def _images_dir(root: Path, target_width: int) -> Path | None:
 
 
 def _load_colmap_scene(path: Path, opt: SceneOptions) -> BenchScene:
-    from agilegs.service.data.loaders import load_colmap
+    from agilegs.service.data.colmap import load_colmap
 
     model = _colmap_model_dir(path)
     assert model is not None

@@ -22,9 +22,7 @@ import argparse
 import json
 import logging
 import os
-import socket
 import statistics
-import subprocess
 import sys
 import tempfile
 import threading
@@ -35,9 +33,10 @@ from typing import Any
 
 import numpy as np
 
-log = logging.getLogger(__name__)
+from agilegs.service.data import bundled_scene
+from agilegs.service.launch import ServerProcess
 
-from agilegs.service.data import bundled_scene  # noqa: E402
+log = logging.getLogger(__name__)
 
 DEFAULT_SCENE = str(bundled_scene("teapot"))
 
@@ -58,56 +57,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--selections", type=int, default=10, help="select + commit per client")
     a("--load-method", default="agile", help="selection method of the load phase")
     a("--json", dest="json_out", help="also write the results here")
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-class _Server:
-    """``agilegs serve`` in a subprocess on free ports, state in a temporary folder."""
-
-    def __init__(self, token: str | None) -> None:
-        self.tmp = tempfile.TemporaryDirectory(prefix="agilegs-bench-")
-        self.port = _free_port()
-        self.zport = _free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        self.zenoh = f"tcp/127.0.0.1:{self.zport}"
-        env = {k: v for k, v in os.environ.items() if not k.startswith("AGILEGS_")}
-        if token:
-            env["AGILEGS_TOKEN"] = token
-        self.log = open(Path(self.tmp.name) / "serve.log", "wb")
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "agilegs.service.cli", "serve", "--port", str(self.port),
-             "--state-dir", str(Path(self.tmp.name) / "state"), "--zenoh-listen", self.zenoh],
-            env=env, stdout=self.log, stderr=subprocess.STDOUT)
-
-    def wait(self, client: Any, timeout: float = 60.0) -> None:
-        from agilegs.client import TransportError
-
-        deadline = time.monotonic() + timeout
-        while True:
-            if self.proc.poll() is not None:
-                raise RuntimeError(f"the server exited ({self.proc.returncode}); see "
-                                   f"{self.log.name}")
-            try:
-                client.health()
-                return
-            except TransportError:
-                if time.monotonic() > deadline:
-                    raise
-                time.sleep(0.1)
-
-    def stop(self) -> None:
-        self.proc.terminate()
-        try:
-            self.proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-        self.log.close()
-        self.tmp.cleanup()
 
 
 def _scene_arrays(path: str, max_gaussians: int) -> dict[str, np.ndarray] | None:
@@ -167,17 +116,17 @@ def run(args: argparse.Namespace) -> int:
     logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per request otherwise
     server = None
     url, zenoh_ep = args.url, args.zenoh
+    tmp = tempfile.TemporaryDirectory(prefix="agilegs-bench-")
     if url is None:
-        server = _Server(args.token)
-        url, zenoh_ep = server.url, server.zenoh
+        env = {"AGILEGS_TOKEN": args.token} if args.token else {}
+        server = ServerProcess(Path(tmp.name) / "state", env=env).start()
+        url, zenoh_ep = server.url, server.zenoh_endpoint
     results: dict[str, Any] = {"pool": args.pool, "method": args.method,
                                "gaussians": args.max_gaussians, "size": args.size}
     clients: dict[str, Any] = {}
     try:
         clients["http-json"] = Client(url, token=args.token, encoding="json")
         clients["http-msgpack"] = Client(url, token=args.token, encoding="msgpack")
-        if server is not None:
-            server.wait(clients["http-json"])
         if zenoh_ep:
             clients["zenoh"] = ZenohClient([zenoh_ep], token=args.token)
         c = clients["http-msgpack"]
@@ -213,6 +162,7 @@ def run(args: argparse.Namespace) -> int:
             cl.close()
         if server is not None:
             server.stop()
+        tmp.cleanup()
     _print(results)
     if args.json_out:
         Path(args.json_out).write_text(json.dumps(results, indent=2))

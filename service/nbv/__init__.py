@@ -7,7 +7,9 @@ Public surface (imported lazily, so ``import agilegs.service.nbv`` stays cheap):
 - Information: ``fisher_diag``, ``init_information``, ``accumulate_information``,
   ``expected_information_gain``, ``trace_surrogate``.
 - Poses: ``se3_exp``, ``se3_log``, ``hat``, ``vee``.
-- Selection: ``select`` -> ``Selection``, ``SelectConfig``, ``greedy_ridge_leverage``.
+- Selection: ``select`` -> ``Selection``, ``SelectConfig`` (with ``AnchorConfig``,
+  ``ScoringConfig``), ``eig_scores``, ``greedy_ridge_leverage``; the methods are registered
+  by name in :mod:`agilegs.service.nbv.methods`.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ _EXPORTS: dict[str, str] = {
     "check_pose": "camera",
     "render": "rasterize",
     "RenderResult": "rasterize",
-    "project_gaussians": "rasterize",
+    "project_gaussians": "projection",
     "fisher_diag": "information",
     "fisher_diag_bruteforce": "information",
     "init_information": "information",
@@ -40,7 +42,10 @@ _EXPORTS: dict[str, str] = {
     "select": "selectors",
     "Selection": "selectors",
     "SelectConfig": "selectors",
+    "AnchorConfig": "selectors",
+    "ScoringConfig": "selectors",
     "METHODS": "selectors",
+    "eig_scores": "information",
 }
 
 __all__ = sorted(_EXPORTS)

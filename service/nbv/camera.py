@@ -12,6 +12,8 @@ from dataclasses import dataclass, replace
 import torch
 from torch import Tensor
 
+from .errors import InputError
+
 
 @dataclass(frozen=True)
 class Intrinsics:
@@ -53,23 +55,25 @@ class Intrinsics:
 
 
 def check_pose(c2w: Tensor, name: str = "c2w", atol: float = 1e-4) -> None:
-    """Raise ValueError unless ``c2w`` [..., 4, 4] is a finite rigid transform."""
+    """Raise :class:`InputError` (a ValueError naming ``name``) unless ``c2w`` [..., 4, 4] is
+    a finite rigid transform."""
     if c2w.shape[-2:] != (4, 4):
-        raise ValueError(f"{name} must have shape [..., 4, 4], got {list(c2w.shape)}")
+        raise InputError(name, f"{name} must have shape [..., 4, 4], got {list(c2w.shape)}")
     c = c2w.detach()
     if not torch.isfinite(c).all():
-        raise ValueError(f"{name} contains NaN or infinite values")
+        raise InputError(name, f"{name} contains NaN or infinite values")
     bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=c.dtype, device=c.device)
     if not torch.allclose(c[..., 3, :], bottom.expand_as(c[..., 3, :]), atol=atol):
-        raise ValueError(f"{name} last row must be [0, 0, 0, 1]")
+        raise InputError(name, f"{name} last row must be [0, 0, 0, 1]")
     r = c[..., :3, :3]
     eye = torch.eye(3, dtype=c.dtype, device=c.device)
     err = (r.transpose(-1, -2) @ r - eye).abs().amax() if r.numel() else torch.tensor(0.0)
     tol = max(atol, 1e-3 if c.dtype == torch.float32 else atol)
     if float(err) > tol:
-        raise ValueError(f"{name} rotation is not orthonormal (max |R^T R - I| = {float(err):.3g})")
+        raise InputError(name, f"{name} rotation is not orthonormal (max |R^T R - I| = "
+                               f"{float(err):.3g})")
     if r.numel() and (torch.linalg.det(r) < 0).any():
-        raise ValueError(f"{name} rotation has determinant -1 (a reflection), not a rotation")
+        raise InputError(name, f"{name} rotation has determinant -1 (a reflection), not a rotation")
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,4 @@
-"""Candidate pools that look like a human capture, and distances between poses.
+"""Candidate pools that look like a human capture, and the pool's and the scene's extent.
 
 ``capture_pool`` lays cameras on orbits at a few elevations around an object, in capture
 order (ring after ring, azimuth increasing), with irregular spacing, a fraction of
@@ -16,16 +16,7 @@ import torch
 from torch import Tensor
 
 from .camera import look_at
-
-
-def _rotate_about_axis(vectors: Tensor, axis: Tensor, angle: Tensor) -> Tensor:
-    """Rotate ``vectors`` [..., 3] about unit ``axis`` [..., 3] by ``angle`` [...] (Rodrigues)."""
-    a = angle.unsqueeze(-1)
-    return (
-        vectors * torch.cos(a)
-        + torch.cross(axis, vectors, dim=-1) * torch.sin(a)
-        + axis * (axis * vectors).sum(-1, keepdim=True) * (1 - torch.cos(a))
-    )
+from .rotations import rotate_about_axis
 
 
 def orbit_frame(
@@ -124,8 +115,8 @@ def capture_pool(
     roll = torch.cat(rolls)
     c2w = look_at(eye, target, up=upv)
     z = c2w[:, :3, 2]
-    c2w[:, :3, 0] = _rotate_about_axis(c2w[:, :3, 0], z, roll)
-    c2w[:, :3, 1] = _rotate_about_axis(c2w[:, :3, 1], z, roll)
+    c2w[:, :3, 0] = rotate_about_axis(c2w[:, :3, 0], z, roll)
+    c2w[:, :3, 1] = rotate_about_axis(c2w[:, :3, 1], z, roll)
     return c2w.to(dtype)
 
 
@@ -137,3 +128,15 @@ def scene_center_radius(means: Tensor, quantile: float = 0.98) -> tuple[Tensor, 
     k = max(1, min(dist.numel(), int(round(quantile * dist.numel()))))
     radius = float(dist.kthvalue(k).values) if dist.numel() else 1.0
     return center, max(radius, 1e-6)
+
+
+def pool_radius(poses: Tensor, centre: Tensor | None = None) -> float:
+    """Median distance of the pool's camera centres from ``centre`` [3] (default: their mean),
+    at least 1e-6: the unit of the twist metric and of the scoring tolerances.
+
+    Args:
+        poses: camera-to-world poses [D, 4, 4].
+    """
+    p = poses[:, :3, 3].detach()
+    c = p.mean(0) if centre is None else centre.to(p.dtype)
+    return max(float((p - c).norm(dim=1).median()), 1e-6)

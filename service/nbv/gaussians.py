@@ -1,6 +1,6 @@
 """Gaussian maps: the parameter tensors of a 3D Gaussian Splatting scene.
 
-Conventions (see README): means [N,3] in world units, ``log_scales`` [N,3] (natural log of
+Conventions (docs/conventions.md): means [N,3] in world units, ``log_scales`` [N,3] (natural log of
 the per-axis standard deviations), ``quats`` [N,4] in (w, x, y, z) order (``render``
 normalises them), ``opacity_logits`` [N] (opacity = sigmoid), ``sh`` [N,(d+1)^2,3] spherical
 harmonic coefficients, DC first; colour = 0.5 + C0 * sh_DC + higher bands, clamped at 0, as in
@@ -42,7 +42,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-FIELD_NAMES: tuple[str, ...] = ("means", "log_scales", "quats", "opacity_logits", "sh")
+from agilegs.schemas.config import FIELD_NAMES as FIELD_NAMES  # the parameter blocks
 
 SH_C0 = 0.28209479177387814
 

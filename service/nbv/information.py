@@ -32,16 +32,15 @@ from math import comb
 import torch
 from torch import Tensor
 
-from agilegs.service.nbv.camera import Camera
+from agilegs.service.nbv.camera import Camera, Intrinsics
 from agilegs.service.nbv.gaussians import FIELD_NAMES, GaussianMap
+from agilegs.service.nbv.projection import Projected, project_map
 from agilegs.service.nbv.rasterize import (
-    Projected,
     bin_gaussians,
     composite_chunk,
     dcolor_dalpha,
     gather_lists,
     pixel_monomials,
-    project_map,
     render,
     tile_pixels,
 )
@@ -274,6 +273,35 @@ def fisher_diag_bruteforce(
     return acc
 
 
+def eig_scores(
+    gmap: GaussianMap,
+    h_acc: Mapping[str, Tensor],
+    poses: Tensor,
+    intrinsics: Intrinsics,
+    *,
+    fields: tuple[str, ...] = FIELD_NAMES,
+    background: Tensor | None = None,
+) -> Tensor:
+    """phi(v) = sum_q log(1 + H_v,qq / Hhat_qq) for every pose [V, 4, 4] -> [V].
+
+    One exact ``fisher_diag`` pass per view, only for the blocks in ``fields``; 1 / Hhat is
+    formed once and each view's Fisher is turned into its log1p-sum in place (no copies).
+    """
+    g = gmap.detach()
+    inv = {f: h_acc[f].detach().to(g.dtype).reciprocal() for f in fields}
+    out = torch.empty(poses.shape[0], dtype=torch.float64)
+    with torch.no_grad():
+        for i, pose in enumerate(poses.detach().to(g.dtype)):
+            h = fisher_diag(
+                g, Camera(c2w=pose, intrinsics=intrinsics), fields=fields, background=background
+            )
+            total = 0.0
+            for f in fields:
+                total += float(h[f].mul_(inv[f]).log1p_().sum(dtype=torch.float64))
+            out[i] = total
+    return out
+
+
 # ----------------------------------------------------------------------------- information maths
 def init_information(gmap: GaussianMap, lam: float = 1e-6) -> dict[str, Tensor]:
     """λI as a per-field dict (the prior term of Ĥ)."""
@@ -355,6 +383,7 @@ def trace_surrogate(
 
 __all__ = [
     "accumulate_information",
+    "eig_scores",
     "expected_information_gain",
     "fisher_diag",
     "fisher_diag_bruteforce",

@@ -1,0 +1,113 @@
+"""Zenoh sessions and request / reply for agilegs (no torch): the client SDK's
+:class:`~agilegs.client.ZenohClient` and the server's cluster both use it.
+
+Needs ``eclipse-zenoh`` (``pip install 'agilegs[zenoh]'``).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from agilegs.schemas import codec
+
+__all__ = ["Answer", "first_answer", "open_session", "query", "session_config"]
+
+
+def session_config(
+    listen: Sequence[str] = (), connect: Sequence[str] = (), mode: str = "peer"
+) -> Any:
+    """A ``zenoh.Config``: ``mode`` (peer by default), explicit listen / connect endpoints,
+    multicast and gossip scouting off (peers meet only through the endpoints given)."""
+    import zenoh
+
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(mode))
+    conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("scouting/gossip/enabled", "false")
+    return conf
+
+
+def open_session(listen: Sequence[str] = (), connect: Sequence[str] = (), mode: str = "peer"
+                 ) -> Any:
+    """An open ``zenoh.Session`` with :func:`session_config` (close it when done)."""
+    import zenoh
+
+    return zenoh.open(session_config(listen, connect, mode))
+
+
+@dataclass(frozen=True)
+class Answer:
+    """One reply to a query: ``ok`` (a response) or not (an error reply), the key it came
+    on, its payload and the payload's media type (JSON or msgpack)."""
+
+    ok: bool
+    key: str
+    payload: bytes
+    kind: str
+
+    def load(self) -> Any:
+        """The payload as Python data (``codec.DecodeError`` if malformed)."""
+        return codec.load(self.payload, self.kind)
+
+
+def _answer(reply: Any) -> Answer:
+    if reply.ok is not None:
+        sample = reply.ok
+        kind = codec.media_type(str(sample.encoding)) or codec.MSGPACK
+        return Answer(True, str(sample.key_expr), sample.payload.to_bytes(), kind)
+    err = reply.err
+    kind = (codec.media_type(str(err.encoding)) if err.encoding is not None else None
+            ) or codec.MSGPACK
+    return Answer(False, "", err.payload.to_bytes(), kind)
+
+
+def query(
+    session: Any,
+    key: str,
+    *,
+    payload: bytes | None = None,
+    parameters: str | None = None,
+    attachment: bytes | None = None,
+    timeout: float = 10.0,
+    remote_only: bool = False,
+    every_reply: bool = False,
+) -> Iterator[Answer]:
+    """The answers to a get on ``key`` (msgpack payload), as they come.
+
+    Args:
+        parameters: the selector's parameters (``instance=gpu-1``).
+        attachment: ``Bearer <token>``.
+        remote_only: ask other Zenoh sessions only (not this one's own queryables).
+        every_reply: keep every replier's answer (no consolidation).
+    """
+    import zenoh
+
+    selector = key if not parameters else f"{key}?{parameters}"
+    kwargs: dict[str, Any] = {"timeout": timeout, "encoding": codec.MSGPACK}
+    if payload is not None:
+        kwargs["payload"] = payload
+    if attachment is not None:
+        kwargs["attachment"] = attachment
+    if every_reply:
+        kwargs["consolidation"] = zenoh.ConsolidationMode.NONE
+    if remote_only:
+        kwargs["allowed_destination"] = zenoh.Locality.REMOTE
+    for reply in session.get(selector, **kwargs):
+        yield _answer(reply)
+
+
+def first_answer(session: Any, key: str, *, timeout: float, **kwargs: Any
+                 ) -> tuple[Answer | None, bool]:
+    """The first answer to a get on ``key`` (the arguments of :func:`query`), and whether
+    the wait for it ran out the timeout (no answer and ``timed_out``: nobody answered in
+    time; no answer otherwise: nobody declares the key)."""
+    t0 = time.monotonic()
+    for ans in query(session, key, timeout=timeout, **kwargs):
+        return ans, False
+    return None, time.monotonic() - t0 >= timeout * 0.99

@@ -1,0 +1,206 @@
+"""Benchmark variants: a selection method with some settings changed, named once for every
+benchmark (``bench run``, ``bench latency``, ``bench proxy``).
+
+A variant key is ``<method>`` or ``<method>@<option>[+<option>...]``, for example
+``agile@knearest``, ``agile_plus@n20``, ``agile_plus@exact`` or ``agile_plus@typical+cold``.
+The options (:data:`OPTIONS`) change the :class:`~agilegs.schemas.config.SelectConfig` the
+method selects with; ``n<N>`` sets the shortlist size N.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, Literal
+
+from agilegs.schemas.config import (
+    MIXED_ZBUFFER,
+    POINT_ZBUFFER,
+    SHORTLISTS,
+    SelectConfig,
+)
+
+from ..nbv.methods import method_names
+
+__all__ = [
+    "DISPLAY",
+    "OPTIONS",
+    "SHORTLIST_DISPLAY",
+    "Variant",
+    "build_variants",
+    "display_name",
+    "parse_variant",
+]
+
+Group = Literal["main", "shortlist", "budget", "variant"]
+
+DISPLAY = {
+    "random": "Random",
+    "fisherrf": "FisherRF",
+    "cover": "COVER",
+    "agile": "AGILE-GS",
+    "agile_plus": "AGILE-GS+",
+}
+SHORTLIST_DISPLAY = {
+    "leverage": "Ridge leverage",
+    "knearest": "K-nearest views",
+    "topnorm": "Top independent norm",
+    "online": "Online row sampling",
+}
+
+
+def _anchor(**changes: Any) -> Callable[[SelectConfig], SelectConfig]:
+    return lambda c: dataclasses.replace(c, anchor=dataclasses.replace(c.anchor, **changes))
+
+
+def _scoring(**changes: Any) -> Callable[[SelectConfig], SelectConfig]:
+    return lambda c: dataclasses.replace(c, scoring=dataclasses.replace(c.scoring, **changes))
+
+
+def _shortlist(name: str) -> Callable[[SelectConfig], SelectConfig]:
+    return lambda c: dataclasses.replace(c, shortlist=name)  # type: ignore[arg-type]
+
+
+OPTIONS: dict[str, tuple[str, Callable[[SelectConfig], SelectConfig]]] = {
+    **{s: (f"the {SHORTLIST_DISPLAY[s].lower()} shortlist", _shortlist(s))
+       for s in SHORTLISTS if s != "leverage"},
+    "exact": ("the anchor ascends the exact trace surrogate (one start, 3 steps)",
+              _anchor(psi="exact", num_starts=1, iterations=3, warm_start=True)),
+    "all_gaussians": ("the proxy sums over every Gaussian (no importance sampling)",
+                      _anchor(num_gaussians=0)),
+    "no_ascent": ("the best pool start under the proxy, no gradient steps",
+                  _anchor(iterations=0)),
+    "cold": ("no warm start from the previous anchor", _anchor(warm_start=False)),
+    "typical": ("the proxy's typical model (one Fisher value per parameter slot)",
+                _anchor(model="typical")),
+    "start_view": ("the typical model with its value from one Fisher pass",
+                   _anchor(model="typical", typical_fisher="start_view")),
+    "point_zbuffer": ("each occluder on its own z-buffer cell, 2% depth tolerance",
+                      _anchor(occlusion_tests=POINT_ZBUFFER)),
+    "mixed_zbuffer": ("the mean of the point and the 3x3 z-buffer tests",
+                      _anchor(occlusion_tests=MIXED_ZBUFFER)),
+    "unconditioned": ("the leverage greedy starts from lambda_G I (not the acquired rows)",
+                      _scoring(condition_on_acquired=False)),
+}
+"""Variant options: name -> (what it changes, the change)."""
+
+_BUDGET = re.compile(r"^n(\d+)$")
+
+
+@dataclass(frozen=True)
+class Variant:
+    """A method with its settings; ``key`` names its runs.
+
+    Attributes:
+        key: the variant key (``agile_plus@n20``).
+        method: the selection method.
+        shortlist: the shortlist strategy.
+        shortlist_size: N.
+        options: the options after ``@``, budget excluded.
+        group: which table it belongs to: the main comparison, the shortlist or budget
+            ablation, or another variant.
+    """
+
+    key: str
+    method: str
+    shortlist: str = "leverage"
+    shortlist_size: int = 10
+    options: tuple[str, ...] = ()
+    group: Group = "main"
+
+    def config(self, base: SelectConfig | None = None) -> SelectConfig:
+        """``base`` (default settings when None) with this variant's changes."""
+        cfg = dataclasses.replace(base or SelectConfig(), shortlist=self.shortlist,  # type: ignore[arg-type]
+                                  shortlist_size=self.shortlist_size)
+        for name in self.options:
+            cfg = OPTIONS[name][1](cfg)
+        return cfg
+
+
+def parse_variant(key: str, shortlist_size: int = 10, group: Group | None = None) -> Variant:
+    """The variant named ``key`` (``shortlist_size``: N unless ``n<N>`` sets it); ValueError
+    naming the unknown method or option."""
+    method, _, rest = key.partition("@")
+    if method not in method_names():
+        raise ValueError(f"unknown method {method!r} in {key!r} (known: "
+                         f"{', '.join(method_names())})")
+    shortlist, size, options = "leverage", shortlist_size, []
+    for opt in (o for o in rest.split("+") if o) if rest else ():
+        budget = _BUDGET.match(opt)
+        if budget:
+            size = int(budget.group(1))
+            if size < 1:
+                raise ValueError(f"{key!r}: a shortlist budget must be >= 1")
+        elif opt in SHORTLISTS:
+            shortlist = opt
+        elif opt in OPTIONS:
+            options.append(opt)
+        else:
+            raise ValueError(f"unknown option {opt!r} in {key!r} (known: n<N>, "
+                             f"{', '.join(OPTIONS)})")
+    if group is None:
+        group = "main" if not rest else "variant"
+    return Variant(key, method, shortlist, size, tuple(options), group)
+
+
+def build_variants(
+    methods: Sequence[str],
+    shortlist_size: int,
+    strategies: Sequence[str] = (),
+    budgets: Sequence[int] = (),
+    shortlist_method: str = "agile",
+) -> list[Variant]:
+    """The runs' variants: the methods (any variant key), then the shortlist and budget
+    ablations (deduplicated).
+
+    Args:
+        methods: method names or variant keys.
+        shortlist_size: the profile's N.
+        strategies: shortlist strategies of the ablation, run with ``shortlist_method``.
+        budgets: shortlist sizes N of the AGILE-GS+ budget ablation.
+        shortlist_method: "agile" (the paper's table) or "agile_plus". With "agile" the
+            "topnorm" strategy picks exactly what "leverage" picks: the first greedy
+            ridge-leverage pick (S_0 = lambda_G I) is the row of largest norm.
+
+    Raises:
+        ValueError: an unknown method, option or strategy, or a budget < 1.
+    """
+    if shortlist_method not in ("agile", "agile_plus"):
+        raise ValueError(f"--shortlist-method must be agile or agile_plus, got "
+                         f"{shortlist_method!r}")
+    out: dict[str, Variant] = {}
+    for m in methods:
+        try:
+            out.setdefault(m, parse_variant(m, shortlist_size))
+        except ValueError as exc:
+            raise ValueError(f"--methods: {exc}") from None
+    for s in strategies:
+        if s not in SHORTLISTS:
+            raise ValueError(f"--shortlist-strategies: unknown strategy {s!r} (known: "
+                             f"{', '.join(SHORTLISTS)})")
+        key = shortlist_method if s == "leverage" else f"{shortlist_method}@{s}"
+        out.setdefault(key, parse_variant(key, shortlist_size, "shortlist"))
+    for n in budgets:
+        if int(n) < 1:
+            raise ValueError(f"--budgets: a shortlist budget must be >= 1, got {n}")
+        key = "agile_plus" if int(n) == shortlist_size else f"agile_plus@n{int(n)}"
+        out.setdefault(key, parse_variant(key, shortlist_size, "budget"))
+    return list(out.values())
+
+
+def display_name(key: str) -> str:
+    """Human name of a variant key (``agile_plus@n5`` -> ``AGILE-GS+ (N=5)``)."""
+    if key in DISPLAY:
+        return DISPLAY[key]
+    base, _, extra = key.partition("@")
+    name = DISPLAY.get(base, base)
+    parts = []
+    for opt in extra.split("+"):
+        budget = _BUDGET.match(opt)
+        if budget:
+            return f"{name} (N={budget.group(1)})" if len(extra.split("+")) == 1 else (
+                f"{name} [{extra}]")
+        parts.append(SHORTLIST_DISPLAY.get(opt, opt))
+    return f"{name} [{', '.join(parts)}]"

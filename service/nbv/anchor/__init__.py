@@ -1,0 +1,46 @@
+"""The information anchor T* = argmax_T psi(T) on SE(3) (paper section 4.1).
+
+psi(T) = sum_q H_T,qq / Hhat_qq is the trace surrogate of the expected information gain of a
+virtual camera at T. It is maximised by Riemannian gradient ascent (:mod:`.ascent`), inside the
+pool's envelope (:mod:`.envelope`). Two psi behind one option (``AnchorConfig.psi``):
+
+- ``"proxy"`` (default): rasterization-free (:mod:`.proxy`): each Gaussian's footprint,
+  in-frustum and visibility terms at T, with an observation model fitted to Hhat over the
+  acquired views (:mod:`.fitting`).
+- ``"exact"``: ``trace_surrogate(fisher_diag(gmap, camera(T)), h_acc)`` through the rasterizer
+  at reduced resolution, differentiated by autograd w.r.t. the twist: faithful, but seconds per
+  step on a CPU and rough (the rasterizer's hard cut-offs).
+
+The settings are :class:`~agilegs.schemas.config.AnchorConfig`.
+"""
+
+from agilegs.schemas.config import COVER_ZBUFFER, MIXED_ZBUFFER, POINT_ZBUFFER, AnchorConfig
+
+from .ascent import AnchorResult, ascend, optimize_anchor
+from .envelope import PoolEnvelope
+from .fitting import (
+    FittedRates,
+    information_weights,
+    observation_rates,
+    typical_fisher_from_h_acc,
+    typical_fisher_from_views,
+)
+from .proxy import ProxyPsi, pick_occluders
+
+__all__ = [
+    "COVER_ZBUFFER",
+    "MIXED_ZBUFFER",
+    "POINT_ZBUFFER",
+    "AnchorConfig",
+    "AnchorResult",
+    "FittedRates",
+    "PoolEnvelope",
+    "ProxyPsi",
+    "ascend",
+    "information_weights",
+    "observation_rates",
+    "optimize_anchor",
+    "pick_occluders",
+    "typical_fisher_from_h_acc",
+    "typical_fisher_from_views",
+]

@@ -1,0 +1,301 @@
+"""Riemannian gradient ascent of psi on SE(3): the anchor T* = argmax_T psi(T).
+
+The retraction is ``T <- T exp(eta xi^)``, xi the gradient of psi w.r.t. a right-perturbation
+twist at 0 (``c2w = T @ se3_exp(xi)``). The twist gradient is measured in the metric
+``||xi||^2 = ||v||^2 / r^2 + ||w||^2`` (r the pool's radius, so turning by 1 rad and moving by
+one radius count alike); each step has length ``eta`` in that metric and is accepted only if
+psi does not decrease (after projection into the pool envelope), otherwise eta is halved up to
+``backtracks`` times; an accepted step grows eta by 1.5x (at most ``4 * step_size``). A start
+stops after ``iterations`` accepted steps, when no step is accepted, when the relative gain of
+a step is below ``min_rel_gain`` or when the gradient vanishes. Starts: the ``num_starts`` best
+pool candidates under the proxy, plus the previous anchor (warm start). Several starts ascend
+at once, as one batch.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from agilegs.schemas.config import AnchorConfig, validate_config
+
+from ..camera import Camera, Intrinsics
+from ..candidates import pool_radius
+from ..gaussians import FIELD_NAMES, GaussianMap
+from ..information import fisher_diag, trace_surrogate
+from ..se3 import se3_exp
+from .envelope import PoolEnvelope
+from .fitting import (
+    information_weights,
+    observation_rates,
+    typical_fisher_from_h_acc,
+)
+from .proxy import ProxyPsi, pick_occluders
+
+__all__ = ["AnchorResult", "ascend", "optimize_anchor"]
+
+
+@dataclass
+class AnchorResult:
+    """Outcome of the anchor ascent.
+
+    Attributes:
+        c2w: the anchor pose [4, 4].
+        psi: psi at the anchor.
+        psi_trace: psi of the winning start, at its start and after each accepted step.
+        traces: the same for every start.
+        starts: the start poses [S, 4, 4].
+        evaluations: psi evaluations (batched proxy calls count once per pose).
+        pool_psi: the proxy psi of every pool candidate scored for the starts [D] (None for
+            the exact psi without a proxy).
+        extra: diagnostics (typical Fisher used, timings).
+    """
+
+    c2w: Tensor
+    psi: float
+    psi_trace: list[float]
+    traces: list[list[float]]
+    starts: Tensor
+    evaluations: int
+    pool_psi: Tensor | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def _metric_step(grad: Tensor, radius: float, eta: Tensor) -> Tensor:
+    """Normalised Riemannian step [B, 6] of length eta in the metric ||v||^2/r^2 + ||w||^2.
+
+    Twists are (v, w): translation first, rotation second (the se3_exp convention).
+    """
+    g = grad.clone()
+    g[:, :3] = g[:, :3] * radius**2  # Riemannian gradient: inverse metric applied
+    norm = torch.sqrt((g[:, :3] ** 2).sum(1) / radius**2 + (g[:, 3:] ** 2).sum(1))
+    return g * (eta / norm.clamp_min(1e-30)).unsqueeze(1)
+
+
+def ascend(
+    psi_fn: Callable[[Tensor], Tensor],
+    starts: Tensor,
+    *,
+    config: AnchorConfig,
+    envelope: PoolEnvelope | None,
+    radius: float,
+    batched: bool = True,
+) -> tuple[Tensor, Tensor, list[list[float]], int]:
+    """Riemannian gradient ascent of psi from every start pose [S, 4, 4].
+
+    ``psi_fn`` maps poses [B, 4, 4] to psi [B]; with ``batched=False`` it is called one pose
+    at a time. Returns the final poses [S, 4, 4], their psi [S], the per-start psi traces
+    (one entry per accepted step, never decreasing) and the number of psi evaluations.
+    """
+    dt = starts.dtype
+
+    def evaluate(poses: Tensor) -> Tensor:
+        if batched:
+            return psi_fn(poses)
+        return torch.stack([psi_fn(p.unsqueeze(0))[0] for p in poses])
+
+    def twist_grad(poses: Tensor) -> tuple[Tensor, Tensor]:
+        xi = torch.zeros(poses.shape[0], 6, dtype=dt, device=poses.device, requires_grad=True)
+        moved = poses @ se3_exp(xi)
+        if envelope is not None:
+            moved = envelope.project(moved)
+        val = evaluate(moved)
+        (g,) = torch.autograd.grad(val.sum(), xi)
+        return val.detach(), g.detach()
+
+    poses = starts.detach().clone()
+    if envelope is not None:
+        poses = envelope.project(poses)
+    with torch.no_grad():
+        cur = evaluate(poses).detach()
+    evals = poses.shape[0]
+    traces = [[float(v)] for v in cur]
+    eta = torch.full((poses.shape[0],), config.step_size, dtype=dt, device=poses.device)
+    active = torch.ones(poses.shape[0], dtype=torch.bool, device=poses.device)
+    for _ in range(config.iterations):
+        if not bool(active.any()):
+            break
+        ids = torch.nonzero(active).squeeze(1)
+        _, grad = twist_grad(poses[ids])
+        evals += len(ids)
+        gnorm = grad.norm(dim=1)
+        step_ok = torch.isfinite(gnorm) & (gnorm > 0)
+        accepted = torch.zeros(len(ids), dtype=torch.bool, device=poses.device)
+        pending = step_ok.clone()
+        loc_eta = eta[ids].clone()
+        for _trial in range(config.backtracks + 1):
+            if not bool(pending.any()):
+                break
+            pid = torch.nonzero(pending).squeeze(1)
+            xi = _metric_step(grad[pid], radius, loc_eta[pid])
+            with torch.no_grad():
+                trial = poses[ids[pid]] @ se3_exp(xi)
+                if envelope is not None:
+                    trial = envelope.project(trial)
+                val = evaluate(trial).detach()
+            evals += len(pid)
+            ok = torch.isfinite(val) & (val >= cur[ids[pid]])
+            for j, k in enumerate(pid.tolist()):
+                if bool(ok[j]):
+                    s = int(ids[k])
+                    gain = float(val[j] - cur[s])
+                    poses[s] = trial[j]
+                    old = float(cur[s])
+                    cur[s] = val[j]
+                    traces[s].append(float(val[j]))
+                    accepted[k] = True
+                    pending[k] = False
+                    eta[s] = min(float(loc_eta[k]) * 1.5, 4 * config.step_size)
+                    if gain <= config.min_rel_gain * abs(old):
+                        active[s] = False
+                else:
+                    loc_eta[k] = loc_eta[k] * 0.5
+        for k in range(len(ids)):
+            if not bool(accepted[k]):
+                active[int(ids[k])] = False
+    return poses, cur, traces, evals
+
+
+def optimize_anchor(
+    gmap: GaussianMap,
+    h_acc: dict[str, Tensor],
+    candidates: Tensor,
+    intrinsics: Intrinsics,
+    *,
+    config: AnchorConfig,
+    fields: tuple[str, ...] = FIELD_NAMES,
+    num_acquired: int = 1,
+    envelope: PoolEnvelope | None = None,
+    warm_c2w: Tensor | None = None,
+    typical: dict[str, Tensor] | None = None,
+    generator: torch.Generator | None = None,
+    acquired: Tensor | None = None,
+) -> AnchorResult:
+    """Find the anchor T* = argmax psi(T) (see the module docstring).
+
+    Args:
+        gmap: the current map.
+        h_acc: accumulated information per field (same shapes as the map's fields).
+        candidates: pool poses [D, 4, 4] to draw the starts from.
+        intrinsics: the candidates' intrinsics.
+        config: anchor settings.
+        fields: parameter blocks entering psi.
+        num_acquired: number of acquired views (scales the ``"h_acc"`` typical Fisher).
+        envelope: where the anchor may go (None: anywhere).
+        warm_c2w: the previous anchor [4, 4], an extra start when ``config.warm_start``.
+        typical: m_q per field to use as is (overrides ``config.typical_fisher``).
+        generator: seeds the importance sampling.
+        acquired: poses of the acquired views [A, 4, 4], which the ``"fitted"`` model is
+            fitted over (without any, the ``"typical"`` model is used).
+    """
+    config = validate_config(AnchorConfig, config)
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    dt = gmap.dtype
+    radius = envelope.radius if envelope is not None else pool_radius(candidates)
+    extra: dict[str, Any] = {}
+    prox_intr = intrinsics
+    if config.resolution is not None:
+        prox_intr = intrinsics.scaled(
+            config.resolution,
+            max(1, round(config.resolution * intrinsics.height / intrinsics.width)),
+        )
+    occ = pick_occluders(gmap, config.occluders, generator)
+    common: dict[str, Any] = dict(
+        near=config.near_fraction * radius,
+        edge=config.edge_softness * prox_intr.width,
+        generator=generator,
+        num_occluders=config.occluders,
+        occ_grid=config.occlusion_grid,
+        occ_tests=config.occlusion_tests,
+        occluders=occ,
+    )
+    fitted = (
+        typical is None
+        and config.model == "fitted"
+        and acquired is not None
+        and acquired.shape[0] > 0
+    )
+    if fitted:
+        assert acquired is not None
+        fit = observation_rates(gmap, h_acc, acquired, prox_intr, fields, **common)
+        c = fit.slots * torch.log1p(fit.rate * fit.typical)
+        proxy = ProxyPsi.build(
+            gmap, c, prox_intr, num_samples=config.num_gaussians, rate=fit.rate,
+            slots=fit.slots, **common,
+        )
+        extra["model"] = "fitted"
+        extra["typical_term"] = fit.typical
+    else:
+        if typical is not None:
+            extra["typical_source"] = "given"
+        else:
+            typical = typical_fisher_from_h_acc(h_acc, num_acquired, fields)
+            extra["typical_source"] = "h_acc"
+        c = information_weights(h_acc, typical, fields)
+        proxy = ProxyPsi.build(gmap, c, prox_intr, num_samples=config.num_gaussians, **common)
+        extra["model"] = "typical"
+    timings["proxy_build"] = time.perf_counter() - t0
+    # starts: best pool candidates under the proxy (+ the previous anchor)
+    with torch.no_grad():
+        pool = candidates.detach().to(dt)
+        pool_psi = proxy(envelope.project(pool) if envelope is not None else pool)
+    k = min(config.num_starts, pool.shape[0])
+    best = torch.topk(pool_psi, k).indices
+    starts = pool[best]
+    if config.warm_start and warm_c2w is not None:
+        starts = torch.cat([starts, warm_c2w.detach().to(dt).reshape(1, 4, 4)])
+    timings["starts"] = time.perf_counter() - t0 - timings["proxy_build"]
+    if config.psi == "proxy":
+        poses, vals, traces, evals = ascend(
+            proxy, starts, config=config, envelope=envelope, radius=radius, batched=True
+        )
+    else:
+        exact = _exact_psi_fn(gmap, h_acc, intrinsics, config, fields)
+        poses, vals, traces, evals = ascend(
+            exact, starts, config=config, envelope=envelope, radius=radius, batched=False
+        )
+    win = int(torch.argmax(vals))
+    timings["ascent"] = time.perf_counter() - t0 - timings["proxy_build"] - timings["starts"]
+    extra["timings_s"] = timings
+    extra["start_indices"] = [int(i) for i in best]
+    extra["proxy_samples"] = int(proxy.means.shape[0])
+    return AnchorResult(
+        c2w=poses[win].detach(),
+        psi=float(vals[win]),
+        psi_trace=traces[win],
+        traces=traces,
+        starts=starts,
+        evaluations=evals,
+        pool_psi=pool_psi.detach(),
+        extra=extra,
+    )
+
+
+def _exact_psi_fn(
+    gmap: GaussianMap,
+    h_acc: dict[str, Tensor],
+    intrinsics: Intrinsics,
+    config: AnchorConfig,
+    fields: tuple[str, ...],
+) -> Callable[[Tensor], Tensor]:
+    """psi(T) = trace_surrogate(fisher_diag(gmap, camera(T)), h_acc) at reduced resolution."""
+    width = config.resolution or 64
+    height = max(1, round(width * intrinsics.height / intrinsics.width))
+    small = intrinsics.scaled(width, height)
+    h_sel = {k: h_acc[k] for k in fields}
+
+    def psi(c2w: Tensor) -> Tensor:
+        out = []
+        for pose in c2w:
+            cam = Camera(c2w=pose, intrinsics=small)
+            fd = fisher_diag(gmap, cam)
+            out.append(trace_surrogate({k: fd[k] for k in fields}, h_sel))
+        return torch.stack([torch.as_tensor(o) for o in out])
+
+    return psi

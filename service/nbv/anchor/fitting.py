@@ -1,0 +1,180 @@
+"""The proxy's observation models, fitted to Hhat: how much a view at T adds to each Gaussian.
+
+``fitted`` (:func:`observation_rates`): a view at T adds ``g_iq * w_i(T)`` to Gaussian i's
+information in slot q; the acquired views give Hhat_iq - lambda_q = g_iq * W_i, so that
+H_T,iq / Hhat_iq = r_iq w_i(T) / W_i and psi(T) ~ sum_i P log(1 + a_i w_i(T)), the diagonal
+log-det EIG of the model (P parameter slots per Gaussian).
+
+``typical``: one typical single-view Fisher value m_q per parameter slot, c_i = sum_q
+log(1 + m_q / Hhat_iq) (:func:`information_weights`) and psi(T) ~ sum_i c_i w_i(T).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..camera import Intrinsics
+from ..gaussians import GaussianMap
+from .proxy import ProxyPsi
+
+__all__ = [
+    "FittedRates",
+    "information_weights",
+    "observation_rates",
+    "typical_fisher_from_h_acc",
+    "typical_fisher_from_views",
+]
+
+
+def typical_fisher_from_h_acc(
+    h_acc: dict[str, Tensor], num_views: int, fields: tuple[str, ...], max_rows: int = 4096
+) -> dict[str, Tensor]:
+    """m_q per parameter slot from Hhat alone: median over Gaussians of (Hhat - lambda) / A.
+
+    lambda is taken as each slot's minimum over Gaussians (Hhat = sum H_v + lambda, and some
+    Gaussian is seen by no acquired view in practice); only Gaussians with Hhat above lambda
+    enter the median, taken over at most ``max_rows`` Gaussians (a fixed stride).
+    ``num_views`` A >= 1 is the number of acquired views.
+    """
+    out: dict[str, Tensor] = {}
+    a = max(int(num_views), 1)
+    for name in fields:
+        h = h_acc[name].detach()
+        flat = h.reshape(h.shape[0], -1)
+        base = flat.amin(dim=0, keepdim=True)
+        if flat.shape[0] > max_rows:  # a fixed stride subsample: the median hardly moves
+            flat = flat[:: -(-flat.shape[0] // max_rows)]
+        excess = flat - base
+        excess = torch.where(
+            excess > 1e-6 * base.abs().clamp_min(1e-30),
+            excess,
+            torch.full_like(excess, float("nan")),
+        )
+        med = torch.nanmedian(excess, dim=0).values / a
+        med = torch.where(torch.isfinite(med), med, flat.mean(dim=0))
+        out[name] = med.reshape(h.shape[1:])
+    return out
+
+
+@dataclass
+class FittedRates:
+    """The fitted observation model of the proxy (``observation_rates``).
+
+    Attributes:
+        rate: a_i, per Gaussian [N]: a view at T gives Gaussian i the information ratio
+            ``H_T,iq / Hhat_iq ~ a_i * w_i(T)``.
+        accumulated: W_i, the proxy terms summed over the acquired poses [N].
+        typical: f, the median proxy term of the (Gaussian, acquired view) pairs that see it.
+        slots: parameter slots per Gaussian in the fields used (P).
+    """
+
+    rate: Tensor
+    accumulated: Tensor
+    typical: float
+    slots: int
+
+
+@torch.no_grad()
+def observation_rates(
+    gmap: GaussianMap,
+    h_acc: dict[str, Tensor],
+    acquired: Tensor,
+    intrinsics: Intrinsics,
+    fields: tuple[str, ...],
+    *,
+    near: float,
+    edge: float,
+    num_occluders: int,
+    occ_grid: int,
+    occ_tests: tuple[tuple[int, float], ...],
+    generator: torch.Generator | None = None,
+    occluders: Tensor | None = None,
+    chunk: int = 16,
+) -> FittedRates:
+    """Fit the proxy's observation model to Hhat over the acquired poses [A, 4, 4].
+
+    Model: a view at T adds ``g_iq * w_i(T)`` to Gaussian i's information in slot q, with
+    ``w_i(T)`` the proxy's footprint x inside x visible term (``ProxyPsi(per_sample=True)``)
+    and ``g_iq`` that Gaussian's information per pixel of footprint. The acquired views give
+    ``Hhat_iq - lambda_q = g_iq * W_i``, ``W_i = sum_a w_i(T_a)``, so that
+
+        H_T,iq / Hhat_iq = r_iq * w_i(T) / W_i,   r_iq = (Hhat_iq - lambda_q) / Hhat_iq,
+
+    and ``a_i = mean_q(r_iq) / W_i``. The fit is self-consistent: wherever the proxy's point
+    z-buffer lets a hidden Gaussian through, it does so at the acquired poses too, so W_i is
+    large and the leak costs little; and a Gaussian that Hhat says no view constrains although
+    the proxy saw it (r ~ 0: hidden inside the surface, or too faint) gains nothing. A
+    Gaussian the proxy did not see from any acquired pose (W_i below a quarter of the typical
+    term f) counts as seen by a quarter of a typical view, ``a_i = 4 / f``: new, but bounded
+    (the exact ``log(1 + H / lambda)`` of such a Gaussian depends on the arbitrary lambda).
+    lambda_q is each slot's minimum over Gaussians (as ``typical_fisher_from_h_acc``).
+    ``occluders``: the z-buffer's occluder means (the same set as the proxy it serves).
+    """
+    n = gmap.num_gaussians
+    dt = gmap.dtype
+    dev = gmap.means.device
+    full = ProxyPsi.build(
+        gmap,
+        torch.ones(n, dtype=dt, device=dev),
+        intrinsics,
+        num_samples=0,
+        near=near,
+        edge=edge,
+        generator=generator,
+        num_occluders=num_occluders,
+        occ_grid=occ_grid,
+        occ_tests=occ_tests,
+        occluders=occluders,
+    )
+    poses = acquired.detach().to(dt)
+    w_sum = torch.zeros(n, dtype=dt, device=dev)
+    seen: list[Tensor] = []
+    for i in range(0, poses.shape[0], chunk):
+        w = full(poses[i : i + chunk], per_sample=True)  # [B, N]
+        w_sum += w.sum(0)
+        seen.append(w[w > 1e-6])
+    pos = torch.cat(seen) if seen else torch.zeros(0, dtype=dt, device=dev)
+    f_typ = float(pos.median()) if pos.numel() else 1.0
+    floor = 0.25 * f_typ
+    r_sum = torch.zeros(n, dtype=dt, device=dev)
+    slots = 0
+    for name in fields:
+        flat = h_acc[name].detach().to(dt).reshape(n, -1)
+        lam = flat.amin(dim=0, keepdim=True)
+        r_sum += ((flat - lam) / flat.clamp_min(1e-30)).clamp(0, 1).sum(1)
+        slots += flat.shape[1]
+    r = r_sum / max(slots, 1)
+    rate = torch.where(w_sum >= floor, r / w_sum.clamp_min(floor), torch.full_like(r, 1 / floor))
+    return FittedRates(rate=rate, accumulated=w_sum, typical=f_typ, slots=slots)
+
+
+def typical_fisher_from_views(
+    h_views: list[dict[str, Tensor]], fields: tuple[str, ...]
+) -> dict[str, Tensor]:
+    """m_q per parameter slot: the median nonzero value over Gaussians and the given views."""
+    out: dict[str, Tensor] = {}
+    for name in fields:
+        stack = torch.cat([h[name].detach().reshape(h[name].shape[0], -1) for h in h_views])
+        vals = torch.where(stack > 0, stack, torch.full_like(stack, float("nan")))
+        med = torch.nanmedian(vals, dim=0).values
+        med = torch.where(torch.isfinite(med), med, torch.zeros_like(med))
+        out[name] = med.reshape(h_views[0][name].shape[1:])
+    return out
+
+
+def information_weights(
+    h_acc: dict[str, Tensor], typical: dict[str, Tensor], fields: tuple[str, ...]
+) -> Tensor:
+    """c_i = sum_q log(1 + m_q / Hhat_iq) over Gaussian i's parameters in ``fields`` [N]."""
+    total: Tensor | None = None
+    for name in fields:
+        h = h_acc[name].detach()
+        m = typical[name].to(h.dtype)
+        term = torch.log1p(m.unsqueeze(0) / h.clamp_min(1e-30))
+        term = term.reshape(h.shape[0], -1).sum(1)
+        total = term if total is None else total + term
+    assert total is not None
+    return total

@@ -1,0 +1,42 @@
+"""The selection methods, one module each, registered by name (see :mod:`.base`).
+
+- ``random`` (:mod:`.random`): a seeded uniform choice.
+- ``fisherrf`` (:mod:`.fisherrf`): the exact EIG of every eligible candidate, argmax.
+- ``cover`` (:mod:`.cover`): COVER's coverage score, argmin.
+- ``agile``, ``agile_plus`` (:mod:`.agile`): the anchor, the coverage matrix, the leverage
+  shortlist; its first, or its best under the exact EIG.
+
+To add a method: write a module here with a class that has ``name``, ``uses_information`` and
+``__call__(context) -> MethodResult``, ``register`` an instance,
+add its module to :data:`MODULES` and its name to the wire contract's ``Method``
+(:mod:`agilegs.schemas.config`).
+"""
+
+import importlib
+
+from .base import (
+    STAGES,
+    MethodResult,
+    SelectionContext,
+    SelectionMethod,
+    get_method,
+    method_names,
+    register,
+)
+
+__all__ = [
+    "MODULES",
+    "STAGES",
+    "MethodResult",
+    "SelectionContext",
+    "SelectionMethod",
+    "get_method",
+    "method_names",
+    "register",
+]
+
+MODULES: tuple[str, ...] = ("random", "fisherrf", "cover", "agile")
+"""The method modules, imported (so registered) in this order: the order methods are listed in."""
+
+for _module in MODULES:
+    importlib.import_module(f"{__name__}.{_module}")

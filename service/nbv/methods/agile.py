@@ -1,0 +1,224 @@
+"""AGILE-GS and AGILE-GS+ (paper sections 4-5).
+
+``agile``: the anchor T* = argmax psi (:mod:`agilegs.service.nbv.anchor`), the coverage matrix
+M of the eligible candidates against T*'s support samples (:mod:`agilegs.service.nbv.coverage`),
+B = M Pi (a fixed seeded Johnson-Lindenstrauss projection), a shortlist of N rows, and the
+shortlist's first. ``agile_plus``: the same shortlist reranked by the exact EIG phi; the argmax.
+
+The shortlist strategy is ``SelectConfig.shortlist``: ``leverage`` (the paper's greedy ridge
+leverage), or the ablations ``knearest`` (the N candidates nearest the anchor under the SE(3)
+distance), ``topnorm`` (the N largest ||b_v||) and ``online`` (online lambda-ridge leverage
+row sampling). In embodied mode the anchor's starts are drawn from the eligible candidates, so
+that the anchor stays in the reachable neighbourhood.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from ..anchor import PoolEnvelope, optimize_anchor, typical_fisher_from_views
+from ..camera import Camera
+from ..coverage import coverage_matrix, jl_projection, support_samples
+from ..information import eig_scores, fisher_diag
+from ..leverage import greedy_ridge_leverage_gains, online_ridge_leverage, topnorm_shortlist
+from ..se3 import pose_distance
+from .base import MethodResult, SelectionContext, register, timed
+from .common import argmax_first
+
+
+def _anchor(ctx: SelectionContext, lat: dict[str, float], out: dict[str, Any]) -> Tensor:
+    """Run the anchor ascent; fills ``out`` (state, details, psi trace); returns T* [4, 4]."""
+    cfg = ctx.config
+    dt = ctx.gmap.dtype
+    with timed(lat, "anchor"):
+        envelope = (
+            PoolEnvelope.from_pool(ctx.pool, ctx.aim, cfg.anchor.envelope_margin)
+            if cfg.anchor.envelope
+            else None
+        )
+        warm = ctx.state.get("anchor_c2w") if cfg.anchor.warm_start else None
+        if warm is not None and (
+            not isinstance(warm, Tensor) or warm.shape != (4, 4) or not torch.isfinite(warm).all()
+        ):
+            warm = None
+        acquired = ctx.acquired
+        num_acq = int(acquired.shape[0]) if acquired is not None else 1
+        typical = ctx.state.get("typical_fisher")
+        if cfg.anchor.typical_fisher == "start_view" and typical is None:
+            # one Fisher pass at a typical view: the last acquired one (else the first
+            # eligible candidate); cached in state for the next events
+            ref = (
+                acquired[-1].to(dt)
+                if acquired is not None and acquired.shape[0]
+                else ctx.pool[ctx.eligible[0]]
+            )
+            cam = Camera(c2w=ref, intrinsics=ctx.intrinsics)
+            with torch.no_grad():
+                hv = fisher_diag(ctx.gmap.detach(), cam, fields=ctx.fields,
+                                 background=ctx.background)
+            typical = typical_fisher_from_views([hv], ctx.fields)
+        if cfg.anchor.typical_fisher == "start_view":
+            out["state"]["typical_fisher"] = typical
+        else:
+            typical = None
+        res = optimize_anchor(
+            ctx.gmap,
+            dict(ctx.h_acc),
+            ctx.eligible_poses,
+            ctx.intrinsics,
+            config=cfg.anchor,
+            fields=ctx.fields,
+            num_acquired=num_acq,
+            envelope=envelope,
+            warm_c2w=warm,
+            typical=typical,
+            generator=ctx.generator(2),
+            acquired=acquired.to(dt) if acquired is not None else None,
+        )
+        out["state"]["anchor_c2w"] = res.c2w.clone()
+    out["psi_trace"] = list(res.psi_trace)
+    out["details"].update(
+        psi_evaluations=res.evaluations,
+        anchor_starts=[ctx.eligible[i] for i in res.extra.get("start_indices", [])],
+        proxy_samples=res.extra.get("proxy_samples"),
+    )
+    if res.pool_psi is not None:
+        out["details"]["pool_proxy_psi"] = {
+            v: float(p) for v, p in zip(ctx.eligible, res.pool_psi)
+        }
+    return res.c2w
+
+
+def _knearest(ctx: SelectionContext, anchor_c2w: Tensor, n_short: int, lat: dict[str, float]
+              ) -> tuple[list[int], dict[int, float]]:
+    with timed(lat, "scoring"):
+        dist = pose_distance(
+            ctx.eligible_poses, anchor_c2w.expand(len(ctx.eligible), 4, 4), ctx.rot_weight
+        ).to(torch.float64)
+        order = torch.sort(dist, stable=True).indices.tolist()[:n_short]
+    with timed(lat, "leverage"):
+        shortlist = [ctx.eligible[i] for i in order]
+        scores = {ctx.eligible[i]: float(dist[i]) for i in order}
+    return shortlist, scores
+
+
+def _rows(ctx: SelectionContext, anchor_c2w: Tensor, lat: dict[str, float],
+          details: dict[str, Any]) -> tuple[Tensor, Tensor]:
+    """B = M Pi of the eligible candidates [E, d], and of the acquired views that condition
+    the leverage shortlist [A, d] (empty unless ``condition_on_acquired``)."""
+    sc = ctx.config.scoring
+    dt = ctx.gmap.dtype
+    acquired = ctx.acquired
+    with timed(lat, "scoring"):
+        x = support_samples(
+            ctx.gmap.means,
+            anchor_c2w,
+            ctx.intrinsics,
+            opacities=ctx.gmap.opacities.detach(),
+            grid=sc.grid,
+            ray_samples=sc.ray_samples,
+            ray_min_fraction=sc.ray_min_fraction,
+            min_opacity=sc.min_opacity,
+            near=sc.near,
+            max_samples=sc.max_samples,
+            generator=ctx.generator(3),
+        )
+        sigma_p = sc.sigma_p if sc.sigma_p is not None else 0.5 * ctx.radius
+        # the acquired views' rows (scored like the candidates; rows are independent)
+        # condition the leverage shortlist: one coverage matrix for both
+        n_elig = len(ctx.eligible)
+        rows = ctx.eligible_poses
+        if (
+            ctx.config.shortlist == "leverage"
+            and sc.condition_on_acquired
+            and acquired is not None
+            and acquired.shape[0]
+        ):
+            rows = torch.cat([rows, acquired.detach().to(dt)])
+        cov = coverage_matrix(
+            x,
+            rows,
+            anchor_c2w,
+            ctx.intrinsics,
+            sigma_p=sigma_p,
+            gamma=sc.gamma,
+            eps=sc.eps * ctx.radius,
+            near=sc.near,
+        )
+        pi = jl_projection(x.shape[0], sc.jl_dim, seed=ctx.config.seed, dtype=dt,
+                           device=x.device)
+        b_all = cov.m @ pi
+    details["support_samples"] = int(x.shape[0])
+    details["rho"] = {v: float(r) for v, r in zip(ctx.eligible, cov.rho[:n_elig])}
+    return b_all[:n_elig], b_all[n_elig:]
+
+
+def shortlist(ctx: SelectionContext, anchor_c2w: Tensor, lat: dict[str, float],
+              details: dict[str, Any]) -> tuple[list[int], dict[int, float]]:
+    """The N-candidate shortlist of ``ctx.config.shortlist`` and its per-candidate scores
+    (conditional leverage at pick time, ||b||, distance to the anchor, or NaN for online)."""
+    cfg = ctx.config
+    sc = cfg.scoring
+    n_short = min(int(cfg.shortlist_size), len(ctx.eligible))
+    if cfg.shortlist == "knearest":
+        return _knearest(ctx, anchor_c2w, n_short, lat)
+    b, prior = _rows(ctx, anchor_c2w, lat, details)
+    with timed(lat, "leverage"):
+        bmax = float((b.to(torch.float64) ** 2).sum(1).max())
+        ridge = sc.ridge if sc.ridge_absolute else sc.ridge * max(bmax, 1e-30)
+        if cfg.shortlist == "leverage":
+            loc, gains = greedy_ridge_leverage_gains(b, n_short, ridge, prior)
+        elif cfg.shortlist == "topnorm":
+            loc = topnorm_shortlist(b, n_short)
+            norms = b.to(torch.float64).norm(dim=1)
+            gains = [float(norms[i]) for i in loc]
+        else:
+            loc = online_ridge_leverage(
+                b, n_short, ridge, generator=ctx.generator(4), oversample=sc.online_oversample
+            )
+            gains = [float("nan")] * len(loc)
+        picked = [ctx.eligible[i] for i in loc]
+        scores = {v: g for v, g in zip(picked, gains)}
+    return picked, scores
+
+
+class AgileMethod:
+    """AGILE-GS (``rerank=False``) or AGILE-GS+ (``rerank=True``)."""
+
+    uses_information = True
+
+    def __init__(self, name: str, rerank: bool) -> None:
+        self.name = name
+        self.rerank = rerank
+
+    def __call__(self, ctx: SelectionContext) -> MethodResult:
+        lat: dict[str, float] = {}
+        out: dict[str, Any] = {"state": {}, "details": {}, "psi_trace": []}
+        anchor_c2w = _anchor(ctx, lat, out)
+        picked, scores = shortlist(ctx, anchor_c2w, lat, out["details"])
+        index = picked[0]
+        if self.rerank:
+            with timed(lat, "rerank"):
+                sl = torch.as_tensor(picked, dtype=torch.long)
+                phi = eig_scores(ctx.gmap, ctx.h_acc, ctx.pool[sl], ctx.intrinsics,
+                                 fields=ctx.fields, background=ctx.background)
+            out["details"]["shortlist_scores"] = scores
+            scores = {v: float(p) for v, p in zip(picked, phi)}
+            index = picked[argmax_first(phi)]
+        return MethodResult(
+            index=index,
+            shortlist=picked,
+            scores=scores,
+            anchor_c2w=anchor_c2w,
+            psi_trace=out["psi_trace"],
+            latency_ms=lat,
+            state=out["state"],
+            details=out["details"],
+        )
+
+
+register(AgileMethod("agile", rerank=False))
+register(AgileMethod("agile_plus", rerank=True))

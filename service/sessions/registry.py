@@ -1,0 +1,255 @@
+"""All sessions of one server: loading them, creating and deleting them, and the table that
+names each operation's handler.
+
+:data:`HANDLERS` maps every operation of :data:`agilegs.schemas.ops.OPERATIONS` to the
+function that runs it on a validated request; :meth:`SessionRegistry.execute` looks it up.
+The transports never call it directly: :mod:`agilegs.service.gateway` decodes and validates a
+request and dispatches it here (or, in a cluster, to the instance that owns the session).
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import threading
+import time
+import uuid
+from collections.abc import Callable
+from dataclasses import replace
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from pydantic import BaseModel, ValidationError
+
+from agilegs.schemas import models as m
+from agilegs.schemas.ops import OPERATIONS
+
+from ..errors import conflict, invalid, not_found, too_large, too_many
+from ..errors import validation_error as _validation_error
+from ..nbv.information import init_information
+from ..settings import Settings
+from ..store import SessionRecord, SessionStore
+from ..trainer import Trainer
+from .convert import gaussians_from_depth, parse_frame, parse_gaussians, random_gaussians
+from .mapper_state import initial_mapper_state, mapper_config
+from .session import Session, SessionEnv
+
+__all__ = ["HANDLERS", "Handler", "SessionRegistry", "parse_request"]
+
+log = logging.getLogger(__name__)
+
+_SESSION_RE = re.compile(m.SESSION_ID_PATTERN)
+
+Handler = Callable[["SessionRegistry", "str | None", Any], BaseModel]
+"""``handler(registry, session id, validated request or None) -> response model``."""
+
+
+def parse_request(op: str, payload: Any) -> BaseModel | None:
+    """The request model of operation ``op`` from decoded data (None for bodiless ones);
+    a 422 naming every bad field."""
+    spec = OPERATIONS.get(op)
+    if spec is None:
+        raise not_found("op", f"unknown operation {op!r}")
+    if spec.request is None:
+        return None
+    if payload is None:
+        raise invalid("body", "body: a request body is required")
+    try:
+        return spec.request.model_validate(payload)
+    except ValidationError as exc:
+        raise _validation_error(exc) from None
+
+
+class SessionRegistry:
+    """The sessions of one server, its store, and the mapper's lifecycle.
+
+    Args:
+        settings: the server's settings (limits, state folder, mapper schedule).
+    """
+
+    def __init__(self, settings: Settings) -> None:
+        self.settings = settings
+        self.store = SessionStore(settings.state_dir, fsync=settings.fsync)
+        self.sessions: dict[str, Session] = {}
+        self.lock = threading.Lock()
+        self.started = time.time()
+        self.zenoh_enabled = False
+        self.trainer: Trainer | None = None  # while the mapper runs (see load)
+        self.env = SessionEnv(settings=settings, store=self.store,
+                              tmp_dir=Path(settings.state_dir) / "tmp")
+        if settings.torch_threads:
+            torch.set_num_threads(settings.torch_threads)
+
+    # ------------------------------------------------------------------ lifecycle
+    def load(self) -> int:
+        """Load every persisted session and start the mapper (when on); returns how many."""
+        tmp = self.env.tmp_dir
+        tmp.mkdir(parents=True, exist_ok=True)
+        for stale in tmp.iterdir():
+            stale.unlink(missing_ok=True)
+        for rec in self.store.load_all():
+            self.sessions[rec.id] = Session(rec, self.env)
+        log.info("loaded %d session(s) from %s", len(self.sessions), self.settings.state_dir)
+        if self.settings.mapper:
+            self.start_mapper()
+        return len(self.sessions)
+
+    def start_mapper(self) -> None:
+        """Start the background mapper (:mod:`agilegs.service.trainer`) for every session;
+        sessions with steps still owed (e.g. after a restart) resume training."""
+        if self.trainer is None:
+            self.trainer = Trainer(lambda: list(self.sessions.values()), self.settings)
+            for s in list(self.sessions.values()):
+                self.trainer.attach(s)
+        self.trainer.start()
+
+    def close(self) -> None:
+        if self.trainer is not None:
+            self.trainer.close()
+
+    # ------------------------------------------------------------------ dispatch
+    def execute(self, op: str, session: str | None, req: BaseModel | None) -> BaseModel:
+        """Run operation ``op`` with its validated request; a :class:`ServiceError` for
+        anything refused (the session is then unchanged)."""
+        handler = HANDLERS.get(op)
+        if handler is None:
+            raise not_found("op", f"unknown operation {op!r}")
+        return handler(self, session, req)
+
+    def call(self, op: str, session: str | None, payload: Any) -> BaseModel:
+        """:meth:`execute` with decoded request data (for in-process callers)."""
+        return self.execute(op, session, parse_request(op, payload))
+
+    def session(self, sid: str | None) -> Session:
+        if sid is None or not _SESSION_RE.match(sid):
+            raise invalid("session", f"session id must match {m.SESSION_ID_PATTERN}")
+        s = self.sessions.get(sid)
+        if s is None or s.closed:
+            raise not_found("session", f"session {sid!r} does not exist")
+        return s
+
+    # ------------------------------------------------------------------ service operations
+    def health(self) -> m.Health:
+        try:
+            ver = version("agilegs")
+        except PackageNotFoundError:  # pragma: no cover - running from a source tree
+            ver = "0+unknown"
+        return m.Health(version=ver, sessions=len(self.sessions), zenoh=self.zenoh_enabled,
+                        uptime_s=time.time() - self.started)
+
+    def list_sessions(self) -> m.SessionList:
+        return m.SessionList(sessions=[s.summary() for s in list(self.sessions.values())])
+
+    def delete_session(self, sid: str | None) -> m.Deleted:
+        s = self.session(sid)
+        with s.lock:
+            if s.closed:
+                raise not_found("session", f"session {sid!r} does not exist")
+            self.store.delete(s.id)
+            s.closed = True
+            with self.lock:
+                self.sessions.pop(s.id, None)
+        return m.Deleted(id=s.id)
+
+    def create_session(self, req: m.SessionCreate) -> m.SessionInfo:
+        settings = self.settings
+        sid = req.id or f"s-{uuid.uuid4().hex[:12]}"
+        with self.lock:
+            self._check_new_id(sid)
+        intr = req.intrinsics.model_dump()
+        pixels = req.intrinsics.width * req.intrinsics.height
+        if pixels > settings.max_image_pixels:
+            raise too_large("body.intrinsics", f"{pixels} pixels exceed max_image_pixels "
+                                               f"({settings.max_image_pixels})")
+        if req.gaussians is None and req.init_gaussians > settings.max_gaussians:
+            raise too_large("body.init_gaussians", f"exceeds max_gaussians "
+                                                   f"({settings.max_gaussians})")
+        frames = [parse_frame(f, i, "body.frames", intr, max_image_pixels=settings.max_image_pixels)
+                  for i, f in enumerate(req.frames)]
+        if len(frames) > settings.max_views:
+            raise too_many("body.frames", f"{len(frames)} frames exceed max_views "
+                                          f"({settings.max_views})")
+        if req.gaussians is not None:
+            gmap = parse_gaussians(req.gaussians, "body.gaussians",
+                                   max_gaussians=settings.max_gaussians, tmp_dir=self.env.tmp_dir)
+        elif any(f.depth is not None for f in frames):
+            gmap = gaussians_from_depth(frames, req.init_gaussians, req.seed)
+        elif req.bounds is not None:
+            gmap = random_gaussians(req.bounds, req.init_gaussians, req.seed)
+        else:
+            raise invalid("body.bounds", "bounds are required when neither Gaussians nor depth "
+                                         "are given")
+        if len(gmap) > settings.max_gaussians:
+            raise too_large("body", f"{len(gmap)} Gaussians exceed max_gaussians "
+                                    f"({settings.max_gaussians})")
+        try:
+            mapper_config(req.mapper.config)
+        except ValidationError as exc:
+            raise _validation_error(exc, "body.mapper.config") from None
+        now = time.time()
+        rec = SessionRecord(
+            id=sid, created_at=now, updated_at=now, version=1,
+            intrinsics=intr,
+            bounds=req.bounds.model_dump() if req.bounds else None,
+            defaults=req.defaults.model_dump(),
+            information_config=req.information.model_dump(by_alias=True),
+            gmap=gmap,
+            h_acc=init_information(gmap, req.information.lambda_),
+            pool_ids=np.zeros(0, dtype=np.int64), pool_poses=np.zeros((0, 4, 4)),
+            next_candidate_id=0, views=(), next_view_id=0,
+            mapper=initial_mapper_state(req.mapper),
+        )
+        draft = Session(rec, self.env)
+        if req.pool is not None:
+            rec = draft.pool_changed(rec, req.pool, "body.pool", replace_pool=True)
+        blobs: dict[str, bytes] = {}
+        if frames:
+            rec, blobs, _ = draft.integrate_frames(rec, frames, "body.frames")
+        rec = replace(rec, version=1, updated_at=now)
+        with self.lock:
+            self._check_new_id(sid)
+            try:
+                rec = self.store.create(rec, blobs)
+            except FileExistsError:
+                raise conflict("body.id", f"session {sid!r} already exists") from None
+            s = Session(rec, self.env)
+            if self.trainer is not None:
+                self.trainer.attach(s)
+            self.sessions[sid] = s
+        if frames:
+            s.on_observation(list(rec.views))
+        return s.info()
+
+    def _check_new_id(self, sid: str) -> None:
+        if sid in self.sessions:
+            raise conflict("body.id", f"session {sid!r} already exists")
+        if len(self.sessions) >= self.settings.max_sessions:
+            raise too_many("body", f"max_sessions ({self.settings.max_sessions}) reached")
+
+
+def _on_session(fn: Callable[[Session, Any], BaseModel]) -> Handler:
+    return lambda reg, sid, req: fn(reg.session(sid), req)
+
+
+HANDLERS: dict[str, Handler] = {
+    "health": lambda reg, sid, req: reg.health(),
+    "create_session": lambda reg, sid, req: reg.create_session(req),
+    "list_sessions": lambda reg, sid, req: reg.list_sessions(),
+    "get_session": _on_session(lambda s, req: s.info()),
+    "delete_session": lambda reg, sid, req: reg.delete_session(sid),
+    "set_gaussians": _on_session(Session.set_gaussians),
+    "get_gaussians": _on_session(lambda s, req: s.get_gaussians()),
+    "add_observations": _on_session(Session.add_observations),
+    "list_views": _on_session(lambda s, req: s.list_views()),
+    "commit": _on_session(Session.commit),
+    "set_pool": _on_session(Session.set_pool),
+    "extend_pool": _on_session(Session.extend_pool),
+    "get_pool": _on_session(lambda s, req: s.get_pool()),
+    "select": _on_session(Session.select),
+    "get_information": _on_session(lambda s, req: s.get_information()),
+}
+"""Each operation's handler (a test checks that it covers :data:`OPERATIONS` exactly)."""
+

@@ -1,0 +1,274 @@
+"""``select``: every method's contract, embodied mode, seeding and argument checks."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from agilegs.service.nbv.camera import Camera, Intrinsics
+from agilegs.service.nbv.candidates import capture_pool
+from agilegs.service.nbv.gaussians import FIELD_NAMES, GaussianMap
+from agilegs.service.nbv.information import (
+    accumulate_information,
+    expected_information_gain,
+    fisher_diag,
+    init_information,
+)
+from agilegs.service.nbv.se3 import pose_distance
+from agilegs.service.nbv.selectors import (
+    METHODS,
+    SHORTLISTS,
+    STAGES,
+    AnchorConfig,
+    ScoringConfig,
+    SelectConfig,
+    eig_scores,
+    select,
+)
+
+INTR = Intrinsics.from_fov(55.0, 32, 32)
+
+
+def build(n: int = 200, d: int = 20, seed: int = 0):
+    """Float32 (fast) tiny world: n Gaussians, a pool of d, Hhat from 3 acquired views."""
+    g = torch.Generator().manual_seed(seed)
+    pts = 0.3 * torch.randn(n, 3, generator=g)
+    pts[:, 1] *= 1.6
+    cols = torch.rand(n, 3, generator=g)
+    gmap = GaussianMap.from_points(pts, cols, scale=0.05, opacity=0.7)
+    poses = capture_pool([0.0, 0.0, 0.0], 2.0, d + 3, seed=seed)
+    acq = poses[[0, 8, 16]]
+    pool = poses[[i for i in range(d + 3) if i not in (0, 8, 16)]]
+    h = init_information(gmap, 1e-6)
+    with torch.no_grad():
+        for p in acq:
+            h = accumulate_information(h, fisher_diag(gmap, Camera(c2w=p, intrinsics=INTR)))
+    return gmap, h, pool, acq
+
+
+@pytest.fixture(scope="module")
+def world():
+    gmap, h, pool, acq = build()
+    phi = eig_scores(gmap, h, pool, INTR)
+    return gmap, h, pool, acq, phi
+
+
+def reference_phi(gmap, h, pose) -> float:
+    hv = fisher_diag(gmap, Camera(c2w=pose, intrinsics=INTR))
+    return float(expected_information_gain(hv, h))
+
+
+def test_eig_scores_match_expected_information_gain(world) -> None:
+    gmap, h, pool, _, phi = world
+    for i in (0, 7, 19):
+        assert float(phi[i]) == pytest.approx(reference_phi(gmap, h, pool[i]), rel=1e-4)
+
+
+def test_fisherrf_returns_argmax_phi_over_the_pool(world) -> None:
+    gmap, h, pool, acq, phi = world
+    sel = select("fisherrf", gmap, h, pool, INTR, acquired=acq)
+    assert sel.index == int(torch.argmax(phi))
+    assert sorted(sel.scores) == list(range(len(pool)))
+    for i, v in sel.scores.items():
+        assert v == pytest.approx(float(phi[i]), rel=1e-4)
+
+
+def test_agile_returns_the_shortlist_first(world) -> None:
+    gmap, h, pool, acq, _ = world
+    for shortlist in SHORTLISTS:
+        cfg = SelectConfig(shortlist=shortlist)  # type: ignore[arg-type]
+        sel = select("agile", gmap, h, pool, INTR, acquired=acq, config=cfg)
+        assert len(sel.shortlist) == 10 and len(set(sel.shortlist)) == 10
+        assert sel.index == sel.shortlist[0]
+        assert sel.anchor_c2w is not None and sel.anchor_c2w.shape == (4, 4)
+        assert sel.psi_trace and all(b >= a for a, b in zip(sel.psi_trace, sel.psi_trace[1:]))
+
+
+def test_agile_plus_returns_argmax_phi_over_the_shortlist(world) -> None:
+    gmap, h, pool, acq, phi = world
+    for shortlist in SHORTLISTS:
+        cfg = SelectConfig(shortlist=shortlist, shortlist_size=6)  # type: ignore[arg-type]
+        plain = select("agile", gmap, h, pool, INTR, acquired=acq, config=cfg)
+        plus = select("agile_plus", gmap, h, pool, INTR, acquired=acq, config=cfg)
+        assert plus.shortlist == plain.shortlist
+        best = max(plus.shortlist, key=lambda i: (float(phi[i]), -plus.shortlist.index(i)))
+        assert plus.index == best
+        assert sorted(plus.scores) == sorted(plus.shortlist)
+        for i, v in plus.scores.items():
+            assert v == pytest.approx(float(phi[i]), rel=1e-4)
+
+
+def test_latency_breakdown_and_selection_fields(world) -> None:
+    gmap, h, pool, acq, _ = world
+    for method in METHODS:
+        sel = select(method, gmap, h, pool, INTR, acquired=acq)
+        assert set(sel.latency_ms) == set(STAGES)
+        assert all(v >= 0 for v in sel.latency_ms.values())
+        assert sel.latency_ms["total"] >= max(v for k, v in sel.latency_ms.items() if k != "total")
+        assert 0 <= sel.index < len(pool)
+        assert sel.eligible == list(range(len(pool)))
+        assert sel.method == method
+    sel = select("agile_plus", gmap, h, pool, INTR, acquired=acq)
+    assert sel.latency_ms["anchor"] > 0 and sel.latency_ms["rerank"] > 0
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_embodied_mode_never_picks_outside_the_k_nearest(world, method: str) -> None:
+    gmap, h, pool, acq, _ = world
+    radius = 2.0
+    for current in (0, 11):
+        cfg = SelectConfig(embodied_k=5, scoring=ScoringConfig(rot_weight=radius))
+        sel = select(method, gmap, h, pool, INTR, acquired=acq, current=current, config=cfg)
+        dist = pose_distance(pool, pool[current].expand_as(pool), radius)
+        dist[current] = math.inf
+        nearest = set(torch.argsort(dist)[:5].tolist())
+        assert set(sel.eligible) == nearest
+        assert sel.index in nearest and sel.index != current
+        assert set(sel.shortlist) <= nearest
+
+
+def test_embodied_mode_with_a_current_pose_outside_the_pool(world) -> None:
+    gmap, h, pool, acq, _ = world
+    here = acq[1]
+    sel = select(
+        "agile_plus",
+        gmap,
+        h,
+        pool,
+        INTR,
+        acquired=acq,
+        current_pose=here,
+        config=SelectConfig(embodied_k=3),
+    )
+    assert len(sel.eligible) == 3 and sel.index in sel.eligible
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_a_fixed_seed_gives_the_same_selection_twice(world, method: str) -> None:
+    gmap, h, pool, acq, _ = world
+    cfg = SelectConfig(seed=7, shortlist="online")
+    a = select(method, gmap, h, pool, INTR, acquired=acq, config=cfg)
+    b = select(method, gmap, h, pool, INTR, acquired=acq, config=cfg)
+    assert a.index == b.index and a.shortlist == b.shortlist
+    if a.anchor_c2w is not None:
+        assert b.anchor_c2w is not None
+        assert torch.equal(a.anchor_c2w, b.anchor_c2w)
+
+
+def test_random_depends_on_seed_and_event(world) -> None:
+    gmap, h, pool, acq, _ = world
+    picks = {
+        select("random", gmap, h, pool, INTR, config=SelectConfig(seed=s)).index for s in range(12)
+    }
+    assert len(picks) > 3
+    first = select("random", gmap, h, pool, INTR)
+    following = {
+        select("random", gmap, h, pool, INTR, state={"event": e}).index for e in range(1, 12)
+    }
+    assert len(following | {first.index}) > 3
+    assert first.state["event"] == 1
+
+
+def test_warm_start_state_is_passed_on(world) -> None:
+    gmap, h, pool, acq, _ = world
+    first = select("agile", gmap, h, pool, INTR, acquired=acq)
+    assert torch.equal(first.state["anchor_c2w"], first.anchor_c2w)
+    second = select("agile", gmap, h, pool, INTR, acquired=acq, state=first.state)
+    assert second.details["anchor_starts"]  # pool starts, plus the warm start
+    assert second.state["event"] == 2
+
+
+def test_typical_fisher_from_a_start_view_is_cached(world) -> None:
+    gmap, h, pool, acq, _ = world
+    cfg = SelectConfig(anchor=AnchorConfig(typical_fisher="start_view"))
+    first = select("agile", gmap, h, pool, INTR, acquired=acq, config=cfg)
+    assert set(first.state["typical_fisher"]) == set(FIELD_NAMES)
+    second = select("agile", gmap, h, pool, INTR, acquired=acq, config=cfg, state=first.state)
+    assert second.state["typical_fisher"] is first.state["typical_fisher"]
+
+
+def test_fields_restrict_phi(world) -> None:
+    gmap, h, pool, acq, _ = world
+    sel = select("fisherrf", gmap, h, pool[:4], INTR, config=SelectConfig(fields=("sh",)))
+    hv = fisher_diag(gmap, Camera(c2w=pool[2], intrinsics=INTR))
+    ref = float(expected_information_gain(hv, h, fields=("sh",)))
+    assert sel.scores[2] == pytest.approx(ref, rel=1e-4)
+
+
+def _bad_rotation(pool: torch.Tensor) -> torch.Tensor:
+    out = pool.clone()
+    out[3, :3, :3] *= 1.1
+    return out
+
+
+def _nan_pose(pool: torch.Tensor) -> torch.Tensor:
+    out = pool.clone()
+    out[2, 0, 3] = float("nan")
+    return out
+
+
+def test_bad_arguments_raise_value_errors_naming_them(world) -> None:
+    gmap, h, pool, acq, _ = world
+    cases = [
+        (dict(method="bogus"), "method"),
+        (dict(candidates=pool[:0]), "candidates"),
+        (dict(candidates=pool[0]), "candidates"),
+        (dict(candidates=_nan_pose(pool)), "candidates.*NaN"),
+        (dict(candidates=_bad_rotation(pool)), "candidates.*orthonormal"),
+        (dict(config=SelectConfig(embodied_k=3)), "current"),
+        (dict(config=_mutated(shortlist_size=0)), "shortlist_size"),
+        (dict(h_acc={k: v for k, v in h.items() if k != "sh"}), "h_acc"),
+        (dict(h_acc={**h, "means": h["means"][:-1]}), "h_acc"),
+        (dict(h_acc={**h, "means": torch.zeros_like(h["means"])}), "h_acc"),
+        (dict(current=len(pool)), "current"),
+        (dict(acquired=_nan_pose(acq)), "acquired"),
+    ]
+    for kwargs, word in cases:
+        args = dict(
+            method="agile", gmap=gmap, h_acc=h, candidates=pool, intrinsics=INTR, acquired=acq
+        )
+        args.update(kwargs)
+        method = args.pop("method")
+        with pytest.raises(ValueError, match=word):
+            select(method, **args)  # type: ignore[arg-type]
+    # a bad setting cannot even be built: the error names the field
+    for kwargs, word in [({"shortlist_size": 0}, "shortlist_size"),
+                         ({"embodied_k": 0}, "embodied_k"), ({"shortlist": "bogus"}, "shortlist"),
+                         ({"fields": ("bogus",)}, "fields"), ({"fields": ()}, "fields"),
+                         ({"fields": ("sh", "sh")}, "fields"), ({"seed": -1}, "seed"),
+                         ({"shortlist_size": "3"}, "shortlist_size")]:
+        with pytest.raises(ValueError, match=word):
+            SelectConfig(**kwargs)  # type: ignore[arg-type]
+
+
+def _mutated(**changes: object) -> SelectConfig:
+    """A valid config changed by attribute assignment (which does not validate)."""
+    cfg = SelectConfig()
+    for k, v in changes.items():
+        setattr(cfg, k, v)
+    return cfg
+
+
+def test_single_candidate_pool(world) -> None:
+    gmap, h, pool, acq, _ = world
+    for method in METHODS:
+        sel = select(method, gmap, h, pool[:1], INTR, acquired=acq)
+        assert sel.index == 0
+
+
+def test_leverage_shortlist_is_conditioned_on_the_acquired_views(world) -> None:
+    """A candidate at an acquired pose repeats its coverage: conditioned, it is not picked."""
+    gmap, h, pool, acq, _ = world
+    plain_cfg = SelectConfig(scoring=ScoringConfig(condition_on_acquired=False))
+    first = select("agile", gmap, h, pool, INTR, config=plain_cfg, acquired=acq)
+    k = first.index
+    held = torch.cat([acq, pool[k : k + 1]])  # the plain pick, as if acquired already
+    cond = select("agile", gmap, h, pool, INTR, acquired=held)
+    plain = select("agile", gmap, h, pool, INTR, config=plain_cfg, acquired=held)
+    assert cond.anchor_c2w is not None and plain.anchor_c2w is not None
+    torch.testing.assert_close(cond.anchor_c2w, plain.anchor_c2w)  # same anchor, same rows
+    assert k not in cond.shortlist[:1]
+    # the gains are the conditional leverages: lower with the acquired rows in S_0
+    assert cond.scores[cond.shortlist[0]] <= plain.scores[plain.shortlist[0]] + 1e-12
