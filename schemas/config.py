@@ -35,10 +35,13 @@ from pydantic.dataclasses import dataclass
 
 __all__ = [
     "FIELD_NAMES",
+    "FISHERRF_FIELDS",
     "METHODS",
+    "PRESETS",
     "SHORTLISTS",
     "AnchorConfig",
     "FieldName",
+    "FisherRFConfig",
     "MapperConfig",
     "MapperConfigPatch",
     "Method",
@@ -49,11 +52,15 @@ __all__ = [
     "deep_merge",
     "patch_dict",
     "patch_model",
+    "preset_config",
     "validate_config",
 ]
 
-Method = Literal["random", "fisherrf", "cover", "agile", "agile_plus"]
-"""The selection methods (the maths' registry holds one implementation per name)."""
+Method = Literal["random", "fisherrf", "cover", "full_eig", "agile", "agile_plus"]
+"""The selection methods (the maths' registry holds one implementation per name): the
+baselines Random, FisherRF and COVER as their authors' code computes them, ``full_eig`` (the
+exact diagonal EIG of every eligible candidate: the ceiling AGILE-GS+ approximates), and
+AGILE-GS / AGILE-GS+."""
 METHODS: tuple[str, ...] = get_args(Method)
 ShortlistStrategy = Literal["leverage", "knearest", "topnorm", "online"]
 """Shortlist strategies of ``agile`` / ``agile_plus``: the paper's ridge leverage and the
@@ -62,6 +69,10 @@ SHORTLISTS: tuple[str, ...] = get_args(ShortlistStrategy)
 FieldName = Literal["means", "log_scales", "quats", "opacity_logits", "sh"]
 """The parameter blocks of a Gaussian map."""
 FIELD_NAMES: tuple[str, ...] = get_args(FieldName)
+FisherRFField = Literal["means", "log_scales", "opacity_logits", "sh"]
+"""The parameter blocks FisherRF's Hessian may cover (its code offers no exact rotation term
+here: the rasterizer's quaternion gradient is taken w.r.t. the unnormalised quaternion)."""
+FISHERRF_FIELDS: tuple[str, ...] = get_args(FisherRFField)
 
 _CONFIG = ConfigDict(extra="forbid", revalidate_instances="always")
 
@@ -209,6 +220,21 @@ class ScoringConfig:
 
 
 @dataclass(config=_CONFIG)
+class FisherRFConfig:
+    """FisherRF's settings, as its public code's defaults (JiangWenPL/FisherRF,
+    ``active_train.py``)."""
+
+    reg_lambda: PosFloat = Field(
+        default=1e-6, description="lambda of the acquisition score sum H_v / (H_train + "
+        "lambda) (--reg_lambda)")
+    fields: Annotated[tuple[FisherRFField, ...], Field(min_length=1),
+                      AfterValidator(_unique)] = Field(
+        default=("means", "log_scales", "opacity_logits", "sh"),
+        description="parameter blocks of the Hessian (the default leaves rotation out, as "
+        "--filter_out_grad rotation)")
+
+
+@dataclass(config=_CONFIG)
 class SelectConfig:
     """Settings of ``agilegs.service.nbv.select``; every field settable per call."""
 
@@ -220,6 +246,10 @@ class SelectConfig:
     embodied_k: PosInt | None = Field(
         default=None, description="only the K candidates nearest the current view are "
         "eligible (None: all; the paper's embodied protocol uses 5)")
+    embodied_metric: Literal["position", "se3"] = Field(
+        default="position", description="the distance of embodied mode: 'position' (camera "
+        "centres, as COVER's protocol picks its K nearest frames) or 'se3' (position and "
+        "rotation, scoring.rot_weight world units per radian)")
     seed: Annotated[int, Strict(), Field(ge=0, le=2**63 - 1)] = Field(
         default=0, description="seeds every random choice")
     fields: Blocks | None = Field(
@@ -229,12 +259,37 @@ class SelectConfig:
     cover_bins: PosInt = Field(default=128, description="COVER's direction bins per Gaussian")
     cover_resolution: PosInt | None = Field(
         default=None, description="COVER's render width in pixels (None: the candidates')")
+    cover_radius_clip: NonNegFloat = Field(
+        default=3.0, description="COVER fills no bin for a Gaussian whose projected radius "
+        "in an acquired view is at most this many pixels on both axes (its code's gsplat "
+        "projection, radius_clip=3.0)")
+    fisherrf: FisherRFConfig = Field(default_factory=FisherRFConfig)
     fisher_background: tuple[Float, Float, Float] | None = Field(
-        default=None, description="background colour of the Fisher renders (None: black)")
+        default=None, description="background colour of the Fisher renders (None: black); "
+        "give the background the map is trained with")
 
     def validate(self) -> None:
         """Validate the settings as they are now (after attribute assignments too)."""
         validate_config(SelectConfig, self)
+
+
+PRESETS: dict[str, dict[str, Any]] = {
+    "paper": {
+        "anchor": {"psi": "exact"},
+        "scoring": {"condition_on_acquired": False},
+    },
+}
+"""Named SelectConfig patches. ``paper``: AGILE-GS as the paper states it: the anchor
+ascends the trace surrogate of the exact Fisher rendered at T (through the rasterizer), and
+the leverage greedy starts from lambda_G I."""
+
+
+def preset_config(name: str, **overrides: Any) -> SelectConfig:
+    """The SelectConfig of preset ``name`` (:data:`PRESETS`), ``overrides`` merged over it
+    (nested settings as mappings)."""
+    if name not in PRESETS:
+        raise ValueError(f"preset must be one of {sorted(PRESETS)}, got {name!r}")
+    return validate_config(SelectConfig, deep_merge(PRESETS[name], overrides))
 
 
 # ============================================================================ the mapper

@@ -51,7 +51,7 @@ __all__ = ["DemoSize", "FULL", "QUICK", "add_arguments", "attribution", "run"]
 log = logging.getLogger(__name__)
 
 METHODS: tuple[tuple[str, str], ...] = (("agile_plus", "AGILE-GS+"), ("random", "Random"))
-STAGES: tuple[str, ...] = ("anchor", "scoring", "leverage", "rerank", "total")
+STAGES: tuple[str, ...] = ("information", "anchor", "scoring", "leverage", "rerank", "total")
 
 
 @dataclass(frozen=True)

@@ -67,9 +67,9 @@ class Metrics:
     def observe_selection(self, resp: SelectResponse) -> None:
         lat = resp.latency_ms
         self.selection.labels(resp.method).observe(lat.get("total", 0.0) / 1e3)
-        for stage in ("anchor", "scoring", "leverage", "rerank"):
-            if stage in lat:
-                self.stage.labels(resp.method, stage).observe(lat[stage] / 1e3)
+        for stage, ms in lat.items():
+            if stage != "total":
+                self.stage.labels(resp.method, stage).observe(ms / 1e3)
         if resp.server_ms is not None:
             self.server.labels(resp.method).observe(resp.server_ms / 1e3)
 

@@ -34,8 +34,11 @@ COLORS = {
     "random": "#7f7f7f",
     "fisherrf": "#1f77b4",
     "cover": "#2ca02c",
+    "full_eig": "#9467bd",
     "agile": "#ff7f0e",
     "agile_plus": "#d62728",
+    "agile@paper": "#ffbb78",
+    "agile_plus@paper": "#ff9896",
 }
 
 

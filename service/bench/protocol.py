@@ -23,7 +23,8 @@ asked) ablation tables; PNG plots go next to it. A rerun with the same ``DIR`` s
 acquired views on the current map, Ĥ = λI + Σ_v diag Fisher(v), as FisherRF does: the map
 changes under training (and densification changes its Gaussian count), so an Ĥ accumulated
 on older maps would describe other Gaussians. It is computed only for the methods that read
-it (fisherrf, agile, agile_plus); random and cover receive λI (they ignore Ĥ). Its cost is
+it (full_eig, agile, agile_plus); random, cover and fisherrf receive λI (they ignore Ĥ;
+FisherRF rebuilds its own H_train inside its selection, as its code does). Its cost is
 recorded per event as ``information_ms``, apart from the selection latency, since every
 Fisher-based method pays it alike.
 
@@ -271,7 +272,8 @@ def run_progressive(
         taken = set(acquired)
         remaining = [i for i in range(d) if i not in taken]
         t0 = time.perf_counter()
-        if get_method(variant.method).uses_information:
+        uses_information = get_method(variant.method).uses_information
+        if uses_information:
             cams = [scene.pool_camera(i).to(device=dev, dtype=gmap.dtype) for i in acquired]
             h_acc = accumulated_information(gmap, cams, profile.lam, bg.to(gmap.dtype))
         else:
@@ -302,6 +304,7 @@ def run_progressive(
             acquired=acq_poses,
             current_pose=acq_poses[-1] if embodied_k is not None else None,
             state=state,
+            lam=profile.lam,
         )
         wall_ms = (time.perf_counter() - t0) * 1e3
         cpu_ms = (time.process_time() - c0) * 1e3
@@ -318,6 +321,9 @@ def run_progressive(
             "select_wall_ms": wall_ms,
             "select_cpu_ms": cpu_ms,
             "information_ms": h_ms,
+            # an incremental Hhat adds one committed view's Fisher per event: the recompute's
+            # cost per view
+            "upkeep_ms": h_ms / len(acquired) if uses_information else 0.0,
             "num_gaussians": gmap.num_gaussians,
         })
         times["select_s"] += wall_ms / 1e3
@@ -429,9 +435,9 @@ def estimate_seconds(
     out: dict[str, float] = {}
     for v in variants:
         sel = 0.0
-        if get_method(v.method).uses_information:
-            sel += acq * t_fisher
-        if v.method == "fisherrf":
+        if get_method(v.method).uses_information or v.method == "fisherrf":
+            sel += acq * t_fisher  # Hhat, or FisherRF's own H_train
+        if v.method in ("fisherrf", "full_eig"):
             sel += rem * t_fisher
         elif v.method == "cover":
             sel += rem * t_render * 1.5

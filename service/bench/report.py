@@ -11,7 +11,15 @@
 - ``paired_psnr[<a>][<b>]``: for the main methods, the PSNR of a minus that of b over the
   (scene, seed) runs both have (same seed: same initial views, training seed and test views,
   so the differences are paired): ``mean``, ``se`` (the standard error of that mean; None
-  with one pair), ``wins`` (pairs where a is higher) and ``n``;
+  with one pair), ``wins`` (pairs where a is higher) and ``n``; the same per scene
+  (``paired_psnr_by_scene[<scene>]``) and per scene type (``paired_psnr_by_type[<type>]``:
+  ``object``, ``capture``, ``posed``);
+- latencies per event: ``selection_ms_mean`` (the selection alone: the ``select`` call less
+  the information a method rebuilds inside it) and ``event_ms_mean`` (an event of the
+  method's own algorithm: FisherRF rebuilds H_train from every training view inside its
+  call; the Hhat methods add one committed view's Fisher, ``upkeep_ms``, estimated as the
+  event's Hhat recompute divided by its views), with ``fisherrf_over_method`` /
+  ``full_eig_over_method`` ratios of both;
 - ``invocation``: which (scene, variant, seed) runs this call executed and which it skipped.
 
 Statistics: ``*_mean`` is the mean over seeds, ``*_std`` their sample standard deviation
@@ -40,7 +48,23 @@ from agilegs.service.bench.variants import SHORTLIST_DISPLAY, display_name
 
 __all__ = ["build_results", "scene_summary", "render_table", "mean_std", "paired_differences"]
 
-MAIN_ORDER = ("random", "fisherrf", "cover", "agile", "agile_plus")
+MAIN_ORDER = ("random", "fisherrf", "cover", "full_eig", "agile", "agile_plus", "agile@paper",
+              "agile_plus@paper")
+REFERENCE = "agile_plus"
+"""The method whose paired differences are tabulated per scene and per scene type."""
+
+
+def _selection_ms(e: Mapping[str, Any]) -> float:
+    """An event's selection alone: the select call less the information a method rebuilds
+    inside it (FisherRF's H_train)."""
+    lat = e["latency_ms"]
+    return float(lat["total"]) - float(lat.get("information", 0.0))
+
+
+def _event_ms(e: Mapping[str, Any]) -> float:
+    """An event of the method's own algorithm: the select call (FisherRF's rebuild of H_train
+    included) plus the upkeep of an incremental Hhat (one committed view's Fisher)."""
+    return float(e["latency_ms"]["total"]) + float(e.get("upkeep_ms", 0.0))
 
 
 def mean_std(values: Iterable[float | None]) -> tuple[float | None, float | None]:
@@ -55,6 +79,7 @@ def scene_summary(scene: BenchScene) -> dict[str, Any]:
     """The facts of a scene kept in ``results.json`` (pool poses for the trajectory plots)."""
     return {
         "kind": scene.kind,
+        "type": scene.info.get("type", "object"),
         "source": scene.source,
         "pool": scene.pool_size,
         "test": int(scene.test_poses.shape[0]),
@@ -72,9 +97,12 @@ def _summarise_runs(runs: Mapping[int, Mapping[str, Any]]) -> dict[str, Any]:
     for key in ("psnr", "ssim", "lpips", "path_length", "mean_index_jump", "wall_s"):
         m, s = mean_std(r.get(key) for r in recs)
         out[f"{key}_mean"], out[f"{key}_std"] = m, s
-    lat = [e["latency_ms"]["total"] for r in recs for e in r.get("events", [])]
-    info = [e["information_ms"] for r in recs for e in r.get("events", [])]
+    evs = [e for r in recs for e in r.get("events", [])]
+    lat = [e["latency_ms"]["total"] for e in evs]
+    info = [e["information_ms"] for e in evs]
     out["latency_ms_mean"] = statistics.fmean(lat) if lat else None
+    out["selection_ms_mean"] = statistics.fmean(map(_selection_ms, evs)) if evs else None
+    out["event_ms_mean"] = statistics.fmean(map(_event_ms, evs)) if evs else None
     cpu = [e["select_cpu_ms"] for r in recs for e in r.get("events", []) if "select_cpu_ms" in e]
     out["cpu_ms_mean"] = statistics.fmean(cpu) if cpu else None
     out["latency_ms_median"] = statistics.median(lat) if lat else None
@@ -168,6 +196,8 @@ def build_results(
         cpu = [e["select_cpu_ms"] for e in evs if "select_cpu_ms" in e]
         overall[v["key"]] = {
             "psnr_mean": mean_std(p["psnr_mean"] for p in per)[0],
+            "selection_ms_mean": statistics.fmean(map(_selection_ms, evs)) if evs else None,
+            "event_ms_mean": statistics.fmean(map(_event_ms, evs)) if evs else None,
             "ssim_mean": mean_std(p["ssim_mean"] for p in per)[0],
             "lpips_mean": mean_std(p["lpips_mean"] for p in per)[0],
             "latency_ms_mean": statistics.fmean(lat) if lat else None,
@@ -177,15 +207,23 @@ def build_results(
             "mean_index_jump_mean": mean_std(p["mean_index_jump_mean"] for p in per)[0],
             "scenes": len(per),
         }
-    fr = overall.get("fisherrf", {}).get("latency_ms_mean")
-    fr_cpu = overall.get("fisherrf", {}).get("cpu_ms_mean")
-    for o in overall.values():
-        lm = o.get("latency_ms_mean")
-        o["fisherrf_over_method"] = (fr / lm) if fr and lm else None
-        cm = o.get("cpu_ms_mean")
-        o["fisherrf_over_method_cpu"] = (fr_cpu / cm) if fr_cpu and cm else None
+    for ref in ("fisherrf", "full_eig"):
+        r = overall.get(ref, {})
+        for o in overall.values():
+            for field, suffix in (("selection_ms_mean", ""), ("event_ms_mean", "_event"),
+                                  ("cpu_ms_mean", "_cpu")):
+                num, den = r.get(field), o.get(field)
+                o[f"{ref}_over_method{suffix}"] = (num / den) if num and den else None
     main_keys = [v["key"] for v in variants if v.get("group") == "main" and v["key"] in overall]
-    paired = paired_differences({n: out_scenes[n]["runs"] for n in out_scenes}, main_keys)
+    all_runs = {n: out_scenes[n]["runs"] for n in out_scenes}
+    paired = paired_differences(all_runs, main_keys)
+    by_scene = {n: paired_differences({n: all_runs[n]}, main_keys) for n in out_scenes}
+    types = sorted({str(out_scenes[n].get("type", "object")) for n in out_scenes})
+    by_type = {
+        t: paired_differences({n: all_runs[n] for n in out_scenes
+                               if str(out_scenes[n].get("type", "object")) == t}, main_keys)
+        for t in types
+    }
     return {
         "format": RESULTS_FORMAT,
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
@@ -197,6 +235,8 @@ def build_results(
         "scenes": out_scenes,
         "summary": overall,
         "paired_psnr": paired,
+        "paired_psnr_by_scene": by_scene,
+        "paired_psnr_by_type": by_type,
         "invocation": dict(invocation),
     }
 
@@ -260,8 +300,10 @@ def render_table(results: Mapping[str, Any]) -> str:
         f"shortlist N = {prof['shortlist_size']}"
         + (f"; **embodied**: K = {emb} nearest candidates" if emb else "") + ".",
         "Values are mean ± std over seeds; **bold** best, _italic_ second best. Selection time "
-        "is the mean latency per acquisition event (the `select` call; recomputing Ĥ is "
-        "reported apart). LPIPS is – when its weights are not available locally.",
+        "is the mean latency of the selection alone per acquisition event (see the latency "
+        "table for the per-event cost with each method's information upkeep). Scenes by type: "
+        + _scene_types(results, scenes) + ". LPIPS is – when its weights are not available "
+        "locally.",
         "",
     ]
     keys = _main_rows(results)
@@ -270,6 +312,7 @@ def render_table(results: Mapping[str, Any]) -> str:
         lines += _latency_table(results, keys)
         lines += _trajectory_table(results, keys, emb)
         lines += _paired_table(results, keys)
+        lines += _paired_by_table(results, keys)
     # the ablations' reference rows (the paper's settings) are the main agile / agile_plus runs
     sl = _variants_in(results, "shortlist")
     if sl:
@@ -281,6 +324,13 @@ def render_table(results: Mapping[str, Any]) -> str:
         lines += _budget_table(results, bud + [k for k in ("agile_plus",)
                                                if k in results["summary"]])
     return "\n".join(lines) + "\n"
+
+
+def _scene_types(results: Mapping[str, Any], scenes: list[str]) -> str:
+    types: dict[str, list[str]] = {}
+    for n in scenes:
+        types.setdefault(str(results["scenes"][n].get("type", "object")), []).append(n)
+    return "; ".join(f"{t}: {', '.join(ns)}" for t, ns in sorted(types.items()))
 
 
 def _main_table(results: Mapping[str, Any], scenes: list[str], keys: list[str]) -> list[str]:
@@ -299,7 +349,7 @@ def _main_table(results: Mapping[str, Any], scenes: list[str], keys: list[str]) 
                 {k: summ.get(k, {}).get(f"{metric}_mean") for k in keys}, higher)
     avg = results["summary"]
     marks[("avg", "psnr")] = _rank_marks({k: avg[k]["psnr_mean"] for k in keys}, True)
-    marks[("avg", "time")] = _rank_marks({k: avg[k]["latency_ms_mean"] for k in keys}, False)
+    marks[("avg", "time")] = _rank_marks({k: avg[k]["selection_ms_mean"] for k in keys}, False)
     rows = ["## Main results", "", head, sep]
     for k in keys:
         row = f"| {_display(k)} |"
@@ -313,7 +363,7 @@ def _main_table(results: Mapping[str, Any], scenes: list[str], keys: list[str]) 
                 row += f" {_mark(txt, marks[(s, metric)].get(k))} |"
         a = avg[k]
         row += f" {_mark(_fmt(a['psnr_mean'], None, 3), marks[('avg', 'psnr')].get(k))} |"
-        t = a["latency_ms_mean"]
+        t = a["selection_ms_mean"]
         row += f" {_mark('–' if t is None else f'{t / 1e3:.3f}', marks[('avg', 'time')].get(k))} |"
         rows.append(row)
     return rows + [""]
@@ -323,15 +373,19 @@ def _latency_table(results: Mapping[str, Any], keys: list[str]) -> list[str]:
     rows = [
         "## Selection latency per event",
         "",
-        "Wall-clock milliseconds per event (mean; stages are the `select` breakdown), the "
-        "process CPU time of the same calls, and FisherRF's mean over each method's. On a "
-        "shared machine the wall clock carries other processes' load; the CPU time of these "
-        "single-threaded runs measures the work.",
+        "Wall-clock milliseconds per event (means). *Selection*: the `select` call less the "
+        "information a method rebuilds inside it; *per event*: an event of the method's own "
+        "algorithm, i.e. FisherRF's call with its rebuild of H_train from every training view "
+        "(*H_train*), and for the Ĥ methods the selection plus one committed view's Fisher "
+        "added to Ĥ (estimated from the protocol's Ĥ recompute, which is reported apart: the "
+        "protocol recomputes Ĥ on the current map for every Ĥ method alike). Stages are the "
+        "`select` breakdown; CPU is the process CPU time of the same calls (on a shared "
+        "machine the wall clock carries other processes' load).",
         "",
-        "| Method | mean (ms) | median (ms) | anchor | scoring | leverage | rerank | "
-        "CPU (ms) | Ĥ recompute (ms, apart) | FisherRF / method (wall) | "
-        "FisherRF / method (CPU) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| Method | selection (ms) | per event (ms) | H_train | anchor | scoring | leverage | "
+        "rerank | CPU (ms) | Ĥ recompute (ms, apart) | FisherRF / method (selection) | "
+        "FisherRF / method (per event) | full EIG / method (selection) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for k in keys:
         a = results["summary"][k]
@@ -350,16 +404,56 @@ def _latency_table(results: Mapping[str, Any], keys: list[str]) -> list[str]:
             v = stages.get(name)
             return f"{statistics.fmean(v):.1f}" if v else "–"
 
-        ratio = a.get("fisherrf_over_method")
-        ratio_cpu = a.get("fisherrf_over_method_cpu")
         rows.append(
-            f"| {_display(k)} | {_num(a['latency_ms_mean'], 1)} | "
-            f"{_num(a['latency_ms_median'], 1)} | {st('anchor')} | {st('scoring')} | "
-            f"{st('leverage')} | {st('rerank')} | {_num(a.get('cpu_ms_mean'), 1)} | "
+            f"| {_display(k)} | {_num(a.get('selection_ms_mean'), 1)} | "
+            f"{_num(a.get('event_ms_mean'), 1)} | {st('information')} | {st('anchor')} | "
+            f"{st('scoring')} | {st('leverage')} | {st('rerank')} | "
+            f"{_num(a.get('cpu_ms_mean'), 1)} | "
             f"{_num(statistics.fmean(info) if info else None, 1)} | "
-            f"{'–' if ratio is None else f'{ratio:.1f}×'} | "
-            f"{'–' if ratio_cpu is None else f'{ratio_cpu:.1f}×'} |"
+            f"{_times(a.get('fisherrf_over_method'))} | "
+            f"{_times(a.get('fisherrf_over_method_event'))} | "
+            f"{_times(a.get('full_eig_over_method'))} |"
         )
+    return rows + [""]
+
+
+def _times(v: float | None) -> str:
+    return "–" if v is None else f"{v:.1f}×"
+
+
+def _paired_cell(d: Mapping[str, Any] | None) -> str:
+    if d is None or d["mean"] is None:
+        return "–"
+    se = "" if d["se"] is None else f" ± {d['se']:.2f}"
+    return f"{d['mean']:+.2f}{se} ({d['wins']}/{d['n']})"
+
+
+def _paired_by_table(results: Mapping[str, Any], keys: list[str]) -> list[str]:
+    ref = REFERENCE
+    by_scene = results.get("paired_psnr_by_scene") or {}
+    by_type = results.get("paired_psnr_by_type") or {}
+    others = [k for k in keys if k != ref]
+    if ref not in keys or not others or not by_scene:
+        return []
+    name = _display(ref)
+    head = f"| | {' | '.join(f'{name} − {_display(k)}' for k in others)} |"
+    sep = "|---|" + "---|" * len(others)
+    rows = [
+        f"## Paired PSNR differences of {name}, per scene type and per scene",
+        "",
+        f"{name} minus each method, in dB, over the seeds of each scene (mean ± standard error, "
+        "and runs where it is higher / runs).",
+        "",
+        head,
+        sep,
+    ]
+    for t, paired in by_type.items():
+        cells = [_paired_cell(paired.get(ref, {}).get(k)) for k in others]
+        rows.append(f"| **{t}** | " + " | ".join(cells) + " |")
+    for scene, paired in by_scene.items():
+        t = results["scenes"][scene].get("type", "object")
+        cells = [_paired_cell(paired.get(ref, {}).get(k)) for k in others]
+        rows.append(f"| {scene} ({t}) | " + " | ".join(cells) + " |")
     return rows + [""]
 
 
@@ -382,12 +476,7 @@ def _paired_table(results: Mapping[str, Any], keys: list[str]) -> list[str]:
     for a in keys:
         cells = []
         for b in keys:
-            d = paired[a].get(b) if a != b else None
-            if d is None or d["mean"] is None:
-                cells.append("–")
-                continue
-            se = "" if d["se"] is None else f" ± {d['se']:.2f}"
-            cells.append(f"{d['mean']:+.2f}{se} ({d['wins']}/{d['n']})")
+            cells.append(_paired_cell(paired[a].get(b) if a != b else None))
         rows.append(f"| {_display(a)} | " + " | ".join(cells) + " |")
     return rows + [""]
 

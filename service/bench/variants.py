@@ -18,8 +18,11 @@ from typing import Any, Literal
 from agilegs.schemas.config import (
     MIXED_ZBUFFER,
     POINT_ZBUFFER,
+    PRESETS,
     SHORTLISTS,
     SelectConfig,
+    deep_merge,
+    validate_config,
 )
 
 from ..nbv.methods import method_names
@@ -40,8 +43,11 @@ DISPLAY = {
     "random": "Random",
     "fisherrf": "FisherRF",
     "cover": "COVER",
+    "full_eig": "Full-pool EIG (ceiling)",
     "agile": "AGILE-GS",
     "agile_plus": "AGILE-GS+",
+    "agile@paper": "AGILE-GS (paper)",
+    "agile_plus@paper": "AGILE-GS+ (paper)",
 }
 SHORTLIST_DISPLAY = {
     "leverage": "Ridge leverage",
@@ -63,9 +69,18 @@ def _shortlist(name: str) -> Callable[[SelectConfig], SelectConfig]:
     return lambda c: dataclasses.replace(c, shortlist=name)  # type: ignore[arg-type]
 
 
+def _preset(name: str) -> Callable[[SelectConfig], SelectConfig]:
+    def apply(c: SelectConfig) -> SelectConfig:
+        return validate_config(SelectConfig, deep_merge(dataclasses.asdict(c), PRESETS[name]))
+    return apply
+
+
 OPTIONS: dict[str, tuple[str, Callable[[SelectConfig], SelectConfig]]] = {
     **{s: (f"the {SHORTLIST_DISPLAY[s].lower()} shortlist", _shortlist(s))
        for s in SHORTLISTS if s != "leverage"},
+    "paper": ("the paper's AGILE-GS: the anchor ascends the exact trace surrogate through the "
+              "rasterizer, the leverage greedy starts from lambda_G I (SelectConfig preset "
+              "'paper')", _preset("paper")),
     "exact": ("the anchor ascends the exact trace surrogate (one start, 3 steps)",
               _anchor(psi="exact", num_starts=1, iterations=3, warm_start=True)),
     "all_gaussians": ("the proxy sums over every Gaussian (no importance sampling)",
@@ -156,7 +171,8 @@ def build_variants(
     ablations (deduplicated).
 
     Args:
-        methods: method names or variant keys.
+        methods: method names or variant keys: the main comparison (its tables and paired
+            differences).
         shortlist_size: the profile's N.
         strategies: shortlist strategies of the ablation, run with ``shortlist_method``.
         budgets: shortlist sizes N of the AGILE-GS+ budget ablation.
@@ -173,7 +189,7 @@ def build_variants(
     out: dict[str, Variant] = {}
     for m in methods:
         try:
-            out.setdefault(m, parse_variant(m, shortlist_size))
+            out.setdefault(m, parse_variant(m, shortlist_size, "main"))
         except ValueError as exc:
             raise ValueError(f"--methods: {exc}") from None
     for s in strategies:

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
 from math import comb
+from typing import Literal
 
 import torch
 from torch import Tensor
@@ -44,6 +45,8 @@ from agilegs.service.nbv.rasterize import (
     render,
     tile_pixels,
 )
+
+Residuals = Literal["channels", "pixels"]
 
 # monomials x^i y^j with i + j <= 4 in the graded order of ``pixel_monomials``
 _MONOS4: list[tuple[int, int]] = [(i, k - i) for k in range(5) for i in range(k, -1, -1)]
@@ -103,12 +106,18 @@ def screen_second_moments(
     tile_size: int = 8,
     near: float = 0.01,
     max_elements: int = 1 << 20,
+    residuals: Residuals = "channels",
 ) -> Tensor:
-    """M_i = Σ_pc g g^T over the screen attributes of every Gaussian [N, 9, 9].
+    """M_i = Σ_r g_r g_rᵀ over the screen attributes of every Gaussian [N, 9, 9].
 
     Attribute order: mean_x, mean_y, conic_a, conic_b, conic_c, opacity, r, g, b.
+    ``residuals``: "channels" (every pixel and channel a residual r, g_r = ∂C_pc/∂s_i: the
+    exact Fisher) or "pixels" (one residual per pixel, the channel sum: g_r = ∂(Σ_c C_pc)/∂s_i
+    with the derivatives of α taken through its 0.99 clamp, as FisherRF's rasterizer does).
     Differentiable in whatever ``gmap`` and ``camera.c2w`` carry a graph for.
     """
+    if residuals not in ("channels", "pixels"):
+        raise ValueError(f"residuals must be 'channels' or 'pixels', got {residuals!r}")
     dt, dev = gmap.means.dtype, gmap.means.device
     proj = project_map(gmap, camera, near=near)
     bg = (
@@ -138,10 +147,17 @@ def screen_second_moments(
         t = composite_chunk(local, m2d, con, op, col, z_all[ids], valid, bg)
         inside = (flat >= 0).to(dt)[..., None]  # [Tc, P, 1]
         dcda = dcolor_dalpha(t, col, bg)  # [Tc, P, L, 3]
-        al_ok = torch.where(t.raw_ok, t.alpha, torch.zeros_like(t.alpha)) * inside
         w = t.weight * inside
-        f4 = (dcda * dcda).sum(-1) * al_ok * al_ok  # [Tc, P, L]
-        f2 = dcda * (w * al_ok)[..., None]  # [Tc, P, L, 3]
+        if residuals == "channels":
+            al_ok = torch.where(t.raw_ok, t.alpha, torch.zeros_like(t.alpha)) * inside
+            f4 = (dcda * dcda).sum(-1) * al_ok * al_ok  # [Tc, P, L]
+            f2 = dcda * (w * al_ok)[..., None]  # [Tc, P, L, 3]
+        else:
+            # ∂α/∂screen of o·G whether or not α was clamped at 0.99
+            al_ok = torch.where(t.composited, t.raw, torch.zeros_like(t.raw)) * inside
+            dsum = dcda.sum(-1)
+            f4 = dsum * dsum * al_ok * al_ok
+            f2 = (dsum * w * al_ok)[..., None].expand(*dsum.shape, 3)
         mono4 = pixel_monomials(local, 4)  # [P, 15]
         mono2 = mono4[:, :6]
         raw4 = torch.matmul(f4.transpose(1, 2), mono4)  # [Tc, L, 15]
@@ -166,8 +182,11 @@ def screen_second_moments(
         mgc = mgc.index_add(0, fid, gc.flatten(0, 1))
         mcc = mcc.index_add(0, fid, (w * w).sum(1).flatten())
     top = torch.cat([mgg, mgc.transpose(1, 2)], dim=2)  # [N, 6, 9]
-    eye3 = torch.eye(3, dtype=dt, device=dev)
-    bottom = torch.cat([mgc, mcc[:, None, None] * eye3], dim=2)  # [N, 3, 9]
+    # colour block: Σ w² on the diagonal (one residual per channel), or in every entry
+    # (the three channels of a pixel are one residual)
+    pattern = (torch.eye(3, dtype=dt, device=dev) if residuals == "channels"
+               else torch.ones(3, 3, dtype=dt, device=dev))
+    bottom = torch.cat([mgc, mcc[:, None, None] * pattern], dim=2)  # [N, 3, 9]
     return torch.cat([top, bottom], dim=1)
 
 
@@ -207,47 +226,67 @@ def fisher_diag(
     Returns:
         {field name: diag Fisher of that field, same shape as the field}.
     """
-    want = tuple(FIELD_NAMES if fields is None else fields)
-    for f in want:
-        if f not in FIELD_NAMES:
-            raise ValueError(f"fields: unknown parameter block {f!r} (known: {FIELD_NAMES})")
+    want = _check_fields(fields, FIELD_NAMES)
     pose_grad = bool(camera.c2w.requires_grad) and torch.is_grad_enabled()
-    detached = gmap.detach()
     with torch.set_grad_enabled(pose_grad):
         m = screen_second_moments(
-            detached,
+            gmap.detach(),
             camera,
             background=background,
             tile_size=tile_size,
             near=near,
             max_elements=max_elements,
         )
-    # per-Gaussian projection Jacobian rows: d(Σ_i s_i,a)/dθ_i = ds_i,a/dθ_i, since each
-    # Gaussian's screen attributes depend on its own parameters only
+    jac = projection_jacobians(gmap, camera, want, near=near, create_graph=pose_grad)
+    result: dict[str, Tensor] = {}
+    for f in want:
+        h = torch.einsum("nap,nab,nbp->np", jac[f], m, jac[f])
+        shape = getattr(gmap, f).shape
+        result[f] = h.reshape(shape) if pose_grad else h.reshape(shape).detach()
+    return result
+
+
+def _check_fields(fields: Iterable[str] | None, known: tuple[str, ...]) -> tuple[str, ...]:
+    want = tuple(known if fields is None else fields)
+    for f in want:
+        if f not in known:
+            raise ValueError(f"fields: unknown parameter block {f!r} (known: {known})")
+    return want
+
+
+def projection_jacobians(
+    gmap: GaussianMap,
+    camera: Camera,
+    fields: tuple[str, ...],
+    *,
+    near: float = 0.01,
+    create_graph: bool = False,
+) -> dict[str, Tensor]:
+    """∂s_i/∂θ_i of every Gaussian's 9 screen attributes w.r.t. its own parameters.
+
+    Returns {field: [N, 9, P_f]} (P_f the field's entries per Gaussian). One backward per
+    screen attribute: each Gaussian's attributes depend on its own parameters only, so the
+    gradient of Σ_i s_i,a w.r.t. θ holds every Gaussian's own row.
+    """
     leaves = {k: v.requires_grad_(True) for k, v in gmap.detach().items()}
-    jac: dict[str, list[Tensor]] = {f: [] for f in want}
+    jac: dict[str, list[Tensor]] = {f: [] for f in fields}
     with torch.enable_grad():
         proj = project_map(GaussianMap(**leaves), camera, near=near)
-        wanted_leaves = [leaves[f] for f in want]
+        wanted_leaves = [leaves[f] for f in fields]
         for out in _screen_outputs(proj):
             grads = torch.autograd.grad(
                 out.sum(),
                 wanted_leaves,
-                create_graph=pose_grad,
+                create_graph=create_graph,
                 retain_graph=True,
                 allow_unused=True,
             )
-            for f, g in zip(want, grads):
+            for f, g in zip(fields, grads):
                 n = leaves[f].shape[0]
                 jac[f].append(
                     torch.zeros_like(leaves[f]).reshape(n, -1) if g is None else g.reshape(n, -1)
                 )
-    result: dict[str, Tensor] = {}
-    for f in want:
-        j = torch.stack(jac[f], dim=1)  # [N, 9, P_f]
-        h = torch.einsum("nap,nab,nbp->np", j, m, j)
-        result[f] = h.reshape(leaves[f].shape) if pose_grad else h.reshape(leaves[f].shape).detach()
-    return result
+    return {f: torch.stack(jac[f], dim=1) for f in fields}
 
 
 def fisher_diag_bruteforce(
@@ -388,6 +427,7 @@ __all__ = [
     "fisher_diag",
     "fisher_diag_bruteforce",
     "init_information",
+    "projection_jacobians",
     "screen_second_moments",
     "trace_surrogate",
 ]

@@ -224,6 +224,8 @@ class ChunkTerms:
     color: Tensor  # [Tc, P, C]
     acc_alpha: Tensor  # [Tc, P]
     depth_acc: Tensor  # [Tc, P]  sum w z
+    raw: Tensor  # o·exp(-σ) before the clamp and the skips
+    composited: Tensor  # bool: the pair was composited (not skipped, before the stop)
 
 
 def composite_chunk(
@@ -266,7 +268,8 @@ def composite_chunk(
     color = torch.matmul(weight, col) + t_final[..., None] * bg
     acc_alpha = 1.0 - t_final
     depth_acc = torch.matmul(weight, z[..., None])[..., 0]
-    return ChunkTerms(dx, dy, alpha, raw_ok, trans, weight, t_final, color, acc_alpha, depth_acc)
+    return ChunkTerms(dx, dy, alpha, raw_ok, trans, weight, t_final, color, acc_alpha, depth_acc,
+                      raw, keep & live)
 
 
 def suffix_sum(x: Tensor, dim: int) -> Tensor:

@@ -7,8 +7,10 @@ candidates, the pool's radius, the event counter of the warm state), runs the me
 times it.
 
 Embodied mode (``SelectConfig.embodied_k = K``): only the K candidates nearest the current
-view (``current`` index, which is itself excluded, or ``current_pose``) under the SE(3)
-distance ``se3.pose_distance`` are eligible.
+view (``current`` index, which is itself excluded, or ``current_pose``) are eligible; nearest
+by camera centre (``embodied_metric="position"``, COVER's protocol: a KD-tree query of the
+remaining frames' origins around the last acquired view's) or by the SE(3) distance
+``se3.pose_distance`` (``"se3"``).
 
 Every random choice (random pick, importance sampling of the proxy, support samples, online
 sampling) is drawn from generators seeded with ``SelectConfig.seed`` and the event counter
@@ -161,20 +163,26 @@ def eligible_candidates(
     current: int | None = None,
     current_pose: Tensor | None = None,
     rot_weight: float = 1.0,
+    metric: str = "position",
 ) -> list[int]:
     """Indices of the eligible candidates: all, or the K nearest to the current view.
 
-    The current view (``current``) is excluded; distances are ``se3.pose_distance`` with
-    ``rot_weight``; ties go to the lower index.
+    The current view (``current``) is excluded; distances are between camera centres
+    (``metric="position"``) or ``se3.pose_distance`` with ``rot_weight`` (``"se3"``); ties
+    go to the lower index.
     """
     d = candidates.shape[0]
     if embodied_k is None:
         return list(range(d))
     ref = candidates[int(current)] if current is not None else current_pose
     assert ref is not None
-    dist = pose_distance(
-        candidates.detach(), ref.detach().to(candidates.dtype).expand_as(candidates), rot_weight
-    )
+    ref = ref.detach().to(candidates.dtype)
+    if metric == "position":
+        dist = (candidates.detach()[:, :3, 3] - ref[:3, 3]).norm(dim=1)
+    elif metric == "se3":
+        dist = pose_distance(candidates.detach(), ref.expand_as(candidates), rot_weight)
+    else:
+        raise ValueError(f"metric must be 'position' or 'se3', got {metric!r}")
     dist = dist.to(torch.float64)
     if current is not None:
         dist[int(current)] = math.inf
@@ -196,6 +204,7 @@ def select(
     current: int | None = None,
     current_pose: Tensor | None = None,
     state: dict[str, Any] | None = None,
+    lam: float | None = None,
 ) -> Selection:
     """Choose the next view among ``candidates`` with ``method``.
 
@@ -211,6 +220,10 @@ def select(
         current: index of the current view in ``candidates`` (embodied mode).
         current_pose: the current pose [4, 4] when it is not in the pool (embodied mode).
         state: the previous ``Selection.state`` (warm start), or None.
+        lam: the lambda included in ``h_acc`` (Hhat = lambda + sum of the views' Fisher);
+            the anchor's proxy separates the views' information from it. None: estimated
+            as each parameter slot's minimum over Gaussians (exact only when some Gaussian
+            is seen by no acquired view).
 
     Raises:
         ValueError: naming the argument, for an unknown method, an empty pool, a budget < 1,
@@ -222,6 +235,8 @@ def select(
     fields = tuple(config.fields) if config.fields is not None else FIELD_NAMES
     _validate(gmap, h_acc, candidates, intrinsics, acquired, current, current_pose, config,
               fields)
+    if lam is not None and not (isinstance(lam, int | float) and math.isfinite(lam) and lam > 0):
+        raise InputError("lam", f"lam must be a positive finite number, got {lam!r}")
     state = dict(state or {})
     event = int(state.get("event", 0))
     dt = gmap.dtype
@@ -236,6 +251,7 @@ def select(
         current=current,
         current_pose=current_pose,
         rot_weight=rot_weight,
+        metric=config.embodied_metric,
     )
     if not eligible:
         raise InputError("candidates", "candidates: no eligible candidate (the pool holds only "
@@ -248,7 +264,7 @@ def select(
     ctx = SelectionContext(
         gmap=gmap, h_acc=h_acc, pool=pool, intrinsics=intrinsics, config=config, fields=fields,
         eligible=eligible, acquired=acquired, state=state, event=event, aim=aim, radius=radius,
-        rot_weight=rot_weight, background=bg,
+        rot_weight=rot_weight, background=bg, lam=lam,
     )
     res = impl(ctx)
     lat = {k: 0.0 for k in STAGES}

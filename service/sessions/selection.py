@@ -102,6 +102,7 @@ def run_select(s: Session, req: m.SelectRequest) -> m.SelectResponse:
                 method, rec.gmap, rec.h_acc, torch.from_numpy(rec.pool_poses).to(dt),
                 s.intrinsics(rec), config=config, acquired=acquired, current=current,
                 current_pose=current_pose, state=rec.warm_state,
+                lam=float(rec.information_config["lambda"]),
             )
         except InputError as exc:
             raise invalid(_ARGUMENT_FIELDS.get(exc.argument, "body"), str(exc)) from None

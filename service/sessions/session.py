@@ -50,7 +50,7 @@ from .convert import (
 from .mapper_state import mapper_status
 from .selection import run_select
 
-__all__ = ["MapperHook", "Session", "SessionEnv", "view_information"]
+__all__ = ["MapperHook", "Session", "SessionEnv", "fisher_background", "view_information"]
 
 
 @dataclass(frozen=True)
@@ -72,13 +72,22 @@ class MapperHook(Protocol):
         """The mapper's progress as of ``rec``."""
 
 
-def view_information(gmap: GaussianMap, c2w: Tensor, intrinsics: Intrinsics
-                     ) -> dict[str, Tensor]:
-    """The exact diagonal Fisher of one view of ``gmap`` (zeros for an empty map)."""
+def view_information(gmap: GaussianMap, c2w: Tensor, intrinsics: Intrinsics,
+                     background: Tensor | None = None) -> dict[str, Tensor]:
+    """The exact diagonal Fisher of one view of ``gmap`` rendered on ``background`` [3]
+    (None: black); zeros for an empty map."""
     if gmap.num_gaussians == 0:
         return {k: torch.zeros_like(v) for k, v in gmap.items()}
     with torch.no_grad():
-        return fisher_diag(gmap.detach(), Camera(c2w=c2w.to(gmap.dtype), intrinsics=intrinsics))
+        return fisher_diag(gmap.detach(), Camera(c2w=c2w.to(gmap.dtype), intrinsics=intrinsics),
+                           background=background)
+
+
+def fisher_background(rec: SessionRecord, dtype: torch.dtype) -> Tensor | None:
+    """The background of the session's Fisher renders: its default select config's
+    ``fisher_background`` (None: black), so that Hhat and the selections agree."""
+    bg = ((rec.defaults or {}).get("config") or {}).get("fisher_background")
+    return None if bg is None else torch.tensor(list(bg), dtype=dtype)
 
 
 class Session:
@@ -121,7 +130,8 @@ class Session:
     def _view_info(self, gmap: GaussianMap, pose: np.ndarray, rec: SessionRecord
                    ) -> dict[str, Tensor]:
         c2w = torch.from_numpy(pose).to(gmap.dtype)
-        return view_information(gmap, c2w, self.intrinsics(rec))
+        return view_information(gmap, c2w, self.intrinsics(rec),
+                                fisher_background(rec, gmap.dtype))
 
     def accumulate(self, h: dict[str, Tensor], gmap: GaussianMap,
                           poses: Iterable[np.ndarray], rec: SessionRecord) -> dict[str, Tensor]:

@@ -251,6 +251,47 @@ def test_typical_fisher_estimates() -> None:
     assert float(w[50]) == pytest.approx(3 * math.log1p(2.0 / (lam + 6.0)))
 
 
+def test_typical_fisher_and_rates_use_the_given_lambda(scene) -> None:
+    """When every Gaussian is seen, the minimum over Gaussians is not lambda: given lambda,
+    the fit separates the views' information from the prior exactly."""
+    n = 50
+    lam = 1e-3
+    h_view = {"means": torch.linspace(1.0, 3.0, n, dtype=torch.float64)[:, None].expand(n, 3)}
+    h_acc = {"means": lam + 2 * h_view["means"]}  # every Gaussian seen by two views
+    m = typical_fisher_from_h_acc(h_acc, 2, ("means",), lam=lam)
+    med = float(h_view["means"][:, 0].median())
+    torch.testing.assert_close(m["means"], torch.full((3,), med, dtype=torch.float64))
+    guessed = typical_fisher_from_h_acc(h_acc, 2, ("means",))  # lambda taken as the minimum
+    assert float(guessed["means"][0]) < 0.9 * med
+    gmap, _, acq, h = scene
+    h_lam = {k: v.clone() for k, v in h.items()}  # built with lambda 1e-6
+    fit = observation_rates(gmap, h_lam, acq, INTR, FIELD_NAMES, lam=1e-6, **FIT_KW)
+    r = torch.zeros(gmap.num_gaussians, dtype=torch.float64)
+    for f in FIELD_NAMES:
+        flat = h_lam[f].reshape(gmap.num_gaussians, -1)
+        r += ((flat - 1e-6) / flat).clamp(0, 1).sum(1)
+    r /= fit.slots
+    seen = fit.accumulated >= 0.25 * fit.typical
+    torch.testing.assert_close(fit.rate[seen], (r / fit.accumulated)[seen])
+
+
+def test_exact_psi_renders_on_the_given_background(scene) -> None:
+    from agilegs.service.nbv.anchor import exact_psi_fn
+    from agilegs.service.nbv.information import trace_surrogate
+
+    gmap, pool, _, h = scene
+    bg = torch.tensor([0.2, 0.9, 0.4], dtype=torch.float64)
+    cfg = AnchorConfig(psi="exact", resolution=16)
+    fn = exact_psi_fn(gmap, h, INTR, cfg, FIELD_NAMES, background=bg)
+    cam = Camera(c2w=pool[3], intrinsics=INTR.scaled(16, 16))
+    with torch.no_grad():
+        ref = trace_surrogate(fisher_diag(gmap, cam, background=bg), h)
+        black = trace_surrogate(fisher_diag(gmap, cam), h)
+        got = fn(pool[3:4])[0]
+    assert float(got) == pytest.approx(float(ref), rel=1e-9)
+    assert abs(float(ref) - float(black)) > 1e-3 * float(black)
+
+
 def test_exact_psi_ascent_is_monotone() -> None:
     gmap, pool, _, h = tiny_scene(n=120, seed=1)
     aim = gmap.means.median(dim=0).values

@@ -13,6 +13,7 @@ from agilegs.service.nbv.methods.cover import (
     fibonacci_sphere,
     filled_bins,
     gaussian_coverage,
+    kept_by_projection,
 )
 from agilegs.service.nbv.rasterize import render
 
@@ -48,17 +49,47 @@ def test_fibonacci_sphere_is_unit_and_spread() -> None:
     assert worst > math.cos(math.radians(15))
 
 
+def test_fibonacci_sphere_is_covers_lattice() -> None:
+    b = fibonacci_sphere(128, dtype=torch.float64)
+    golden = (1 + math.sqrt(5)) / 2
+    for i in (0, 1, 77, 127):
+        z = 1 - 2 * (i + 0.5) / 128
+        theta = 2 * math.pi * ((i / golden) % 1.0)
+        r = math.sqrt(1 - z * z)
+        ref = torch.tensor([r * math.cos(theta), r * math.sin(theta), z], dtype=torch.float64)
+        torch.testing.assert_close(b[i], ref)
+
+
+def _points(means: list[list[float]], scale: float) -> GaussianMap:
+    pts = torch.tensor(means, dtype=torch.float64)
+    return GaussianMap.from_points(pts, torch.full_like(pts, 0.5), scale=scale, opacity=0.8)
+
+
 def test_filled_bins_follow_acquired_frustums() -> None:
     bins = fibonacci_sphere(128, dtype=torch.float64)
-    means = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, -10.0]], dtype=torch.float64)
+    gmap = _points([[0.0, 0.0, 0.0], [0.0, 0.0, -10.0]], scale=0.2)
     cam = pose([0.0, 0.0, -2.0])
-    filled = filled_bins(means, cam.unsqueeze(0), INTR, bins)
-    # Gaussian 0 is seen: exactly its bin towards the camera (-z) is filled
+    filled = filled_bins(gmap, cam.unsqueeze(0), INTR, bins)
+    # Gaussian 0 is seen: exactly the bin of the direction camera -> Gaussian (+z) is filled
     assert int(filled[0].sum()) == 1
     g = int(torch.nonzero(filled[0])[0])
-    assert g == int(torch.argmax(bins @ torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64)))
+    assert g == int(torch.argmax(bins @ torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)))
     # Gaussian 1 is behind the camera: nothing filled
     assert int(filled[1].sum()) == 0
+
+
+def test_gaussians_of_small_projected_radius_fill_no_bin() -> None:
+    bins = fibonacci_sphere(128, dtype=torch.float64)
+    cam = pose([0.0, 0.0, -2.0])
+    # at 32 px and 60 degrees, f ~ 27.7 px: sigma 0.02 at depth 2 is ~0.28 px (radius
+    # ceil(3.33 sqrt(0.28^2 + 0.3)) = 3, clipped); sigma 0.2 is ~2.8 px (radius 10, kept)
+    small = _points([[0.0, 0.0, 0.0]], scale=0.02)
+    big = _points([[0.0, 0.0, 0.0]], scale=0.2)
+    assert not bool(kept_by_projection(small, Camera(c2w=cam, intrinsics=INTR))[0])
+    assert int(filled_bins(small, cam.unsqueeze(0), INTR, bins).sum()) == 0
+    assert int(filled_bins(big, cam.unsqueeze(0), INTR, bins).sum()) == 1
+    # without the clip, the small one counts too
+    assert int(filled_bins(small, cam.unsqueeze(0), INTR, bins, radius_clip=0.0).sum()) == 1
 
 
 def test_gaussian_coverage_values() -> None:
@@ -66,12 +97,12 @@ def test_gaussian_coverage_values() -> None:
     means = torch.zeros(2, 3, dtype=torch.float64)
     filled = torch.zeros(2, 128, dtype=torch.bool)
     filled[0, 5] = True
-    cam_pos = 3.0 * bins[5]
+    cam_pos = -3.0 * bins[5]  # looking along bins[5] at the Gaussian
     c = gaussian_coverage(means, cam_pos, bins, filled)
-    assert abs(float(c[0]) - 1.0) < 1e-12  # the same direction as the filled bin
+    assert abs(float(c[0]) - 1.0) < 1e-9  # the same direction as the filled bin
     assert float(c[1]) == 0.0  # no filled bin: never seen
     opposite = gaussian_coverage(means, -cam_pos, bins, filled)
-    assert abs(float(opposite[0])) < 1e-12  # (cos + 1) / 2 with cos = -1
+    assert abs(float(opposite[0])) < 1e-9  # (cos + 1) / 2 with cos = -1
 
 
 def test_cover_prefers_the_unseen_side() -> None:
@@ -89,7 +120,7 @@ def test_cover_score_is_mean_of_composited_channel_over_alpha() -> None:
     cand = pose([1.2, -0.8, -1.2])
     score = cover_scores(gmap, cand.unsqueeze(0), INTR, acq)
     bins = fibonacci_sphere(128, dtype=torch.float64)
-    filled = filled_bins(gmap.means, acq, INTR, bins)
+    filled = filled_bins(gmap, acq, INTR, bins)
     c = gaussian_coverage(gmap.means, cand[:3, 3], bins, filled)
     out = render(gmap, Camera(c2w=cand, intrinsics=INTR), features=c[:, None])
     assert out.features is not None

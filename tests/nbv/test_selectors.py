@@ -66,9 +66,9 @@ def test_eig_scores_match_expected_information_gain(world) -> None:
         assert float(phi[i]) == pytest.approx(reference_phi(gmap, h, pool[i]), rel=1e-4)
 
 
-def test_fisherrf_returns_argmax_phi_over_the_pool(world) -> None:
+def test_full_eig_returns_argmax_phi_over_the_pool(world) -> None:
     gmap, h, pool, acq, phi = world
-    sel = select("fisherrf", gmap, h, pool, INTR, acquired=acq)
+    sel = select("full_eig", gmap, h, pool, INTR, acquired=acq)
     assert sel.index == int(torch.argmax(phi))
     assert sorted(sel.scores) == list(range(len(pool)))
     for i, v in sel.scores.items():
@@ -119,14 +119,36 @@ def test_embodied_mode_never_picks_outside_the_k_nearest(world, method: str) -> 
     gmap, h, pool, acq, _ = world
     radius = 2.0
     for current in (0, 11):
-        cfg = SelectConfig(embodied_k=5, scoring=ScoringConfig(rot_weight=radius))
-        sel = select(method, gmap, h, pool, INTR, acquired=acq, current=current, config=cfg)
-        dist = pose_distance(pool, pool[current].expand_as(pool), radius)
-        dist[current] = math.inf
-        nearest = set(torch.argsort(dist)[:5].tolist())
-        assert set(sel.eligible) == nearest
-        assert sel.index in nearest and sel.index != current
-        assert set(sel.shortlist) <= nearest
+        for metric in ("position", "se3"):
+            cfg = SelectConfig(embodied_k=5, embodied_metric=metric,  # type: ignore[arg-type]
+                               scoring=ScoringConfig(rot_weight=radius))
+            sel = select(method, gmap, h, pool, INTR, acquired=acq, current=current, config=cfg)
+            if metric == "se3":
+                dist = pose_distance(pool, pool[current].expand_as(pool), radius)
+            else:  # camera centres only, as COVER's protocol
+                dist = (pool[:, :3, 3] - pool[current, :3, 3]).norm(dim=1)
+            dist[current] = math.inf
+            nearest = set(torch.argsort(dist)[:5].tolist())
+            assert set(sel.eligible) == nearest
+            assert sel.index in nearest and sel.index != current
+            assert set(sel.shortlist) <= nearest
+
+
+def test_embodied_metrics_differ_where_orientation_matters() -> None:
+    from agilegs.service.nbv.camera import look_at
+    from agilegs.service.nbv.selectors import eligible_candidates
+
+    z = torch.zeros(3)
+    here = look_at(torch.tensor([2.0, 0.0, 0.0]), z)
+    # nearer, but facing away; a little farther, facing the same target
+    away = look_at(torch.tensor([2.0, 0.1, 0.0]), torch.tensor([4.0, 0.1, 0.0]))
+    along = look_at(torch.tensor([2.0, 0.0, 0.3]), z)
+    pool = torch.stack([here, away, along])
+    pos = eligible_candidates(pool, embodied_k=1, current=0, metric="position")
+    se3 = eligible_candidates(pool, embodied_k=1, current=0, metric="se3", rot_weight=2.0)
+    assert pos == [1] and se3 == [2]
+    with pytest.raises(ValueError, match="metric"):
+        eligible_candidates(pool, embodied_k=1, current=0, metric="bogus")
 
 
 def test_embodied_mode_with_a_current_pose_outside_the_pool(world) -> None:
@@ -191,7 +213,7 @@ def test_typical_fisher_from_a_start_view_is_cached(world) -> None:
 
 def test_fields_restrict_phi(world) -> None:
     gmap, h, pool, acq, _ = world
-    sel = select("fisherrf", gmap, h, pool[:4], INTR, config=SelectConfig(fields=("sh",)))
+    sel = select("full_eig", gmap, h, pool[:4], INTR, config=SelectConfig(fields=("sh",)))
     hv = fisher_diag(gmap, Camera(c2w=pool[2], intrinsics=INTR))
     ref = float(expected_information_gain(hv, h, fields=("sh",)))
     assert sel.scores[2] == pytest.approx(ref, rel=1e-4)
@@ -224,6 +246,8 @@ def test_bad_arguments_raise_value_errors_naming_them(world) -> None:
         (dict(h_acc={**h, "means": torch.zeros_like(h["means"])}), "h_acc"),
         (dict(current=len(pool)), "current"),
         (dict(acquired=_nan_pose(acq)), "acquired"),
+        (dict(lam=0.0), "lam"),
+        (dict(lam=float("nan")), "lam"),
     ]
     for kwargs, word in cases:
         args = dict(
@@ -238,7 +262,10 @@ def test_bad_arguments_raise_value_errors_naming_them(world) -> None:
                          ({"embodied_k": 0}, "embodied_k"), ({"shortlist": "bogus"}, "shortlist"),
                          ({"fields": ("bogus",)}, "fields"), ({"fields": ()}, "fields"),
                          ({"fields": ("sh", "sh")}, "fields"), ({"seed": -1}, "seed"),
-                         ({"shortlist_size": "3"}, "shortlist_size")]:
+                         ({"shortlist_size": "3"}, "shortlist_size"),
+                         ({"embodied_metric": "euclid"}, "embodied_metric"),
+                         ({"cover_radius_clip": -1.0}, "cover_radius_clip"),
+                         ({"fisherrf": {"reg_lambda": 0.0}}, "reg_lambda")]:
         with pytest.raises(ValueError, match=word):
             SelectConfig(**kwargs)  # type: ignore[arg-type]
 
@@ -272,3 +299,49 @@ def test_leverage_shortlist_is_conditioned_on_the_acquired_views(world) -> None:
     assert k not in cond.shortlist[:1]
     # the gains are the conditional leverages: lower with the acquired rows in S_0
     assert cond.scores[cond.shortlist[0]] <= plain.scores[plain.shortlist[0]] + 1e-12
+
+
+def test_paper_preset() -> None:
+    from agilegs.schemas.config import PRESETS, preset_config
+
+    cfg = preset_config("paper")
+    assert cfg.anchor.psi == "exact" and cfg.scoring.condition_on_acquired is False
+    # everything else is the default; overrides merge over the preset
+    assert cfg.shortlist_size == SelectConfig().shortlist_size
+    cfg = preset_config("paper", shortlist_size=5, anchor={"resolution": 32})
+    assert (cfg.shortlist_size, cfg.anchor.resolution, cfg.anchor.psi) == (5, 32, "exact")
+    assert set(PRESETS) == {"paper"}
+    with pytest.raises(ValueError, match="preset"):
+        preset_config("bogus")
+
+
+def test_the_anchor_gets_hhat_s_lambda_and_background(world, monkeypatch) -> None:
+    """``select`` hands the anchor the lambda inside Hhat and the Fisher background."""
+    from agilegs.service.nbv.anchor import ascent
+
+    seen: dict[str, object] = {}
+    real = ascent.observation_rates
+
+    def spy(*args, **kwargs):
+        seen["lam"] = kwargs.get("lam")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(ascent, "observation_rates", spy)
+    gmap, h, pool, acq, _ = world
+    select("agile", gmap, h, pool, INTR, acquired=acq, lam=1e-6)
+    assert seen["lam"] == 1e-6
+    # the exact psi renders on the background the config gives
+    from agilegs.service.nbv.information import trace_surrogate
+
+    bg = (0.9, 0.8, 0.7)
+    cfg = SelectConfig(fisher_background=bg, anchor=AnchorConfig(
+        psi="exact", num_starts=1, iterations=1, backtracks=1, resolution=16))
+    sel = select("agile", gmap, h, pool, INTR, acquired=acq, config=cfg, lam=1e-6)
+    assert sel.anchor_c2w is not None
+    small = INTR.scaled(16, 16)
+    with torch.no_grad():
+        cam = Camera(c2w=sel.anchor_c2w, intrinsics=small)
+        with_bg = float(trace_surrogate(fisher_diag(gmap, cam, background=torch.tensor(bg)), h))
+        black = float(trace_surrogate(fisher_diag(gmap, cam), h))
+    assert sel.psi_trace[-1] == pytest.approx(with_bg, rel=1e-4)
+    assert abs(with_bg - black) > 1e-3 * abs(black)

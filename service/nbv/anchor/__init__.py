@@ -16,12 +16,13 @@ The settings are :class:`~agilegs.schemas.config.AnchorConfig`.
 
 from agilegs.schemas.config import COVER_ZBUFFER, MIXED_ZBUFFER, POINT_ZBUFFER, AnchorConfig
 
-from .ascent import AnchorResult, ascend, optimize_anchor
+from .ascent import AnchorResult, ascend, exact_psi_fn, optimize_anchor
 from .envelope import PoolEnvelope
 from .fitting import (
     FittedRates,
     information_weights,
     observation_rates,
+    prior_floor,
     typical_fisher_from_h_acc,
     typical_fisher_from_views,
 )
@@ -37,10 +38,12 @@ __all__ = [
     "PoolEnvelope",
     "ProxyPsi",
     "ascend",
+    "exact_psi_fn",
     "information_weights",
     "observation_rates",
     "optimize_anchor",
     "pick_occluders",
+    "prior_floor",
     "typical_fisher_from_h_acc",
     "typical_fisher_from_views",
 ]

@@ -37,7 +37,7 @@ from .fitting import (
 )
 from .proxy import ProxyPsi, pick_occluders
 
-__all__ = ["AnchorResult", "ascend", "optimize_anchor"]
+__all__ = ["AnchorResult", "ascend", "exact_psi_fn", "optimize_anchor"]
 
 
 @dataclass
@@ -175,6 +175,8 @@ def optimize_anchor(
     typical: dict[str, Tensor] | None = None,
     generator: torch.Generator | None = None,
     acquired: Tensor | None = None,
+    lam: float | None = None,
+    background: Tensor | None = None,
 ) -> AnchorResult:
     """Find the anchor T* = argmax psi(T) (see the module docstring).
 
@@ -192,6 +194,9 @@ def optimize_anchor(
         generator: seeds the importance sampling.
         acquired: poses of the acquired views [A, 4, 4], which the ``"fitted"`` model is
             fitted over (without any, the ``"typical"`` model is used).
+        lam: the lambda in ``h_acc`` (None: estimated, see ``fitting.prior_floor``).
+        background: the background colour [3] Hhat's Fisher was rendered with (the exact
+            psi renders with it too; None: black).
     """
     config = validate_config(AnchorConfig, config)
     timings: dict[str, float] = {}
@@ -223,7 +228,7 @@ def optimize_anchor(
     )
     if fitted:
         assert acquired is not None
-        fit = observation_rates(gmap, h_acc, acquired, prox_intr, fields, **common)
+        fit = observation_rates(gmap, h_acc, acquired, prox_intr, fields, lam=lam, **common)
         c = fit.slots * torch.log1p(fit.rate * fit.typical)
         proxy = ProxyPsi.build(
             gmap, c, prox_intr, num_samples=config.num_gaussians, rate=fit.rate,
@@ -235,7 +240,7 @@ def optimize_anchor(
         if typical is not None:
             extra["typical_source"] = "given"
         else:
-            typical = typical_fisher_from_h_acc(h_acc, num_acquired, fields)
+            typical = typical_fisher_from_h_acc(h_acc, num_acquired, fields, lam=lam)
             extra["typical_source"] = "h_acc"
         c = information_weights(h_acc, typical, fields)
         proxy = ProxyPsi.build(gmap, c, prox_intr, num_samples=config.num_gaussians, **common)
@@ -256,7 +261,7 @@ def optimize_anchor(
             proxy, starts, config=config, envelope=envelope, radius=radius, batched=True
         )
     else:
-        exact = _exact_psi_fn(gmap, h_acc, intrinsics, config, fields)
+        exact = exact_psi_fn(gmap, h_acc, intrinsics, config, fields, background=background)
         poses, vals, traces, evals = ascend(
             exact, starts, config=config, envelope=envelope, radius=radius, batched=False
         )
@@ -277,14 +282,18 @@ def optimize_anchor(
     )
 
 
-def _exact_psi_fn(
+def exact_psi_fn(
     gmap: GaussianMap,
     h_acc: dict[str, Tensor],
     intrinsics: Intrinsics,
     config: AnchorConfig,
     fields: tuple[str, ...],
+    *,
+    background: Tensor | None = None,
 ) -> Callable[[Tensor], Tensor]:
-    """psi(T) = trace_surrogate(fisher_diag(gmap, camera(T)), h_acc) at reduced resolution."""
+    """psi(T) = trace_surrogate(fisher_diag(gmap, camera(T)), h_acc) at reduced resolution
+    (``config.resolution``, default 64 pixels wide), rendered on ``background`` (the one Hhat
+    was computed with); poses [B, 4, 4] -> [B], differentiable in the poses."""
     width = config.resolution or 64
     height = max(1, round(width * intrinsics.height / intrinsics.width))
     small = intrinsics.scaled(width, height)
@@ -294,8 +303,8 @@ def _exact_psi_fn(
         out = []
         for pose in c2w:
             cam = Camera(c2w=pose, intrinsics=small)
-            fd = fisher_diag(gmap, cam)
-            out.append(trace_surrogate({k: fd[k] for k in fields}, h_sel))
+            fd = fisher_diag(gmap, cam, fields=fields, background=background)
+            out.append(trace_surrogate(fd, h_sel))
         return torch.stack([torch.as_tensor(o) for o in out])
 
     return psi

@@ -24,27 +24,37 @@ __all__ = [
     "FittedRates",
     "information_weights",
     "observation_rates",
+    "prior_floor",
     "typical_fisher_from_h_acc",
     "typical_fisher_from_views",
 ]
 
 
+def prior_floor(flat: Tensor, lam: float | None) -> Tensor:
+    """lambda per parameter slot [1, P] of Hhat rows [N, P]: ``lam`` when known, else each
+    slot's minimum over Gaussians (exact when some Gaussian is seen by no acquired view)."""
+    if lam is not None:
+        return torch.full_like(flat[:1], float(lam))
+    return flat.amin(dim=0, keepdim=True)
+
+
 def typical_fisher_from_h_acc(
-    h_acc: dict[str, Tensor], num_views: int, fields: tuple[str, ...], max_rows: int = 4096
+    h_acc: dict[str, Tensor], num_views: int, fields: tuple[str, ...], max_rows: int = 4096,
+    lam: float | None = None,
 ) -> dict[str, Tensor]:
     """m_q per parameter slot from Hhat alone: median over Gaussians of (Hhat - lambda) / A.
 
-    lambda is taken as each slot's minimum over Gaussians (Hhat = sum H_v + lambda, and some
-    Gaussian is seen by no acquired view in practice); only Gaussians with Hhat above lambda
-    enter the median, taken over at most ``max_rows`` Gaussians (a fixed stride).
-    ``num_views`` A >= 1 is the number of acquired views.
+    ``lam``: the lambda in Hhat (None: each slot's minimum over Gaussians, see
+    :func:`prior_floor`); only Gaussians with Hhat above lambda enter the median, taken over
+    at most ``max_rows`` Gaussians (a fixed stride). ``num_views`` A >= 1 is the number of
+    acquired views.
     """
     out: dict[str, Tensor] = {}
     a = max(int(num_views), 1)
     for name in fields:
         h = h_acc[name].detach()
         flat = h.reshape(h.shape[0], -1)
-        base = flat.amin(dim=0, keepdim=True)
+        base = prior_floor(flat, lam)
         if flat.shape[0] > max_rows:  # a fixed stride subsample: the median hardly moves
             flat = flat[:: -(-flat.shape[0] // max_rows)]
         excess = flat - base
@@ -93,6 +103,7 @@ def observation_rates(
     generator: torch.Generator | None = None,
     occluders: Tensor | None = None,
     chunk: int = 16,
+    lam: float | None = None,
 ) -> FittedRates:
     """Fit the proxy's observation model to Hhat over the acquired poses [A, 4, 4].
 
@@ -110,8 +121,9 @@ def observation_rates(
     Gaussian the proxy did not see from any acquired pose (W_i below a quarter of the typical
     term f) counts as seen by a quarter of a typical view, ``a_i = 4 / f``: new, but bounded
     (the exact ``log(1 + H / lambda)`` of such a Gaussian depends on the arbitrary lambda).
-    lambda_q is each slot's minimum over Gaussians (as ``typical_fisher_from_h_acc``).
-    ``occluders``: the z-buffer's occluder means (the same set as the proxy it serves).
+    ``lam``: lambda_q, the prior in Hhat (None: each slot's minimum over Gaussians,
+    :func:`prior_floor`). ``occluders``: the z-buffer's occluder means (the same set as the
+    proxy it serves).
     """
     n = gmap.num_gaussians
     dt = gmap.dtype
@@ -143,8 +155,8 @@ def observation_rates(
     slots = 0
     for name in fields:
         flat = h_acc[name].detach().to(dt).reshape(n, -1)
-        lam = flat.amin(dim=0, keepdim=True)
-        r_sum += ((flat - lam) / flat.clamp_min(1e-30)).clamp(0, 1).sum(1)
+        prior = prior_floor(flat, lam)
+        r_sum += ((flat - prior) / flat.clamp_min(1e-30)).clamp(0, 1).sum(1)
         slots += flat.shape[1]
     r = r_sum / max(slots, 1)
     rate = torch.where(w_sum >= floor, r / w_sum.clamp_min(floor), torch.full_like(r, 1 / floor))

@@ -1,8 +1,10 @@
 """The selection methods, one module each, registered by name (see :mod:`.base`).
 
 - ``random`` (:mod:`.random`): a seeded uniform choice.
-- ``fisherrf`` (:mod:`.fisherrf`): the exact EIG of every eligible candidate, argmax.
+- ``fisherrf`` (:mod:`.fisherrf`): FisherRF as its code computes it (trace score against a
+  Hessian rebuilt from the acquired views), argmax.
 - ``cover`` (:mod:`.cover`): COVER's coverage score, argmin.
+- ``full_eig`` (:mod:`.full_eig`): the exact diagonal EIG of every eligible candidate, argmax.
 - ``agile``, ``agile_plus`` (:mod:`.agile`): the anchor, the coverage matrix, the leverage
   shortlist; its first, or its best under the exact EIG.
 
@@ -35,7 +37,7 @@ __all__ = [
     "register",
 ]
 
-MODULES: tuple[str, ...] = ("random", "fisherrf", "cover", "agile")
+MODULES: tuple[str, ...] = ("random", "fisherrf", "cover", "full_eig", "agile")
 """The method modules, imported (so registered) in this order: the order methods are listed in."""
 
 for _module in MODULES:

@@ -77,6 +77,8 @@ def _anchor(ctx: SelectionContext, lat: dict[str, float], out: dict[str, Any]) -
             typical=typical,
             generator=ctx.generator(2),
             acquired=acquired.to(dt) if acquired is not None else None,
+            lam=ctx.lam,
+            background=ctx.background,
         )
         out["state"]["anchor_c2w"] = res.c2w.clone()
     out["psi_trace"] = list(res.psi_trace)

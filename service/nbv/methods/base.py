@@ -32,8 +32,9 @@ __all__ = [
     "register",
 ]
 
-STAGES: tuple[str, ...] = ("anchor", "scoring", "leverage", "rerank", "total")
-"""The latency stages of a selection (milliseconds; a method fills the ones it has)."""
+STAGES: tuple[str, ...] = ("information", "anchor", "scoring", "leverage", "rerank", "total")
+"""The latency stages of a selection (milliseconds; a method fills the ones it has):
+``information`` is information a method rebuilds for itself (FisherRF's H_train)."""
 
 
 def seeded_generator(seed: int, event: int, salt: int) -> torch.Generator:
@@ -62,6 +63,7 @@ class SelectionContext:
         radius: the pool's median camera distance from ``aim``.
         rot_weight: world units per radian of the SE(3) distance.
         background: background colour [3] of the Fisher renders, or None (black).
+        lam: the lambda included in ``h_acc``, or None (unknown: estimated where needed).
     """
 
     gmap: GaussianMap
@@ -78,6 +80,7 @@ class SelectionContext:
     radius: float
     rot_weight: float
     background: Tensor | None
+    lam: float | None = None
 
     @property
     def eligible_index(self) -> Tensor:

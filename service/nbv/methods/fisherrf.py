@@ -1,24 +1,190 @@
-"""The full-pool expected information gain: phi(v) = sum_q log(1 + H_v,qq / Hhat_qq) of every
-eligible candidate (one exact ``fisher_diag`` pass each), argmax."""
+"""FisherRF (Jiang, Lei and Daniilidis, ECCV 2024) as its public code computes it.
+
+Point by point, following JiangWenPL/FisherRF:
+
+- The acquisition score is a trace, acq(v) = Σ_q H_v,q / (H_train,q + λ), argmax over the
+  candidates (``active/H_reg.py``, ``HRegSelector.select_single_view``: ``I_train =
+  reciprocal(H_train + reg_lambda)``, ``acq = sum(cur_H * I_train)``).
+- λ = 1e-6 (``active_train.py``, ``--reg_lambda``), :class:`FisherRFConfig.reg_lambda`.
+- The parameter blocks are xyz, f_dc, f_rest, scaling and opacity: rotation is left out
+  (``active_train.py``, ``--filter_out_grad rotation``; ``HRegSelector.__init__``).
+- H_train is rebuilt at every selection from all training views on the current map
+  (``HRegSelector.nbvs``: a loop over ``scene.getTrainCameras()``); here the acquired poses.
+- A view's H comes from one backward pass of the render with an all-ones output gradient
+  (``nbvs``: ``pred_img.backward(gradient=torch.ones_like(pred_img))`` through
+  ``modified_render``) in which the forked rasterizer squares each pixel's contribution
+  before accumulating it (``diff/cuda_rasterizer/backward.cu``, the fused ``renderCUDA``
+  backward with ``acc_func = atomicAddSquare``). Read from that kernel:
+
+  * one residual per pixel: the output gradient is 1 on every channel, so the per-pixel
+    gradient is that of the channel sum Σ_c C_pc (``dL_dalpha`` sums the channels before
+    anything is squared);
+  * it is taken all the way to the renderer's inputs inside the pixel loop (3D means, SH
+    coefficients, the activated scales s = exp(log s), the rotation, the activated opacity
+    σ) and squared there;
+  * α's derivatives use o·G whether or not α was clamped at 0.99 (``dL_dG = con_o.w *
+    dL_dalpha``; the reference rasterizer does the same);
+  * torch's autograd then chains the squared sums from the activated to the stored
+    parameters linearly, as any gradient: H_logscale = H_s · s and H_logit = H_σ · σ(1 - σ).
+
+``fisherrf_hessian`` evaluates exactly that with the one-pass moment machinery of
+:mod:`agilegs.service.nbv.information` (channel-summed residuals); ``fisherrf_hessian_bruteforce``
+is the slow reference (one autograd backward per pixel). The rotation block is not offered:
+its kernel gradient is taken w.r.t. the unnormalised quaternion, which our projection (it
+normalises) does not expose; FisherRF leaves it out by default anyway.
+"""
 
 from __future__ import annotations
 
-from ..information import eig_scores
+from collections.abc import Iterable
+
+import torch
+from torch import Tensor
+
+from agilegs.schemas.config import FISHERRF_FIELDS
+
+from ..camera import Camera
+from ..gaussians import GaussianMap
+from ..information import projection_jacobians, screen_second_moments
+from ..rasterize import render
 from .base import MethodResult, SelectionContext, register, timed
 from .common import argmax_first
+
+__all__ = ["FisherRFMethod", "fisherrf_hessian", "fisherrf_hessian_bruteforce"]
+
+
+def _fields(fields: Iterable[str] | None) -> tuple[str, ...]:
+    want = tuple(FISHERRF_FIELDS if fields is None else fields)
+    for f in want:
+        if f not in FISHERRF_FIELDS:
+            raise ValueError(f"fields: FisherRF's Hessian covers {FISHERRF_FIELDS}, got {f!r}")
+    return want
+
+
+def fisherrf_hessian(
+    gmap: GaussianMap,
+    camera: Camera,
+    *,
+    background: Tensor | None = None,
+    fields: Iterable[str] | None = None,
+    tile_size: int = 8,
+    near: float = 0.01,
+    max_elements: int = 1 << 20,
+) -> dict[str, Tensor]:
+    """FisherRF's diagonal Hessian of one view, per stored parameter block.
+
+    H_θ = Σ_p (∂(Σ_c C_pc)/∂a(θ))² · a'(θ) with a the activation the renderer applies
+    (identity for means and SH, exp for the log-scales, sigmoid for the opacity logits).
+
+    Args:
+        gmap: the map (N Gaussians).
+        camera: the view.
+        background: the render's background colour [3] (None: black).
+        fields: blocks to return (default: means, log_scales, opacity_logits, sh).
+
+    Returns:
+        {field: H, the field's shape}.
+    """
+    want = _fields(fields)
+    g = gmap.detach()
+    with torch.no_grad():
+        m = screen_second_moments(g, camera, background=background, tile_size=tile_size,
+                                  near=near, max_elements=max_elements, residuals="pixels")
+    jac_fields = tuple(f for f in want if f != "opacity_logits")
+    jac = projection_jacobians(g, camera, jac_fields, near=near) if jac_fields else {}
+    out: dict[str, Tensor] = {}
+    with torch.no_grad():
+        for f in want:
+            shape = getattr(g, f).shape
+            if f == "opacity_logits":
+                # the opacity reaches the image through σ only: ∂s/∂σ is the unit vector
+                sig = torch.sigmoid(g.opacity_logits)
+                out[f] = m[:, 5, 5] * sig * (1.0 - sig)
+                continue
+            h = torch.einsum("nap,nab,nbp->np", jac[f], m, jac[f])  # in the stored parameters
+            if f == "log_scales":  # J_logs = s J_s: H_s · s = (J_logsᵀ M J_logs) / s
+                h = h / torch.exp(g.log_scales).clamp_min(1e-30)
+            out[f] = h.reshape(shape)
+    return out
+
+
+def fisherrf_hessian_bruteforce(
+    gmap: GaussianMap,
+    camera: Camera,
+    *,
+    background: Tensor | None = None,
+    tile_size: int = 8,
+) -> dict[str, Tensor]:
+    """Reference: one autograd backward of Σ_c C_pc per pixel w.r.t. the activated
+    parameters, squared and summed, then chained linearly to the stored ones (slow).
+
+    α's 0.99 clamp passes no derivative here (the render's autograd): compare with
+    :func:`fisherrf_hessian` on maps whose opacities stay below 0.99.
+    """
+    g = gmap.detach()
+    act = {
+        "means": g.means.clone().requires_grad_(True),
+        "scales": torch.exp(g.log_scales).requires_grad_(True),
+        "opacity": torch.sigmoid(g.opacity_logits).requires_grad_(True),
+        "sh": g.sh.clone().requires_grad_(True),
+    }
+    rebuilt = GaussianMap(
+        means=act["means"],
+        log_scales=torch.log(act["scales"]),
+        quats=g.quats,
+        opacity_logits=torch.logit(act["opacity"]),
+        sh=act["sh"],
+    )
+    rgb = render(rebuilt, camera, background=background, tile_size=tile_size,
+                 backward="autograd").rgb
+    per_pixel = rgb.sum(-1).reshape(-1)
+    acc = {k: torch.zeros_like(v) for k, v in act.items()}
+    names = list(act)
+    for i in range(per_pixel.numel()):
+        if not per_pixel[i].requires_grad:
+            continue
+        grads = torch.autograd.grad(per_pixel[i], [act[k] for k in names], retain_graph=True,
+                                    allow_unused=True)
+        for k, gr in zip(names, grads):
+            if gr is not None:
+                acc[k] += gr * gr
+    s = act["scales"].detach()
+    sig = act["opacity"].detach()
+    return {
+        "means": acc["means"],
+        "log_scales": acc["scales"] * s,
+        "opacity_logits": acc["opacity"] * sig * (1.0 - sig),
+        "sh": acc["sh"],
+    }
 
 
 class FisherRFMethod:
     name = "fisherrf"
-    uses_information = True
+    uses_information = False  # it rebuilds its own H_train from the acquired views
 
     def __call__(self, ctx: SelectionContext) -> MethodResult:
+        cfg = ctx.config.fisherrf
+        fields = tuple(cfg.fields)
+        g = ctx.gmap.detach()
         lat: dict[str, float] = {}
+        acquired = ctx.acquired if ctx.acquired is not None else torch.zeros(0, 4, 4)
+        with timed(lat, "information"):
+            h_train = {f: torch.zeros_like(getattr(g, f)) for f in fields}
+            for pose in acquired.detach().to(g.dtype):
+                hv = fisherrf_hessian(g, Camera(c2w=pose, intrinsics=ctx.intrinsics),
+                                      background=ctx.background, fields=fields)
+                for f in fields:
+                    h_train[f] += hv[f]
+            inv = {f: (h_train[f] + cfg.reg_lambda).reciprocal() for f in fields}
         with timed(lat, "scoring"):
-            phi = eig_scores(ctx.gmap, ctx.h_acc, ctx.eligible_poses, ctx.intrinsics,
-                             fields=ctx.fields, background=ctx.background)
-        scores = {v: float(p) for v, p in zip(ctx.eligible, phi)}
-        return MethodResult(index=ctx.eligible[argmax_first(phi)], scores=scores, latency_ms=lat)
+            acq = torch.empty(len(ctx.eligible), dtype=torch.float64)
+            for i, pose in enumerate(ctx.eligible_poses):
+                hv = fisherrf_hessian(g, Camera(c2w=pose, intrinsics=ctx.intrinsics),
+                                      background=ctx.background, fields=fields)
+                acq[i] = sum(float((hv[f] * inv[f]).sum(dtype=torch.float64)) for f in fields)
+        scores = {v: float(a) for v, a in zip(ctx.eligible, acq)}
+        return MethodResult(index=ctx.eligible[argmax_first(acq)], scores=scores,
+                            latency_ms=lat, details={"training_views": int(acquired.shape[0])})
 
 
 register(FisherRFMethod())

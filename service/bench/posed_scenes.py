@@ -1,0 +1,218 @@
+"""Posed image sets as benchmark scenes: NeRF-synthetic ``transforms.json`` folders and COLMAP
+models (see :mod:`agilegs.service.bench.scenes` for the conventions)."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from .scene_model import (
+    BenchScene,
+    SceneKind,
+    SceneOptions,
+    axes_crossing,
+    colmap_model_dir,
+    evenly_spaced,
+    scene_name,
+    up_from_poses,
+)
+
+log = logging.getLogger(__name__)
+
+__all__ = ["load_colmap_scene", "load_transforms_scene"]
+
+
+def _split_views(views: list[Any], opt: SceneOptions) -> tuple[list[Any], list[Any]]:
+    test = [v for i, v in enumerate(views) if i % opt.test_every == 0]
+    pool = [v for i, v in enumerate(views) if i % opt.test_every != 0]
+    return pool, test
+
+
+def _thin(views: list[Any], k: int) -> list[Any]:
+    return [views[i] for i in evenly_spaced(len(views), k)]
+
+
+def _posed_scene(
+    name: str,
+    kind: SceneKind,
+    source: str,
+    pool_views: list[Any],
+    test_views: list[Any],
+    opt: SceneOptions,
+    init_points: Tensor | None,
+    init_colors: Tensor | None,
+    info: dict[str, Any],
+) -> BenchScene:
+    total_pool, total_test = len(pool_views), len(test_views)
+    pool_views = _thin(pool_views, opt.pool_size)
+    test_views = _thin(test_views, opt.test_count)
+    if not pool_views or not test_views:
+        raise ValueError(f"scene {source}: needs at least one pool and one test frame, got "
+                         f"{len(pool_views)} and {len(test_views)}")
+    intr = pool_views[0].camera.intrinsics
+    for v in pool_views[1:]:
+        o = v.camera.intrinsics
+        if (o.width, o.height) != (intr.width, intr.height) or abs(o.fx - intr.fx) > 0.01 * intr.fx:
+            log.warning("scene %s: pool cameras differ in intrinsics; the selectors use the "
+                        "first one's (%s)", source, intr)
+            break
+    pool_poses = torch.stack([v.camera.c2w.float() for v in pool_views])
+    test_poses = torch.stack([v.camera.c2w.float() for v in test_views])
+    h, w = intr.height, intr.width
+
+    def image_of(v: Any) -> Tensor:
+        img = v.image
+        if img.shape[:2] != (h, w):
+            img = torch.nn.functional.interpolate(
+                img.permute(2, 0, 1)[None], size=(h, w), mode="bilinear", align_corners=False
+            )[0].permute(1, 2, 0)
+        return img.float().clamp(0, 1)
+
+    pool_images = torch.stack([image_of(v) for v in pool_views])
+    pool_depths = None
+    if all(getattr(v, "depth", None) is not None for v in pool_views):
+        pool_depths = torch.stack([_resized_depth(v.depth, h, w) for v in pool_views])
+        init_points = init_colors = None  # the mapper back-projects the depth maps
+        info = dict(info, init="depth")
+    test_images = torch.stack([v.image.float().clamp(0, 1) for v in test_views]) if all(
+        v.image.shape[:2] == test_views[0].image.shape[:2] for v in test_views
+    ) else None
+    test_intr = [v.camera.intrinsics for v in test_views]
+    if test_images is None:  # mixed sizes: bring every test view to the pool's size
+        test_images = torch.stack([image_of(v) for v in test_views])
+        test_intr = [v.camera.intrinsics.scaled(w, h) for v in test_views]
+    center = axes_crossing(torch.cat([pool_poses, test_poses]))
+    radius = float((pool_poses[:, :3, 3] - center).norm(dim=1).median())
+    info = dict(info, pool_frames=total_pool, test_frames=total_test,
+                pool_used=len(pool_views), test_used=len(test_views), type="posed")
+    return BenchScene(
+        name=name,
+        kind=kind,
+        source=source,
+        intrinsics=intr,
+        pool_poses=pool_poses,
+        pool_images=pool_images,
+        pool_depths=pool_depths,
+        test_poses=test_poses,
+        test_images=test_images,
+        test_intrinsics=test_intr,
+        background=opt.background,
+        init_points=init_points,
+        init_colors=init_colors,
+        center=center,
+        radius=radius,
+        up=up_from_poses(pool_poses),
+        info=info,
+    )
+
+
+def _resized_depth(depth: Tensor, h: int, w: int) -> Tensor:
+    """A depth map [H', W'] at [h, w] (nearest: no depth is blended across an edge)."""
+    d = depth.float()
+    if d.shape == (h, w):
+        return d
+    return torch.nn.functional.interpolate(d[None, None], size=(h, w), mode="nearest")[0, 0]
+
+
+def _random_points(poses: Tensor, opt: SceneOptions) -> tuple[Tensor, Tensor]:
+    """Uniform random points in a ball around the cameras' aim (see the module docstring)."""
+    center = axes_crossing(poses)
+    r = opt.random_init_radius * float((poses[:, :3, 3] - center).norm(dim=1).median())
+    g = torch.Generator().manual_seed(opt.seed)
+    n = opt.random_init_points
+    d = torch.randn(n, 3, generator=g, dtype=torch.float64)
+    d = d / d.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    rad = r * torch.rand(n, 1, generator=g, dtype=torch.float64) ** (1.0 / 3.0)
+    pts = (center.double() + d * rad).float()
+    cols = torch.rand(n, 3, generator=g)
+    return pts, cols
+
+
+def load_transforms_scene(path: Path, opt: SceneOptions) -> BenchScene:
+    from agilegs.service.data.transforms import load_transforms_json
+
+    folder = path.parent if path.is_file() else path
+    if path.is_file():
+        files = {"all": path}
+    elif (folder / "transforms.json").is_file():
+        files = {"all": folder / "transforms.json"}
+    else:
+        files = {"train": folder / "transforms_train.json"}
+        if (folder / "transforms_test.json").is_file():
+            files["test"] = folder / "transforms_test.json"
+    first = next(iter(files.values()))
+    # the downscale that brings the first frame to the target width
+    probe = load_transforms_json(first, background=opt.background, load_images=False)
+    if not probe:
+        raise ValueError(f"scene {first}: no frames")
+    scale = probe[0].camera.width / opt.width
+    load = {k: load_transforms_json(f, background=opt.background, downscale=scale)
+            for k, f in files.items()}
+    if "all" in load:
+        pool_views, test_views = _split_views(load["all"], opt)
+    elif "test" in load:
+        pool_views, test_views = load["train"], load["test"]
+    else:
+        pool_views, test_views = _split_views(load["train"], opt)
+    poses = torch.stack([v.camera.c2w.float() for v in pool_views + test_views])
+    pts, cols = _random_points(poses, opt)
+    return _posed_scene(scene_name(folder), "transforms", str(first), pool_views, test_views,
+                        opt, pts, cols, {"init": "random"})
+
+
+def _images_dir(root: Path, target_width: int) -> Path | None:
+    from PIL import Image
+
+    cands = []
+    for d in sorted(root.glob("images*")):
+        if not d.is_dir():
+            continue
+        first = next((f for f in sorted(d.iterdir()) if f.is_file()), None)
+        if first is None:
+            continue
+        try:
+            with Image.open(first) as im:
+                cands.append((im.size[0], d))
+        except OSError:
+            continue
+    if not cands:
+        return None
+    big_enough = [c for c in cands if c[0] >= target_width]
+    return (min(big_enough, key=lambda c: c[0]) if big_enough else max(cands,
+                                                                        key=lambda c: c[0]))[1]
+
+
+def load_colmap_scene(path: Path, opt: SceneOptions) -> BenchScene:
+    from agilegs.service.data.colmap import load_colmap
+
+    model = colmap_model_dir(path)
+    assert model is not None
+    images = _images_dir(path, opt.width)
+    if images is None and model == path:  # the model folder itself: images beside it
+        images = _images_dir(path.parent, opt.width)
+    if images is None:
+        raise ValueError(f"scene {path}: no images folder (images, images_2, ...) next to the "
+                         f"COLMAP model {model}")
+    probe, _, _ = load_colmap(model, None)
+    if not probe:
+        raise ValueError(f"scene {path}: the COLMAP model has no images")
+    scale = probe[0].camera.width / opt.width
+    views, points, colors = load_colmap(model, images, downscale=scale,
+                                        background=opt.background)
+    pool_views, test_views = _split_views(views, opt)
+    if points.shape[0] == 0:
+        log.warning("scene %s: the COLMAP model has no 3D points; random initial points",
+                    path)
+        points, colors = _random_points(
+            torch.stack([v.camera.c2w.float() for v in views]), opt)
+    elif opt.max_init_points is not None and points.shape[0] > opt.max_init_points:
+        g = torch.Generator().manual_seed(opt.seed)
+        idx = torch.randperm(points.shape[0], generator=g)[: opt.max_init_points].sort().values
+        points, colors = points[idx], colors[idx]
+    return _posed_scene(scene_name(path), "colmap", str(model), pool_views, test_views, opt,
+                        points, colors, {"init": "sparse", "images_dir": str(images),
+                                         "sparse_points": int(points.shape[0])})

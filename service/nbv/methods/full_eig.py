@@ -1,0 +1,25 @@
+"""The full-pool expected information gain: phi(v) = sum_q log(1 + H_v,qq / Hhat_qq) of every
+eligible candidate (one exact ``fisher_diag`` pass each), argmax. The ceiling AGILE-GS+
+approximates: AGILE-GS+ reranks its shortlist by this same score."""
+
+from __future__ import annotations
+
+from ..information import eig_scores
+from .base import MethodResult, SelectionContext, register, timed
+from .common import argmax_first
+
+
+class FullEIGMethod:
+    name = "full_eig"
+    uses_information = True
+
+    def __call__(self, ctx: SelectionContext) -> MethodResult:
+        lat: dict[str, float] = {}
+        with timed(lat, "scoring"):
+            phi = eig_scores(ctx.gmap, ctx.h_acc, ctx.eligible_poses, ctx.intrinsics,
+                             fields=ctx.fields, background=ctx.background)
+        scores = {v: float(p) for v, p in zip(ctx.eligible, phi)}
+        return MethodResult(index=ctx.eligible[argmax_first(phi)], scores=scores, latency_ms=lat)
+
+
+register(FullEIGMethod())
