@@ -3,7 +3,7 @@
 The progressive protocol (``bench run``) is driven by one method (``--driver``, Random by
 default, so that every configuration sees the same maps); before each of its selections,
 Hhat is formed from the acquired views on the current map, the exact phi of every remaining
-candidate is computed (FisherRF's scores), and each anchor configuration selects on the same
+candidate is computed (``full_eig``'s scores), and each anchor configuration selects on the same
 inputs. Reported per configuration, per event and as means over all events and scenes:
 
 - ``spearman``: rank correlation of the proxy psi of every remaining candidate with phi;
@@ -94,13 +94,13 @@ def check_event(
     intr, cfg0 = ctx["intrinsics"], ctx["config"]
     cams = [Camera(c2w=p, intrinsics=intr) for p in acq]
     h_acc = accumulated_information(gmap, cams, lam, ctx["background"])
-    fr = select("fisherrf", gmap, h_acc, cands, intr, config=cfg0, acquired=acq)
+    fr = select("full_eig", gmap, h_acc, cands, intr, config=cfg0, acquired=acq, lam=lam)
     phi = torch.tensor([fr.scores[i] for i in range(cands.shape[0])], dtype=torch.float64)
     centre, _ = scene_center_radius(gmap.means.detach())
     out: dict[str, dict[str, float]] = {}
     for name, variant in configs.items():
         sel = select(variant.method, gmap, h_acc, cands, intr, config=variant.config(cfg0),
-                     acquired=acq, state=states.get(name))
+                     acquired=acq, state=states.get(name), lam=lam)
         states[name] = sel.state
         pool_psi = sel.details.get("pool_proxy_psi") or {}
         psi = torch.tensor([pool_psi.get(i, float("nan")) for i in range(len(phi))],
