@@ -166,13 +166,25 @@ class AnchorConfig:
     envelope_margin: Float = Field(
         default=0.05, description="relative margin on the envelope's radius range and, in "
         "radians, on its elevation range")
-    occluders: NonNegInt = Field(default=2000,
-        description="opaque Gaussians (a seeded subset) forming the proxy's z-buffer (0: no "
-        "occlusion " "test)")
-    occlusion_grid: PosInt = Field(default=48, description="edge of the proxy's z-buffer in cells")
+    visibility: Literal["transmittance", "zbuffer"] = Field(
+        default="transmittance",
+        description="the proxy's visibility of a Gaussian: 'transmittance' (the squared "
+        "transmittance in front of it through the map, as the renderer "
+        "composites, from per-pose deep opacity maps) or 'zbuffer' (the point z-buffer tests "
+        "of occlusion_tests)")
+    transmittance_cells: Annotated[int, Strict(), Field(ge=2)] = Field(
+        default=16, description="screen cells per image side of the deep opacity maps")
+    transmittance_bins: PosInt = Field(
+        default=32, description="depth slices of the deep opacity maps over the map's extent")
+    occluders: NonNegInt = Field(default=4000,
+        description="Gaussians forming the visibility: 'transmittance' draws this many in "
+        "proportion to their optical mass (reweighted; 0: all), 'zbuffer' a seeded subset of "
+        "opaque ones (0: no occlusion test)")
+    occlusion_grid: PosInt = Field(default=48,
+        description="visibility 'zbuffer': edge of the proxy's z-buffer in cells")
     occlusion_tests: OcclusionTests = Field(
         default=COVER_ZBUFFER,
-        description="z-buffer visibility tests, each [cover, tolerance]: every occluder "
+        description="visibility 'zbuffer': the tests, each [cover, tolerance]: every occluder "
         "covers cover x cover cells (odd) and a sample passes when its depth is within "
         "tolerance (relative) of the buffer; visibility is the fraction of tests passed")
     near_fraction: Float = Field(

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 from agilegs.schemas.config import (
+    COVER_ZBUFFER,
     MIXED_ZBUFFER,
     POINT_ZBUFFER,
     PRESETS,
@@ -92,10 +93,12 @@ OPTIONS: dict[str, tuple[str, Callable[[SelectConfig], SelectConfig]]] = {
                 _anchor(model="typical")),
     "start_view": ("the typical model with its value from one Fisher pass",
                    _anchor(model="typical", typical_fisher="start_view")),
-    "point_zbuffer": ("each occluder on its own z-buffer cell, 2% depth tolerance",
-                      _anchor(occlusion_tests=POINT_ZBUFFER)),
-    "mixed_zbuffer": ("the mean of the point and the 3x3 z-buffer tests",
-                      _anchor(occlusion_tests=MIXED_ZBUFFER)),
+    "point_zbuffer": ("z-buffer visibility: each occluder on its own cell, 2% depth tolerance",
+                      _anchor(visibility="zbuffer", occluders=2000, occlusion_tests=POINT_ZBUFFER)),
+    "cover_zbuffer": ("z-buffer visibility: each occluder covers 3x3 cells, 10% tolerance",
+                      _anchor(visibility="zbuffer", occluders=2000, occlusion_tests=COVER_ZBUFFER)),
+    "mixed_zbuffer": ("z-buffer visibility: the mean of the point and the 3x3 tests",
+                      _anchor(visibility="zbuffer", occluders=2000, occlusion_tests=MIXED_ZBUFFER)),
     "unconditioned": ("the leverage greedy starts from lambda_G I (not the acquired rows)",
                       _scoring(condition_on_acquired=False)),
 }

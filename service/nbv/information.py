@@ -10,8 +10,9 @@ pass (paper eqs. hessian-def and diag-fisher). How:
    M_i = Σ_pc g_pc g_pcᵀ is a 9x9 second-moment matrix per Gaussian.
 2. g_pc has closed form: the colour entry is w = Tα on channel c, and the geometric entries are
    (∂C_c/∂α_i)·∂α/∂(mean2d, conic, opacity), where ∂α/∂· is α times a polynomial of degree ≤ 2
-   in the pixel offset (dx, dy). So M_i is assembled from pixel moments of degree ≤ 4, summed
-   per tile with one small matmul.
+   in the pixel offset (dx, dy). So M_i = A_i Φ_i A_iᵀ with Φ_i the f-weighted outer products
+   of the monomials φ = (1, dx, dy, dx², dxdy, dy²) summed over the Gaussian's composited
+   pairs (one scatter-add over the rasterizer's pair list).
 3. ∂s_i/∂θ_i (the projection Jacobian) comes from autograd on the per-Gaussian projection
    (one backward per screen attribute; Gaussians are independent, so summing over them and
    differentiating gives every Gaussian's own row).
@@ -27,7 +28,6 @@ Information state Ĥ is a dict keyed by the field names, each the field's shape;
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
-from math import comb
 from typing import Literal
 
 import torch
@@ -37,50 +37,13 @@ from agilegs.service.nbv.camera import Camera, Intrinsics
 from agilegs.service.nbv.gaussians import FIELD_NAMES, GaussianMap
 from agilegs.service.nbv.projection import Projected, project_map
 from agilegs.service.nbv.rasterize import (
-    bin_gaussians,
-    composite_chunk,
+    composite_pairs,
     dcolor_dalpha,
-    gather_lists,
-    pixel_monomials,
+    pairs_of,
     render,
-    tile_pixels,
 )
 
 Residuals = Literal["channels", "pixels"]
-
-# monomials x^i y^j with i + j <= 4 in the graded order of ``pixel_monomials``
-_MONOS4: list[tuple[int, int]] = [(i, k - i) for k in range(5) for i in range(k, -1, -1)]
-_MONO_INDEX = {m: n for n, m in enumerate(_MONOS4)}
-# the basis φ = (1, dx, dy, dx², dxdy, dy²) of ∂α/∂screen / α
-_PHI: list[tuple[int, int]] = [(0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2)]
-
-
-def _central_moments(raw: Tensor, m: Tensor, monos: list[tuple[int, int]]) -> Tensor:
-    """Σ f (x-m_x)^i (y-m_y)^j from raw moments Σ f x^a y^b [.., M] (binomial expansion).
-
-    Args:
-        raw: raw moments in the order of ``monos`` [..., M].
-        m: centres [..., 2].
-        monos: exponent pairs (i, j), closed under lowering either exponent.
-    """
-    index = {mono: n for n, mono in enumerate(monos)}
-    mx, my = -m[..., 0], -m[..., 1]
-    deg = max(i + j for i, j in monos)
-    px = [torch.ones_like(mx)]
-    py = [torch.ones_like(my)]
-    for _ in range(deg):
-        px.append(px[-1] * mx)
-        py.append(py[-1] * my)
-    out = []
-    for i, j in monos:
-        acc = torch.zeros_like(mx)
-        for a in range(i + 1):
-            for b in range(j + 1):
-                coef = comb(i, a) * comb(j, b)
-                acc = acc + coef * px[i - a] * py[j - b] * raw[..., index[(a, b)]]
-        out.append(acc)
-    return torch.stack(out, dim=-1)
-
 
 def _screen_basis(con: Tensor, op: Tensor) -> Tensor:
     """A [.., 6, 6] with ∂α/∂(mx, my, a, b, c, o) = α · A φ, φ = (1, dx, dy, dx², dxdy, dy²)."""
@@ -105,7 +68,7 @@ def screen_second_moments(
     background: Tensor | None = None,
     tile_size: int = 8,
     near: float = 0.01,
-    max_elements: int = 1 << 20,
+    max_elements: int = 1 << 22,
     residuals: Residuals = "channels",
 ) -> Tensor:
     """M_i = Σ_r g_r g_rᵀ over the screen attributes of every Gaussian [N, 9, 9].
@@ -126,61 +89,33 @@ def screen_second_moments(
         else torch.as_tensor(background, dtype=dt, device=dev).reshape(3)
     )
     n = gmap.num_gaussians
-    binning = bin_gaussians(
-        proj.means2d, proj.radii, proj.depths, camera.width, camera.height, tile_size
-    )
+    pairs = pairs_of(proj, camera.width, camera.height, tile_size, max_elements)
     # screen quantities: detached from the Gaussian parameters (their Jacobian is chained
     # separately) but still attached to the camera pose when it requires grad
-    m2d_all = proj.means2d
-    con_all = proj.conics
-    op_all = proj.opacities
-    col_all = proj.colors
-    z_all = proj.depths
-    mgg = torch.zeros(n, 6, 6, dtype=dt, device=dev)
-    mgc = torch.zeros(n, 3, 6, dtype=dt, device=dev)
-    mcc = torch.zeros(n, dtype=dt, device=dev)
-    for tile_ids, lmax in binning.chunks(max_elements):
-        local, centres, flat = tile_pixels(binning, tile_ids, dt)
-        ids, valid = gather_lists(binning, tile_ids, lmax)
-        m2d = m2d_all[ids] - centres[:, None, :]
-        con, op, col = con_all[ids], op_all[ids], col_all[ids]
-        t = composite_chunk(local, m2d, con, op, col, z_all[ids], valid, bg)
-        inside = (flat >= 0).to(dt)[..., None]  # [Tc, P, 1]
-        dcda = dcolor_dalpha(t, col, bg)  # [Tc, P, L, 3]
-        w = t.weight * inside
-        if residuals == "channels":
-            al_ok = torch.where(t.raw_ok, t.alpha, torch.zeros_like(t.alpha)) * inside
-            f4 = (dcda * dcda).sum(-1) * al_ok * al_ok  # [Tc, P, L]
-            f2 = dcda * (w * al_ok)[..., None]  # [Tc, P, L, 3]
-        else:
-            # ∂α/∂screen of o·G whether or not α was clamped at 0.99
-            al_ok = torch.where(t.composited, t.raw, torch.zeros_like(t.raw)) * inside
-            dsum = dcda.sum(-1)
-            f4 = dsum * dsum * al_ok * al_ok
-            f2 = (dsum * w * al_ok)[..., None].expand(*dsum.shape, 3)
-        mono4 = pixel_monomials(local, 4)  # [P, 15]
-        mono2 = mono4[:, :6]
-        raw4 = torch.matmul(f4.transpose(1, 2), mono4)  # [Tc, L, 15]
-        raw2 = torch.matmul(f2.permute(0, 2, 3, 1), mono2)  # [Tc, L, 3, 6]
-        c4 = _central_moments(raw4, m2d, _MONOS4)
-        c2 = _central_moments(raw2, m2d[:, :, None, :], _MONOS4[:6])
-        # Φ_ab = Σ f φ_a φ_b (a moment of degree ≤ 4)
-        phi = torch.stack(
-            [
-                torch.stack(
-                    [c4[..., _MONO_INDEX[(pa[0] + pb[0], pa[1] + pb[1])]] for pb in _PHI], -1
-                )
-                for pa in _PHI
-            ],
-            -2,
-        )  # [Tc, L, 6, 6]
-        amat = _screen_basis(con, op)  # [Tc, L, 6, 6]
-        gg = amat @ phi @ amat.transpose(-1, -2)
-        gc = c2 @ amat.transpose(-1, -2)  # [Tc, L, 3, 6]
-        fid = ids.flatten()
-        mgg = mgg.index_add(0, fid, gg.flatten(0, 1))
-        mgc = mgc.index_add(0, fid, gc.flatten(0, 1))
-        mcc = mcc.index_add(0, fid, (w * w).sum(1).flatten())
+    col = proj.colors
+    t = composite_pairs(pairs, proj.means2d, proj.conics, proj.opacities, col, proj.depths, bg)
+    dcda = dcolor_dalpha(pairs, t, col, bg)  # [Q, 3]
+    w = t.weight
+    if residuals == "channels":
+        al = torch.where(t.raw_ok, t.alpha, torch.zeros_like(t.alpha))
+        f4 = (dcda * dcda).sum(-1) * al * al  # [Q]
+        f2 = dcda * (w * al)[:, None]  # [Q, 3]
+    else:
+        al = t.raw  # ∂α/∂screen of o·G whether or not α was clamped at 0.99
+        dsum = dcda.sum(-1)
+        f4 = dsum * dsum * al * al
+        f2 = (dsum * w * al)[:, None].expand(-1, 3)
+    dx, dy = t.dx, t.dy
+    phi = torch.stack([torch.ones_like(dx), dx, dy, dx * dx, dx * dy, dy * dy], dim=1)  # [Q, 6]
+    g = pairs.gauss
+    outer = (f4[:, None] * phi)[:, :, None] * phi[:, None, :]  # [Q, 6, 6]
+    big_phi = torch.zeros(n, 36, dtype=dt, device=dev).index_add(0, g, outer.reshape(-1, 36))
+    c2 = torch.zeros(n, 18, dtype=dt, device=dev).index_add(
+        0, g, (f2[:, :, None] * phi[:, None, :]).reshape(-1, 18)).reshape(n, 3, 6)
+    mcc = torch.zeros(n, dtype=dt, device=dev).index_add(0, g, w * w)
+    amat = _screen_basis(proj.conics, proj.opacities)  # [N, 6, 6]
+    mgg = amat @ big_phi.reshape(n, 6, 6) @ amat.transpose(-1, -2)
+    mgc = c2 @ amat.transpose(-1, -2)  # [N, 3, 6]
     top = torch.cat([mgg, mgc.transpose(1, 2)], dim=2)  # [N, 6, 9]
     # colour block: Σ w² on the diagonal (one residual per channel), or in every entry
     # (the three channels of a pixel are one residual)
@@ -212,7 +147,7 @@ def fisher_diag(
     fields: Iterable[str] | None = None,
     tile_size: int = 8,
     near: float = 0.01,
-    max_elements: int = 1 << 20,
+    max_elements: int = 1 << 22,
 ) -> dict[str, Tensor]:
     """Exact diag(JᵀJ) of the rendered RGB w.r.t. each parameter block, in one pass.
 

@@ -1,24 +1,32 @@
-"""A differentiable tile-based Gaussian rasterizer in pure torch (CPU and CUDA alike).
+"""A differentiable Gaussian rasterizer in pure torch (CPU and CUDA alike).
 
 It follows the reference 3D Gaussian Splatting rasterizer (Kerbl et al. 2023). The
 Gaussians are projected by :mod:`agilegs.service.nbv.projection` (EWA, low-pass, culling, SH
-colour); then:
+colour); then, with the reference's rules:
 
-- a Gaussian is binned into every ``tile_size``² tile its square [u - r, u + r] overlaps
-  (reference rule), front to back in camera depth;
+- a Gaussian reaches the pixels of every ``tile_size``² tile its square [u - r, u + r]
+  overlaps (the reference binning), front to back in camera depth;
 - per pixel: α = min(0.99, o·exp(-σ)); σ < 0 and α < 1/255 are skipped; compositing stops
   before the Gaussian that would bring the transmittance below 1e-4 (that Gaussian is not
   composited, as in the reference).
 
+How: the (pixel, Gaussian) pairs that composite are listed explicitly (:func:`build_pairs`).
+A Gaussian's candidate pixels are those of its binned tiles that also lie in the bounding box
+of its α ≥ 1/255 ellipse (outside it no pixel can pass the 1/255 test, so the box changes
+nothing), α is evaluated there and the pairs that pass are kept, sorted by pixel and depth,
+and cut at each pixel's transmittance stop. Transmittances are exponentials of segmented
+cumulative sums of log(1 - α) (in float64) along each pixel's pairs; colours, alpha and depth
+are scatter-added per pixel. No padding: the work is proportional to the pairs that count.
+
 Documented deviations: the background enters as C += T_final · bg (same as the reference);
-``depth`` is the expected depth Σ w_i z_i / Σ w_i (0 where nothing was hit); tiles are processed
-in chunks of similar list length, which changes nothing numerically.
+``depth`` is the expected depth Σ w_i z_i / Σ w_i (0 where nothing was hit).
 
 The compositing has two interchangeable implementations sharing one forward formula
-(``composite_chunk``): a plain autograd path (``backward="autograd"``, the slow obvious
+(:func:`composite_pairs`): a plain autograd path (``backward="autograd"``, the slow obvious
 reference, twice differentiable) and a custom ``torch.autograd.Function`` whose backward
-recomputes the per-pixel terms chunk by chunk and applies the closed-form derivatives
-(``backward="analytic"``, default: far less memory and faster). Tests check one against the other.
+applies the closed-form derivatives to the forward's saved per-pair terms
+(``backward="analytic"``, default). Tests check one against the other and against a
+per-pixel loop.
 """
 
 from __future__ import annotations
@@ -31,7 +39,7 @@ from torch import Tensor
 
 from agilegs.service.nbv.camera import Camera
 from agilegs.service.nbv.gaussians import GaussianMap
-from agilegs.service.nbv.projection import project_map
+from agilegs.service.nbv.projection import Projected, project_map
 
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
@@ -64,302 +72,231 @@ class RenderResult:
     depths: Tensor
 
 
-# ----------------------------------------------------------------------------- binning
+# ----------------------------------------------------------------------------- pairs
 @dataclass
-class Binning:
-    """Gaussian lists per screen tile, sorted front to back.
+class Pairs:
+    """The (pixel, Gaussian) pairs that composite, sorted by pixel, front to back in each.
 
     Attributes:
-        gauss_ids: Gaussian index of every (tile, Gaussian) pair, grouped by tile [M].
-        offsets: start of each tile's run in ``gauss_ids`` [n_tiles + 1].
-        tiles_x, tiles_y: tile grid size; tile_size: tile edge in pixels.
+        gauss: Gaussian index of each pair [Q].
+        pix: flat pixel index (y * width + x) of each pair [Q].
+        first: index of the first pair of each pair's pixel [Q].
         width, height: image size.
     """
 
-    gauss_ids: Tensor
-    offsets: Tensor
-    tiles_x: int
-    tiles_y: int
-    tile_size: int
+    gauss: Tensor
+    pix: Tensor
+    first: Tensor
     width: int
     height: int
 
     @property
-    def counts(self) -> Tensor:
-        return self.offsets[1:] - self.offsets[:-1]
+    def num_pixels(self) -> int:
+        return self.width * self.height
 
-    def chunks(self, max_elements: int) -> list[tuple[Tensor, int]]:
-        """Groups of non-empty tiles of similar list length: [(tile_ids [Tc], L_max)].
-
-        Each group holds at most ``max_elements`` pixel-Gaussian pairs (Tc·P·L_max).
-        """
-        counts = self.counts
-        nonempty = torch.nonzero(counts > 0).flatten()
-        if nonempty.numel() == 0:
-            return []
-        c = counts[nonempty]
-        order = torch.argsort(c, stable=True)
-        tiles = nonempty[order]
-        c_sorted = c[order].tolist()
-        p = self.tile_size * self.tile_size
-        out: list[tuple[Tensor, int]] = []
-        start = 0
-        n = len(c_sorted)
-        while start < n:
-            end = start
-            lmax = c_sorted[start]
-            while end < n:
-                lm = max(lmax, c_sorted[end])
-                if (end - start + 1) * p * lm > max_elements and end > start:
-                    break
-                lmax = lm
-                end += 1
-            out.append((tiles[start:end], lmax))
-            start = end
-        return out
+    def __len__(self) -> int:
+        return int(self.gauss.numel())
 
 
-def bin_gaussians(
+def _pair_alpha(px: Tensor, py: Tensor, m2d: Tensor, con: Tensor, op: Tensor
+                ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """dx, dy, σ and the unclamped α = o·exp(-σ) of pairs (pixel centres px, py; attributes
+    already gathered per pair)."""
+    dx = px - m2d[:, 0]
+    dy = py - m2d[:, 1]
+    sigma = 0.5 * (con[:, 0] * dx * dx + con[:, 2] * dy * dy) + con[:, 1] * dx * dy
+    return dx, dy, sigma, op * torch.exp(-sigma)
+
+
+def _segment_cumsum(values: Tensor, first: Tensor) -> Tensor:
+    """Inclusive cumulative sums of ``values`` [Q] within each pixel's run (float64)."""
+    v = values.to(torch.float64)
+    cs = torch.cumsum(v, 0)
+    return cs - (cs[first] - v[first])
+
+
+@torch.no_grad()
+def build_pairs(
     means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    cov2d: Tensor,
     radii: Tensor,
     depths: Tensor,
     width: int,
     height: int,
     tile_size: int = 8,
-) -> Binning:
-    """Assign each visible Gaussian to the tiles its 3σ square overlaps, front to back."""
+    max_elements: int = 1 << 22,
+) -> Pairs:
+    """List the pairs that composite (see the module docstring). ``max_elements`` bounds the
+    candidate pairs evaluated at once (memory)."""
     dev = means2d.device
+    empty = torch.zeros(0, dtype=torch.long, device=dev)
+    vis = torch.nonzero(radii > 0).flatten()
+    if vis.numel() == 0:
+        return Pairs(empty, empty, empty, width, height)
+    vis = vis[torch.argsort(depths.detach()[vis], stable=True)]  # front to back
+    m = means2d.detach()[vis]
+    r = radii[vis].to(m.dtype)
     tiles_x = (width + tile_size - 1) // tile_size
     tiles_y = (height + tile_size - 1) // tile_size
-    with torch.no_grad():
-        vis = torch.nonzero(radii > 0).flatten()
-        if vis.numel() == 0:
-            return Binning(
-                torch.zeros(0, dtype=torch.long, device=dev),
-                torch.zeros(tiles_x * tiles_y + 1, dtype=torch.long, device=dev),
-                tiles_x,
-                tiles_y,
-                tile_size,
-                width,
-                height,
-            )
-        vis = vis[torch.argsort(depths.detach()[vis], stable=True)]  # front to back
-        m = means2d.detach()[vis]
-        r = radii[vis].to(m.dtype)
-        x0 = torch.clamp(torch.floor((m[:, 0] - r) / tile_size), 0, tiles_x - 1).long()
-        x1 = torch.clamp(torch.floor((m[:, 0] + r) / tile_size), 0, tiles_x - 1).long()
-        y0 = torch.clamp(torch.floor((m[:, 1] - r) / tile_size), 0, tiles_y - 1).long()
-        y1 = torch.clamp(torch.floor((m[:, 1] + r) / tile_size), 0, tiles_y - 1).long()
-        nx = x1 - x0 + 1
-        ny = y1 - y0 + 1
-        n_pairs = nx * ny
-        total = int(n_pairs.sum())
-        owner = torch.repeat_interleave(torch.arange(vis.numel(), device=dev), n_pairs)
-        start = torch.cumsum(n_pairs, 0) - n_pairs
-        local = torch.arange(total, device=dev) - start[owner]
-        tx = x0[owner] + local % nx[owner]
-        ty = y0[owner] + torch.div(local, nx[owner], rounding_mode="floor")
-        tile = ty * tiles_x + tx
-        order = torch.argsort(tile, stable=True)  # stable: keeps depth order within a tile
-        gauss_ids = vis[owner[order]]
-        counts = torch.bincount(tile, minlength=tiles_x * tiles_y)
-        offsets = torch.zeros(tiles_x * tiles_y + 1, dtype=torch.long, device=dev)
-        offsets[1:] = torch.cumsum(counts, 0)
-    return Binning(gauss_ids, offsets, tiles_x, tiles_y, tile_size, width, height)
+    # the binned tiles' pixels: the tiles the square [m - r, m + r] overlaps (clamped)
+    tx0 = torch.clamp(torch.floor((m[:, 0] - r) / tile_size), 0, tiles_x - 1)
+    tx1 = torch.clamp(torch.floor((m[:, 0] + r) / tile_size), 0, tiles_x - 1)
+    ty0 = torch.clamp(torch.floor((m[:, 1] - r) / tile_size), 0, tiles_y - 1)
+    ty1 = torch.clamp(torch.floor((m[:, 1] + r) / tile_size), 0, tiles_y - 1)
+    x_lo, x_hi = tx0 * tile_size, torch.clamp((tx1 + 1) * tile_size, max=width) - 1
+    y_lo, y_hi = ty0 * tile_size, torch.clamp((ty1 + 1) * tile_size, max=height) - 1
+    # the bounding box of the ellipse α >= 1/255 (half-widths sqrt(k Σ_aa), k = 2 ln(255 o));
+    # widened by a hair so that rounding never drops a pixel the test would keep
+    op = opacities.detach()[vis].to(m.dtype)
+    k = 2.0 * torch.log(torch.clamp(op / ALPHA_MIN, min=1.0))
+    cov = cov2d.detach()[vis].to(m.dtype)
+    hx = torch.sqrt(k * cov[:, 0].clamp_min(0)) * (1 + 1e-6) + 1e-3
+    hy = torch.sqrt(k * cov[:, 2].clamp_min(0)) * (1 + 1e-6) + 1e-3
+    x0 = torch.maximum(x_lo, torch.ceil(m[:, 0] - hx - 0.5)).long()
+    x1 = torch.minimum(x_hi, torch.floor(m[:, 0] + hx - 0.5)).long()
+    y0 = torch.maximum(y_lo, torch.ceil(m[:, 1] - hy - 0.5)).long()
+    y1 = torch.minimum(y_hi, torch.floor(m[:, 1] + hy - 0.5)).long()
+    nx = (x1 - x0 + 1).clamp_min(0)
+    ny = (y1 - y0 + 1).clamp_min(0)
+    counts = nx * ny
+    con_all = conics.detach()[vis].to(m.dtype)
+    keep_g: list[Tensor] = []
+    keep_p: list[Tensor] = []
+    csum = torch.cumsum(counts, 0)
+    start = 0
+    n = vis.numel()
+    while start < n:
+        # Gaussians [start, end) whose candidates fit in max_elements (at least one)
+        base = int(csum[start - 1]) if start else 0
+        end = int(torch.searchsorted(csum, base + max_elements, right=True))
+        end = max(end, start + 1)
+        cnt = counts[start:end]
+        total = int(cnt.sum())
+        if total:
+            owner = torch.repeat_interleave(torch.arange(start, end, device=dev), cnt)
+            off = torch.cumsum(cnt, 0) - cnt
+            local = torch.arange(total, device=dev) - off[owner - start]
+            w = nx[owner]
+            px = x0[owner] + local % w
+            py = y0[owner] + torch.div(local, w, rounding_mode="floor")
+            _, _, sigma, raw = _pair_alpha(px.to(m.dtype) + 0.5, py.to(m.dtype) + 0.5,
+                                           m[owner], con_all[owner], op[owner])
+            ok = (sigma >= 0) & (raw >= ALPHA_MIN)
+            keep_g.append(owner[ok])
+            keep_p.append((py * width + px)[ok])
+        start = end
+    if not keep_g:
+        return Pairs(empty, empty, empty, width, height)
+    order_in_depth = torch.cat(keep_g)
+    pix = torch.cat(keep_p)
+    order = torch.argsort(pix, stable=True)  # stable: front to back within a pixel
+    pix = pix[order]
+    gid = order_in_depth[order]
+    first = _first_of_runs(pix)
+    # the transmittance stop: keep each pixel's pairs while T stays >= T_MIN
+    sigma_p = _pair_alpha((pix % width).to(m.dtype) + 0.5,
+                          torch.div(pix, width, rounding_mode="floor").to(m.dtype) + 0.5,
+                          m[gid], con_all[gid], op[gid])[3]
+    alpha = torch.clamp_max(sigma_p, ALPHA_MAX)
+    t_incl = torch.exp(_segment_cumsum(torch.log1p(-alpha.to(torch.float64)), first))
+    live = t_incl >= T_MIN
+    if not bool(live.all()):
+        pix, gid = pix[live], gid[live]
+        first = _first_of_runs(pix)
+    return Pairs(vis[gid], pix, first, width, height)
 
 
-def tile_pixels(
-    binning: Binning, tile_ids: Tensor, dtype: torch.dtype
-) -> tuple[Tensor, Tensor, Tensor]:
-    """Pixel layout of the given tiles.
-
-    Returns:
-        local: pixel centres relative to the tile centre [P, 2] (shared by every tile; small
-            numbers keep the moment sums of the backward accurate),
-        centres: tile centres in image coordinates [Tc, 2],
-        flat: flat image index of each tile pixel [Tc, P], -1 outside the image.
-    """
-    ts = binning.tile_size
-    dev = tile_ids.device
-    ly, lx = torch.meshgrid(
-        torch.arange(ts, device=dev), torch.arange(ts, device=dev), indexing="ij"
-    )
-    lx, ly = lx.reshape(-1), ly.reshape(-1)
-    ox = (tile_ids % binning.tiles_x) * ts
-    oy = torch.div(tile_ids, binning.tiles_x, rounding_mode="floor") * ts
-    px = ox[:, None] + lx[None, :]
-    py = oy[:, None] + ly[None, :]
-    inside = (px < binning.width) & (py < binning.height)
-    flat = torch.where(inside, py * binning.width + px, torch.full_like(px, -1))
-    half = ts / 2.0
-    local = torch.stack([lx.to(dtype) + 0.5 - half, ly.to(dtype) + 0.5 - half], dim=-1)
-    centres = torch.stack([ox.to(dtype) + half, oy.to(dtype) + half], dim=-1)
-    return local, centres, flat
-
-
-def gather_lists(binning: Binning, tile_ids: Tensor, lmax: int) -> tuple[Tensor, Tensor]:
-    """Gaussian ids [Tc, L] of the given tiles' lists (padded with 0) and validity mask."""
-    dev = tile_ids.device
-    ar = torch.arange(lmax, device=dev)
-    starts = binning.offsets[tile_ids]
-    cnt = binning.offsets[tile_ids + 1] - starts
-    valid = ar[None, :] < cnt[:, None]
-    idx = (starts[:, None] + ar[None, :]).clamp_max(max(binning.gauss_ids.numel() - 1, 0))
-    ids = torch.where(valid, binning.gauss_ids[idx], torch.zeros_like(idx))
-    return ids, valid
+def _first_of_runs(pix: Tensor) -> Tensor:
+    """For sorted keys [Q], the index of the first element of each element's run."""
+    if pix.numel() == 0:
+        return pix.clone()
+    new = torch.ones_like(pix, dtype=torch.bool)
+    new[1:] = pix[1:] != pix[:-1]
+    starts = torch.nonzero(new).flatten()
+    run = torch.cumsum(new.long(), 0) - 1
+    return starts[run]
 
 
 # ----------------------------------------------------------------------------- compositing
 @dataclass
-class ChunkTerms:
-    """Per (tile, pixel, list slot) terms of one chunk; shapes [Tc, P, L] unless noted."""
+class PairTerms:
+    """Per-pair terms of the compositing ([Q] unless noted)."""
 
-    dx: Tensor
+    dx: Tensor  # pixel centre minus the Gaussian's centre
     dy: Tensor
-    alpha: Tensor  # effective alpha (0 where skipped or after the stop)
-    raw_ok: Tensor  # bool: alpha not clamped at 0.99 and composited (derivatives flow)
-    trans: Tensor  # transmittance before each Gaussian
+    raw: Tensor  # o·exp(-σ), unclamped
+    alpha: Tensor  # min(0.99, raw)
+    raw_ok: Tensor  # bool: α not clamped (derivatives flow)
+    trans: Tensor  # transmittance in front of the pair
     weight: Tensor  # trans * alpha
-    t_final: Tensor  # [Tc, P]
-    color: Tensor  # [Tc, P, C]
-    acc_alpha: Tensor  # [Tc, P]
-    depth_acc: Tensor  # [Tc, P]  sum w z
-    raw: Tensor  # o·exp(-σ) before the clamp and the skips
-    composited: Tensor  # bool: the pair was composited (not skipped, before the stop)
+    t_final: Tensor  # [HW]
+    color: Tensor  # [HW, C] (background included)
+    depth_acc: Tensor  # [HW]  Σ w z
 
 
-def composite_chunk(
-    local: Tensor,
+def composite_pairs(
+    pairs: Pairs,
     m2d: Tensor,
     con: Tensor,
     op: Tensor,
     col: Tensor,
     z: Tensor,
-    valid: Tensor,
     bg: Tensor,
-) -> ChunkTerms:
-    """Front-to-back compositing of one chunk of tiles (plain torch, differentiable).
+) -> PairTerms:
+    """Front-to-back compositing of the pairs (plain torch, differentiable).
 
     Args:
-        local: pixel centres relative to the tile centre [P, 2].
-        m2d: Gaussian centres relative to their tile's centre [Tc, L, 2].
-        con: conics [Tc, L, 3]. op: opacities [Tc, L]. col: colours/features [Tc, L, C].
-        z: depths [Tc, L]. valid: list validity [Tc, L]. bg: background [C].
+        pairs: from :func:`build_pairs`.
+        m2d: screen centres [N, 2]; con: conics [N, 3]; op: opacities [N]; col: colours or
+            features [N, C]; z: depths [N]; bg: background [C].
     """
-    dx = local[None, :, None, 0] - m2d[:, None, :, 0]
-    dy = local[None, :, None, 1] - m2d[:, None, :, 1]
-    a = con[:, None, :, 0]
-    b = con[:, None, :, 1]
-    c = con[:, None, :, 2]
-    sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
-    raw = op[:, None, :] * torch.exp(-sigma)
+    dt = col.dtype
+    g = pairs.gauss
+    w_img = pairs.width
+    px = (pairs.pix % w_img).to(dt) + 0.5
+    py = torch.div(pairs.pix, w_img, rounding_mode="floor").to(dt) + 0.5
+    dx, dy, _, raw = _pair_alpha(px, py, m2d[g], con[g], op[g])
+    alpha = torch.clamp_max(raw, ALPHA_MAX)
     with torch.no_grad():
-        keep = valid[:, None, :] & (sigma >= 0) & (raw >= ALPHA_MIN)
-    alpha = torch.where(keep, torch.clamp_max(raw, ALPHA_MAX), torch.zeros_like(raw))
-    with torch.no_grad():
-        t_incl = torch.cumprod(1.0 - alpha, dim=-1)
-        live = t_incl >= T_MIN  # the Gaussian that would drop T below 1e-4 is not composited
-        raw_ok = keep & live & (raw <= ALPHA_MAX)
-    alpha = torch.where(live, alpha, torch.zeros_like(alpha))
-    t_incl = torch.cumprod(1.0 - alpha, dim=-1)
-    trans = torch.cat([torch.ones_like(t_incl[..., :1]), t_incl[..., :-1]], dim=-1)
+        raw_ok = raw <= ALPHA_MAX
+    lg = torch.log1p(-alpha.to(torch.float64))
+    incl = _segment_cumsum(lg, pairs.first)
+    trans = torch.exp(incl - lg).to(dt)
     weight = trans * alpha
-    t_final = t_incl[..., -1]
-    color = torch.matmul(weight, col) + t_final[..., None] * bg
-    acc_alpha = 1.0 - t_final
-    depth_acc = torch.matmul(weight, z[..., None])[..., 0]
-    return ChunkTerms(dx, dy, alpha, raw_ok, trans, weight, t_final, color, acc_alpha, depth_acc,
-                      raw, keep & live)
+    hw = pairs.num_pixels
+    log_final = torch.zeros(hw, dtype=torch.float64, device=col.device).index_add(0, pairs.pix, lg)
+    t_final = torch.exp(log_final).to(dt)
+    color = torch.zeros(hw, col.shape[1], dtype=dt, device=col.device).index_add(
+        0, pairs.pix, weight[:, None] * col[g]) + t_final[:, None] * bg
+    depth_acc = torch.zeros(hw, dtype=dt, device=col.device).index_add(0, pairs.pix, weight * z[g])
+    return PairTerms(dx, dy, raw, alpha, raw_ok, trans, weight, t_final, color, depth_acc)
 
 
-def suffix_sum(x: Tensor, dim: int) -> Tensor:
-    """Σ over the elements strictly after each position along ``dim``."""
-    rev = torch.flip(x, dims=[dim]).cumsum(dim)
-    return torch.flip(rev, dims=[dim]) - x
+def dcolor_dalpha(pairs: Pairs, terms: PairTerms, col: Tensor, bg: Tensor) -> Tensor:
+    """∂C_c/∂α_i = T_i c_i - S_i / (1 - α_i) per pair [Q, C], S_i the colour composited
+    behind pair i (later pairs of its pixel, and the background)."""
+    wc = terms.weight[:, None] * col[pairs.gauss]
+    behind = _suffix(pairs, wc) + terms.t_final[pairs.pix, None] * bg
+    return terms.trans[:, None] * col[pairs.gauss] - behind / (1.0 - terms.alpha)[:, None]
 
 
-def dalpha_dscreen(terms: ChunkTerms, con: Tensor, op: Tensor) -> Tensor:
-    """∂α/∂(mean_x, mean_y, conic_a, conic_b, conic_c, opacity) per pair [Tc, P, L, 6]."""
-    a = con[:, None, :, 0]
-    b = con[:, None, :, 1]
-    c = con[:, None, :, 2]
-    dx, dy = terms.dx, terms.dy
-    al = torch.where(terms.raw_ok, terms.alpha, torch.zeros_like(terms.alpha))
-    opb = op[:, None, :].expand_as(al)
-    return torch.stack(
-        [
-            al * (a * dx + b * dy),
-            al * (b * dx + c * dy),
-            -0.5 * al * dx * dx,
-            -al * dx * dy,
-            -0.5 * al * dy * dy,
-            al / opb.clamp_min(1e-30),
-        ],
-        dim=-1,
-    )
-
-
-def dcolor_dalpha(terms: ChunkTerms, col: Tensor, bg: Tensor) -> Tensor:
-    """∂C_c/∂α_i = T_i c_i - S_i / (1 - α_i), S_i the colour composited behind i [Tc,P,L,C]."""
-    wc = terms.weight[..., None] * col[:, None, :, :]
-    behind = suffix_sum(wc, dim=2) + (terms.t_final[..., None, None] * bg)
-    return terms.trans[..., None] * col[:, None, :, :] - behind / (1.0 - terms.alpha)[..., None]
-
-
-def pixel_monomials(local: Tensor, degree: int) -> Tensor:
-    """Monomials x^i y^j (i + j ≤ degree) of local pixel coordinates [P, M], graded order."""
-    x, y = local[:, 0], local[:, 1]
-    cols = [x**i * y ** (k - i) for k in range(degree + 1) for i in range(k, -1, -1)]
-    return torch.stack(cols, dim=-1)
-
-
-def centred_moments_2(mom: Tensor, m: Tensor) -> Tensor:
-    """From raw moments [.., 6] of (1, x, y, x², xy, y²) to (1, dx, dy, dx², dxdy, dy²).
-
-    dx = x - m_x, dy = y - m_y with m [.., 2]; exact algebra (binomial expansion).
-    """
-    s0, sx, sy, sxx, sxy, syy = mom.unbind(-1)
-    mx, my = m[..., 0], m[..., 1]
-    return torch.stack(
-        [
-            s0,
-            sx - mx * s0,
-            sy - my * s0,
-            sxx - 2 * mx * sx + mx * mx * s0,
-            sxy - mx * sy - my * sx + mx * my * s0,
-            syy - 2 * my * sy + my * my * s0,
-        ],
-        dim=-1,
-    )
-
-
-def screen_grads_from_moments(cm: Tensor, con: Tensor, op: Tensor) -> Tensor:
-    """Σ_p g'·∂α/∂screen / α from centred moments of g' = (dL/dα)·α  →  [.., 6].
-
-    Order: mean_x, mean_y, conic_a, conic_b, conic_c, opacity.
-    """
-    s0, sdx, sdy, sdxx, sdxy, sdyy = cm.unbind(-1)
-    a, b, c = con.unbind(-1)
-    return torch.stack(
-        [
-            a * sdx + b * sdy,
-            b * sdx + c * sdy,
-            -0.5 * sdxx,
-            -sdxy,
-            -0.5 * sdyy,
-            s0 / op.clamp_min(1e-30),
-        ],
-        dim=-1,
-    )
+def _suffix(pairs: Pairs, values: Tensor) -> Tensor:
+    """Σ over the later pairs of each pair's pixel, of ``values`` [Q] or [Q, C]."""
+    squeeze = values.ndim == 1
+    v = values[:, None] if squeeze else values
+    v64 = v.to(torch.float64)
+    cs = torch.cumsum(v64, 0)
+    incl = cs - (cs[pairs.first] - v64[pairs.first])
+    total = torch.zeros(pairs.num_pixels, v.shape[1], dtype=torch.float64,
+                        device=v.device).index_add(0, pairs.pix, v64)
+    out = (total[pairs.pix] - incl).to(values.dtype)
+    return out[:, 0] if squeeze else out
 
 
 class _Composite(torch.autograd.Function):
-    """Compositing with a closed-form backward that reuses the forward's per-pair terms.
-
-    The forward keeps, per chunk, the effective alpha, the transmittance and the derivative
-    mask (about 9 bytes per pixel-Gaussian pair in float32, far below what autograd keeps);
-    the backward reduces over pixels with moment sums (one small matmul per chunk).
-    """
+    """Compositing with a closed-form backward on the forward's per-pair terms."""
 
     @staticmethod
     def forward(  # type: ignore[override]
@@ -370,93 +307,56 @@ class _Composite(torch.autograd.Function):
         colors: Tensor,
         depths: Tensor,
         bg: Tensor,
-        binning: Binning,
-        max_elements: int,
+        pairs: Pairs,
     ) -> tuple[Tensor, Tensor, Tensor]:
-        h, w = binning.height, binning.width
-        n_ch = colors.shape[1]
-        dt, dev = colors.dtype, colors.device
-        out_c = bg.expand(h * w, n_ch).clone()
-        out_a = torch.zeros(h * w, dtype=dt, device=dev)
-        out_d = torch.zeros(h * w, dtype=dt, device=dev)
-        chunks = binning.chunks(max_elements)
-        saved = []
-        # one packed gather per chunk instead of five
-        packed = torch.cat([means2d, conics, opacities[:, None], depths[:, None], colors], dim=1)
-        for tile_ids, lmax in chunks:
-            local, centres, flat = tile_pixels(binning, tile_ids, dt)
-            ids, valid = gather_lists(binning, tile_ids, lmax)
-            g = packed.index_select(0, ids.flatten()).view(ids.shape[0], lmax, -1)
-            t = composite_chunk(
-                local,
-                g[..., 0:2] - centres[:, None, :],
-                g[..., 2:5],
-                g[..., 5],
-                g[..., 7:],
-                g[..., 6],
-                valid,
-                bg,
-            )
-            sel = flat >= 0
-            out_c[flat[sel]] = t.color[sel]
-            out_a[flat[sel]] = t.acc_alpha[sel]
-            out_d[flat[sel]] = t.depth_acc[sel]
-            saved.append((tile_ids, ids, t.alpha, t.trans, t.raw_ok, t.t_final))
-        ctx.save_for_backward(means2d, conics, opacities, colors, depths, bg)
-        ctx.binning = binning
-        ctx.saved_chunks = saved
-        return out_c.reshape(h, w, n_ch), out_a.reshape(h, w), out_d.reshape(h, w)
+        t = composite_pairs(pairs, means2d, conics, opacities, colors, depths, bg)
+        ctx.save_for_backward(conics, opacities, colors, depths, bg, t.dx, t.dy, t.alpha,
+                              t.raw_ok, t.trans, t.t_final)
+        ctx.pairs = pairs
+        h, w = pairs.height, pairs.width
+        return (t.color.reshape(h, w, -1), (1.0 - t.t_final).reshape(h, w),
+                t.depth_acc.reshape(h, w))
 
     @staticmethod
     def backward(  # type: ignore[override]
         ctx: Any, g_color: Tensor, g_alpha: Tensor, g_depth: Tensor
     ) -> tuple[Tensor | None, ...]:
-        means2d, conics, opacities, colors, depths, bg = ctx.saved_tensors
-        binning: Binning = ctx.binning
-        dt = colors.dtype
+        (conics, opacities, colors, depths, bg, dx, dy, alpha, raw_ok, trans,
+         t_final) = ctx.saved_tensors
+        pairs: Pairs = ctx.pairs
         n_ch = colors.shape[1]
+        g = pairs.gauss
         g_c = g_color.reshape(-1, n_ch)
         g_a = g_alpha.reshape(-1)
         g_d = g_depth.reshape(-1)
-        gm = torch.zeros_like(means2d)
-        gcon = torch.zeros_like(conics)
-        gop = torch.zeros_like(opacities)
-        gcol = torch.zeros_like(colors)
-        gz = torch.zeros_like(depths)
-        gbg = torch.zeros_like(bg)
-        packed = torch.cat([means2d, conics, opacities[:, None], depths[:, None], colors], dim=1)
-        g_out = torch.cat([g_c, g_a[:, None], g_d[:, None]], dim=1)  # [HW, C + 2]
-        mono2 = None
-        for tile_ids, ids, alpha, trans, raw_ok, t_final in ctx.saved_chunks:
-            local, centres, flat = tile_pixels(binning, tile_ids, dt)
-            if mono2 is None:
-                mono2 = pixel_monomials(local, 2)  # [P, 6], the same for every tile
-            inside = flat >= 0
-            go = g_out.index_select(0, flat.clamp_min(0).flatten()).view(*flat.shape, -1)
-            go = go * inside[..., None].to(dt)
-            gc, ga, gdp = go[..., :n_ch], go[..., n_ch], go[..., n_ch + 1]
-            g = packed.index_select(0, ids.flatten()).view(ids.shape[0], ids.shape[1], -1)
-            m2d, con, op, z, col = g[..., 0:2], g[..., 2:5], g[..., 5], g[..., 6], g[..., 7:]
-            weight = trans * alpha
-            fid = ids.flatten()
-            wt = weight.transpose(1, 2)
-            # dC/dc_i = w_i ; dC/dbg = T_final ; dD_acc/dz_i = w_i
-            gcol.index_add_(0, fid, torch.matmul(wt, gc).flatten(0, 1))
-            gz.index_add_(0, fid, torch.matmul(wt, gdp[..., None]).flatten())
-            gbg += torch.einsum("tp,tpc->c", t_final, gc)
-            # dL/dα_i = T_i u_i - (Σ_{j>i} w_j u_j + T_final (bg·gC - gA)) / (1 - α_i)
-            # with u_i = c_i·gC + z_i gD (colour, alpha and depth outputs in one pass)
-            u = torch.matmul(gc, col.transpose(1, 2)) + gdp[..., None] * z[:, None, :]
-            tail = t_final * ((gc * bg).sum(-1) - ga)
-            gal = trans * u - (suffix_sum(weight * u, dim=2) + tail[..., None]) / (1.0 - alpha)
-            gprime = torch.where(raw_ok, gal * alpha, torch.zeros_like(gal))
-            mom = torch.matmul(gprime.transpose(1, 2), mono2)  # [Tc, L, 6]
-            cm = centred_moments_2(mom, m2d - centres[:, None, :])
-            gs = screen_grads_from_moments(cm, con, op).flatten(0, 1)
-            gm.index_add_(0, fid, gs[:, 0:2])
-            gcon.index_add_(0, fid, gs[:, 2:5])
-            gop.index_add_(0, fid, gs[:, 5])
-        return gm, gcon, gop, gcol, gz, gbg, None, None
+        gc = g_c[pairs.pix]
+        gd = g_d[pairs.pix]
+        weight = trans * alpha
+        col = colors[g]
+        z = depths[g]
+        # dC/dc_i = w_i ; dC/dbg = T_final ; dD_acc/dz_i = w_i
+        gcol = torch.zeros_like(colors).index_add_(0, g, weight[:, None] * gc)
+        gz = torch.zeros_like(depths).index_add_(0, g, weight * gd)
+        gbg = (t_final[:, None] * g_c).sum(0)
+        # dL/dα_i = T_i u_i - (Σ_{j>i} w_j u_j + T_final (bg·gC - gA)) / (1 - α_i)
+        # with u_i = c_i·gC + z_i gD (colour, alpha and depth outputs in one pass)
+        u = (col * gc).sum(-1) + gd * z
+        tail = t_final * ((g_c * bg).sum(-1) - g_a)
+        gal = trans * u - (_suffix(pairs, weight * u) + tail[pairs.pix]) / (1.0 - alpha)
+        gp = torch.where(raw_ok, gal * alpha, torch.zeros_like(gal))
+        con = conics[g]
+        a, b, c = con[:, 0], con[:, 1], con[:, 2]
+        gs = torch.stack([
+            gp * (a * dx + b * dy),
+            gp * (b * dx + c * dy),
+            -0.5 * gp * dx * dx,
+            -gp * dx * dy,
+            -0.5 * gp * dy * dy,
+            gp / opacities[g].clamp_min(1e-30),
+        ], dim=1)
+        acc = torch.zeros(conics.shape[0], 6, dtype=gs.dtype, device=gs.device).index_add_(0, g, gs)
+        # dα/dmean = -dα/ddx: dσ/dmean_x = -(a dx + b dy), so dα/dmean_x = α (a dx + b dy)
+        return acc[:, 0:2], acc[:, 2:5], acc[:, 5], gcol, gz, gbg, None
 
 
 def composite(
@@ -466,40 +366,25 @@ def composite(
     colors: Tensor,
     depths: Tensor,
     bg: Tensor,
-    binning: Binning,
+    pairs: Pairs,
     *,
     backward: BackwardMode = "analytic",
-    max_elements: int = 1 << 21,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Composite binned Gaussians into images.
+    """Composite the pairs into images.
 
     Returns:
         colour [H, W, C], accumulated alpha [H, W], expected depth [H, W].
     """
+    h, w = pairs.height, pairs.width
     if backward == "analytic":
         out_c, out_a, out_dacc = _Composite.apply(
-            means2d, conics, opacities, colors, depths, bg, binning, max_elements
+            means2d, conics, opacities, colors, depths, bg, pairs
         )
     elif backward == "autograd":
-        h, w = binning.height, binning.width
-        n_ch = colors.shape[1]
-        out_c = bg.expand(h * w, n_ch).clone()
-        out_a = torch.zeros(h * w, dtype=colors.dtype, device=colors.device)
-        out_dacc = torch.zeros(h * w, dtype=colors.dtype, device=colors.device)
-        for tile_ids, lmax in binning.chunks(max_elements):
-            local, centres, flat = tile_pixels(binning, tile_ids, colors.dtype)
-            ids, valid = gather_lists(binning, tile_ids, lmax)
-            m2d = means2d[ids] - centres[:, None, :]
-            t = composite_chunk(
-                local, m2d, conics[ids], opacities[ids], colors[ids], depths[ids], valid, bg
-            )
-            sel = flat >= 0
-            out_c = out_c.index_put((flat[sel],), t.color[sel])
-            out_a = out_a.index_put((flat[sel],), t.acc_alpha[sel])
-            out_dacc = out_dacc.index_put((flat[sel],), t.depth_acc[sel])
-        out_c = out_c.reshape(h, w, n_ch)
-        out_a = out_a.reshape(h, w)
-        out_dacc = out_dacc.reshape(h, w)
+        t = composite_pairs(pairs, means2d, conics, opacities, colors, depths, bg)
+        out_c = t.color.reshape(h, w, -1)
+        out_a = (1.0 - t.t_final).reshape(h, w)
+        out_dacc = t.depth_acc.reshape(h, w)
     else:
         raise ValueError(f"backward must be 'analytic' or 'autograd', got {backward!r}")
     has = out_a > 0
@@ -523,7 +408,7 @@ def render(
     tile_size: int = 8,
     near: float = 0.01,
     backward: BackwardMode = "analytic",
-    max_elements: int = 1 << 21,
+    max_elements: int = 1 << 22,
 ) -> RenderResult:
     """Render ``gmap`` from ``camera``.
 
@@ -533,10 +418,10 @@ def render(
         background: colour [3] composited behind (default black).
         features: optional per-Gaussian features [N, C], composited like colour (zero
             background) into ``RenderResult.features`` [H, W, C].
-        tile_size: tile edge in pixels for binning.
+        tile_size: tile edge in pixels of the reference binning rule.
         near: near-plane depth for culling.
-        backward: "analytic" (chunked closed-form backward) or "autograd" (reference).
-        max_elements: pixel-Gaussian pairs per processing chunk (memory bound).
+        backward: "analytic" (closed-form backward) or "autograd" (reference).
+        max_elements: candidate pixel-Gaussian pairs evaluated at once (memory bound).
 
     Returns:
         RenderResult with rgb [H, W, 3], alpha [H, W], depth [H, W] and per-Gaussian extras.
@@ -562,19 +447,10 @@ def render(
         n_feat = features.shape[1]
         colors = torch.cat([colors, features.to(dt)], dim=1)
         bg = torch.cat([bg, torch.zeros(n_feat, dtype=dt, device=dev)])
-    binning = bin_gaussians(
-        proj.means2d, proj.radii, proj.depths, camera.width, camera.height, tile_size
-    )
+    pairs = pairs_of(proj, camera.width, camera.height, tile_size, max_elements)
     out_c, out_a, depth = composite(
-        proj.means2d,
-        proj.conics,
-        proj.opacities,
-        colors,
-        proj.depths,
-        bg,
-        binning,
+        proj.means2d, proj.conics, proj.opacities, colors, proj.depths, bg, pairs,
         backward=backward,
-        max_elements=max_elements,
     )
     return RenderResult(
         rgb=out_c[..., :3],
@@ -587,21 +463,21 @@ def render(
     )
 
 
-def tile_pair_count(gmap: GaussianMap, camera: Camera, tile_size: int = 8) -> int:
-    """Number of (tile, Gaussian) pairs a render would process (for diagnostics)."""
-    with torch.no_grad():
-        proj = project_map(gmap, camera)
-        b = bin_gaussians(
-            proj.means2d, proj.radii, proj.depths, camera.width, camera.height, tile_size
-        )
-    return int(b.gauss_ids.numel())
+def pairs_of(proj: Projected, width: int, height: int, tile_size: int = 8,
+             max_elements: int = 1 << 22) -> Pairs:
+    """:func:`build_pairs` of a projection."""
+    return build_pairs(proj.means2d, proj.conics, proj.opacities, proj.cov2d, proj.radii,
+                       proj.depths, width, height, tile_size, max_elements)
 
 
 __all__ = [
-    "Binning",
+    "Pairs",
+    "PairTerms",
     "RenderResult",
-    "bin_gaussians",
+    "build_pairs",
     "composite",
-    "composite_chunk",
+    "composite_pairs",
+    "dcolor_dalpha",
+    "pairs_of",
     "render",
 ]

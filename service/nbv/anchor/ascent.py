@@ -25,7 +25,7 @@ from torch import Tensor
 from agilegs.schemas.config import AnchorConfig, validate_config
 
 from ..camera import Camera, Intrinsics
-from ..candidates import pool_radius
+from ..candidates import pool_radius, scene_center_radius
 from ..gaussians import FIELD_NAMES, GaussianMap
 from ..information import fisher_diag, trace_surrogate
 from ..se3 import se3_exp
@@ -36,6 +36,7 @@ from .fitting import (
     typical_fisher_from_h_acc,
 )
 from .proxy import ProxyPsi, pick_occluders
+from .visibility import OpacityMaps
 
 __all__ = ["AnchorResult", "ascend", "exact_psi_fn", "optimize_anchor"]
 
@@ -210,16 +211,25 @@ def optimize_anchor(
             config.resolution,
             max(1, round(config.resolution * intrinsics.height / intrinsics.width)),
         )
-    occ = pick_occluders(gmap, config.occluders, generator)
     common: dict[str, Any] = dict(
         near=config.near_fraction * radius,
         edge=config.edge_softness * prox_intr.width,
         generator=generator,
-        num_occluders=config.occluders,
-        occ_grid=config.occlusion_grid,
-        occ_tests=config.occlusion_tests,
-        occluders=occ,
     )
+    if config.visibility == "transmittance":
+        center, r98 = scene_center_radius(gmap.means)
+        common["grid"] = OpacityMaps.build(
+            gmap, prox_intr, center, r98, cells=config.transmittance_cells,
+            bins=config.transmittance_bins, max_occluders=config.occluders,
+            generator=generator)
+    else:
+        common.update(
+            num_occluders=config.occluders,
+            occ_grid=config.occlusion_grid,
+            occ_tests=config.occlusion_tests,
+            occluders=pick_occluders(gmap, config.occluders, generator),
+        )
+    timings["visibility"] = time.perf_counter() - t0
     fitted = (
         typical is None
         and config.model == "fitted"

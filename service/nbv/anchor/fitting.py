@@ -19,6 +19,7 @@ from torch import Tensor
 from ..camera import Intrinsics
 from ..gaussians import GaussianMap
 from .proxy import ProxyPsi
+from .visibility import OpacityMaps
 
 __all__ = [
     "FittedRates",
@@ -97,11 +98,12 @@ def observation_rates(
     *,
     near: float,
     edge: float,
-    num_occluders: int,
-    occ_grid: int,
-    occ_tests: tuple[tuple[int, float], ...],
+    num_occluders: int = 0,
+    occ_grid: int = 64,
+    occ_tests: tuple[tuple[int, float], ...] = ((1, 0.02),),
     generator: torch.Generator | None = None,
     occluders: Tensor | None = None,
+    grid: OpacityMaps | None = None,
     chunk: int = 16,
     lam: float | None = None,
 ) -> FittedRates:
@@ -122,8 +124,8 @@ def observation_rates(
     term f) counts as seen by a quarter of a typical view, ``a_i = 4 / f``: new, but bounded
     (the exact ``log(1 + H / lambda)`` of such a Gaussian depends on the arbitrary lambda).
     ``lam``: lambda_q, the prior in Hhat (None: each slot's minimum over Gaussians,
-    :func:`prior_floor`). ``occluders``: the z-buffer's occluder means (the same set as the
-    proxy it serves).
+    :func:`prior_floor`). ``grid`` (the transmittance visibility) or ``occluders`` (the
+    z-buffer's occluder means): the same visibility as the proxy it serves.
     """
     n = gmap.num_gaussians
     dt = gmap.dtype
@@ -140,6 +142,7 @@ def observation_rates(
         occ_grid=occ_grid,
         occ_tests=occ_tests,
         occluders=occluders,
+        grid=grid,
     )
     poses = acquired.detach().to(dt)
     w_sum = torch.zeros(n, dtype=dt, device=dev)

@@ -3,10 +3,12 @@ terms at a virtual camera, summed over an importance sample of Gaussians.
 
 ``w_i(T) = footprint_i(T) * inside_i(T) * visible_i(T)``: ``footprint_i = sqrt(det(J Sigma_i
 J^T + 0.3 I))`` its projected area in pixels, ``inside_i`` a smooth (sigmoid) near-plane and
-image-bounds test, ``visible_i`` an occlusion test from a point z-buffer of opaque Gaussians'
-means (piecewise constant in the pose: it carries no gradient, the ascent's line search sees
-it). The per-view information of Gaussian i is modelled as proportional to ``w_i(T)``; how the
-model is fitted to Hhat is in :mod:`agilegs.service.nbv.anchor.fitting`.
+image-bounds test, ``visible_i`` the squared transmittance in front of the Gaussian through
+the map, read from deep opacity maps (:mod:`agilegs.service.nbv.anchor.visibility`),
+or, as a benchmark variant, an occlusion test from a point z-buffer of opaque Gaussians' means
+(piecewise constant in the pose: no gradient, the ascent's line search sees it). The per-view
+information of Gaussian i is modelled as proportional to ``w_i(T)``; how the model is fitted
+to Hhat is in :mod:`agilegs.service.nbv.anchor.fitting`.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from agilegs.schemas.config import POINT_ZBUFFER
 from ..camera import Intrinsics
 from ..gaussians import GaussianMap
 from ..projection import covariance_3d
+from .visibility import OpacityMaps
 
 __all__ = ["ProxyPsi", "pick_occluders", "to_camera"]
 
@@ -47,14 +50,16 @@ class ProxyPsi:
 
     With the per-sample term ``w_s(T) = footprint_s(T) * inside_s(T) * visible_s(T)``:
     ``psi(T) = sum_s weight_s * log(1 + rate_s * w_s(T))`` when ``rate`` is set (the fitted
-    model, ``observation_rates``), else ``psi(T) = sum_s weight_s * w_s(T)``; in both,
-    ``visible_s`` is a point z-buffer test: the occluders' means (a seeded subset of the
-    opaque Gaussians plus the samples themselves) are projected onto a ``occ_grid`` square
-    grid; in each test (cover, tolerance) of ``occ_tests`` every occluder covers a square of
-    ``cover`` cells and a sample passes when its depth is within ``tolerance`` (relative) of
-    the nearest occluder over its cell; its visibility is the fraction of tests it passes.
-    Visibility is piecewise constant in the pose, so it carries no
-    gradient: the ascent's gradient sees the smooth part and its line search the whole.
+    model, ``observation_rates``), else ``psi(T) = sum_s weight_s * w_s(T)``. ``visible_s``:
+    with ``grid``, the squared transmittance from the camera centre to the sample through the
+    map (deep opacity maps, differentiable in the pose); else, with ``occluders``, a point
+    z-buffer test:
+    the occluders' means (a seeded subset of the opaque Gaussians plus the samples
+    themselves) are projected onto a ``occ_grid`` square grid; in each test (cover, tolerance)
+    of ``occ_tests`` every occluder covers a square of ``cover`` cells and a sample passes when
+    its depth is within ``tolerance`` (relative) of the nearest occluder over its cell; its
+    visibility is the fraction of tests it passes (piecewise constant in the pose, no
+    gradient: the ascent's line search sees it); with neither, 1.
 
     Attributes:
         means: sampled centres [S, 3].
@@ -67,6 +72,7 @@ class ProxyPsi:
         occ_grid: z-buffer grid edge in cells.
         occ_tests: the visibility tests (cover in cells, odd; relative depth tolerance).
         rate: per-sample rate a_s of the log form [S] (None: the linear form).
+        grid: the occluders of the transmittance visibility (None: the z-buffer).
     """
 
     means: Tensor
@@ -79,6 +85,7 @@ class ProxyPsi:
     occ_grid: int = 64
     rate: Tensor | None = None
     occ_tests: tuple[tuple[int, float], ...] = POINT_ZBUFFER
+    grid: OpacityMaps | None = None
 
     @classmethod
     def build(
@@ -98,6 +105,7 @@ class ProxyPsi:
         rate: Tensor | None = None,
         slots: int = 1,
         occluders: Tensor | None = None,
+        grid: OpacityMaps | None = None,
     ) -> ProxyPsi:
         """Importance-sample ``num_samples`` Gaussians with probability ~ c [N] (seeded).
 
@@ -105,9 +113,10 @@ class ProxyPsi:
         Log form (``rate`` [N]): ``psi = sum_i slots * log(1 + rate_i w_i)``, estimated by the
         sample drawn ~ c (c_i should be that Gaussian's typical term) and reweighted by
         ``1 / c_i``. ``num_samples`` 0 or >= N takes every Gaussian once, unweighted.
-        ``num_occluders`` > 0 enables the occlusion test with that many opaque Gaussians
-        (opacity >= ``min_opacity``; all of them when fewer) as occluders, or with
-        ``occluders`` [M, 3] when given; 0 disables it.
+        ``grid`` gives the transmittance visibility; without it, ``num_occluders`` > 0
+        enables the z-buffer test with that many opaque Gaussians (opacity >= ``min_opacity``;
+        all of them when fewer) as occluders, or with ``occluders`` [M, 3] when given; 0
+        disables it.
         """
         c = c.detach().clamp_min(0)
         n = c.shape[0]
@@ -127,7 +136,7 @@ class ProxyPsi:
         means = gmap.means.detach()[idx]
         cov = covariance_3d(gmap.log_scales.detach()[idx], gmap.quats.detach()[idx])
         occ = (
-            occluders
+            None if grid is not None else occluders
             if occluders is not None or num_occluders == 0
             else pick_occluders(gmap, num_occluders, generator, min_opacity)
         )
@@ -142,14 +151,26 @@ class ProxyPsi:
             occ_grid=occ_grid,
             rate=None if rate is None else rate.detach()[idx],
             occ_tests=tuple((int(c), float(t)) for c, t in occ_tests),
+            grid=grid,
         )
 
-    @torch.no_grad()
     def visibility(
         self, c2w: Tensor, sample_cam: tuple[Tensor, Tensor, Tensor] | None = None
     ) -> Tensor:
+        """The visibility of every sample from poses [B, 4, 4] -> [B, S]: the squared
+        transmittance (with ``grid``, differentiable in the poses), else the z-buffer
+        test's (:meth:`zbuffer_visibility`), else 1."""
+        if self.grid is not None:
+            t = self.grid.transmittance(c2w, self.means, sample_cam)
+            return t * t
+        return self.zbuffer_visibility(c2w, sample_cam)
+
+    @torch.no_grad()
+    def zbuffer_visibility(
+        self, c2w: Tensor, sample_cam: tuple[Tensor, Tensor, Tensor] | None = None
+    ) -> Tensor:
         """The z-buffer visibility of every sample from poses [B, 4, 4] -> [B, S] (the
-        fraction of ``occ_tests`` passed: 0 / 1 with one test).
+        fraction of ``occ_tests`` passed: 0 / 1 with one test; 1 without occluders).
 
         The samples occlude too. ``sample_cam``: the samples' camera coordinates (x, y, z),
         each [B, S], when the caller has them already.

@@ -69,7 +69,7 @@ def fisherrf_hessian(
     fields: Iterable[str] | None = None,
     tile_size: int = 8,
     near: float = 0.01,
-    max_elements: int = 1 << 20,
+    max_elements: int = 1 << 22,
 ) -> dict[str, Tensor]:
     """FisherRF's diagonal Hessian of one view, per stored parameter block.
 
