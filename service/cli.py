@@ -21,6 +21,8 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("bench", "latency"), "agilegs.service.bench.latency", "selection latency of every method"),
     (("bench", "run"), "agilegs.service.bench.run_cli", "the paper's progressive protocol"),
     (("bench", "service"), "agilegs.service.bench.service_bench", "transport overhead"),
+    (("bench", "value"), "agilegs.service.bench.value",
+     "what each candidate is worth, and which scores predict it"),
     (("bench", "proxy"), "agilegs.service.bench.proxy_check",
      "how the anchor's choices follow the exact EIG on trained maps"),
 ]

@@ -59,6 +59,7 @@ from .variants import Variant
 
 __all__ = [
     "accumulated_information",
+    "add_pool_view",
     "estimate_seconds",
     "evaluate",
     "fingerprint",
@@ -166,6 +167,19 @@ def fingerprint(scene: BenchScene, variant: Variant, seed: int, profile: Profile
 
 
 # ----------------------------------------------------------------------------- one run
+def add_pool_view(mapper: Mapper, scene: BenchScene, i: int, profile: Profile, *,
+                  first: bool = False, device: torch.device | str = "cpu") -> None:
+    """Give ``mapper`` pool view ``i`` (its image, and its depth as the profile says:
+    ``all`` views, the ``init`` ones only (``first``), or ``none``)."""
+    dev = torch.device(device)
+    depth = None
+    if scene.pool_depths is not None and (profile.depth == "all" or (
+            profile.depth == "init" and first)):
+        depth = scene.pool_depths[i]
+    mapper.add_view(scene.pool_camera(i).to(device=dev), scene.pool_images[i].to(dev),
+                    depth=None if depth is None else depth.to(dev), name=f"pool_{i}")
+
+
 def run_progressive(
     scene: BenchScene,
     variant: Variant,
@@ -190,8 +204,10 @@ def run_progressive(
         progress: called as ``progress(steps_done, total_steps, note)`` during the run.
         on_event: called before each selection with its inputs (keys ``gmap``, ``candidates``
             [R, 4, 4] the remaining pool, ``remaining`` their pool indices, ``acquired`` the
-            acquired poses [A, 4, 4], ``intrinsics``, ``config``, ``background`` [3],
-            ``event``), for diagnostics such as ``agilegs bench proxy``.
+            acquired poses [A, 4, 4], ``acquired_indices``, ``intrinsics``, ``config``,
+            ``background`` [3], ``event``, ``step``, and ``mapper``, the live trainer: clone
+            it to branch), for diagnostics such as ``agilegs bench proxy`` and ``bench
+            value``.
 
     Returns:
         The JSON-ready record (see the module docstring).
@@ -215,12 +231,7 @@ def run_progressive(
         mapper.init_from_points(scene.init_points, scene.init_colors)
 
     def add(i: int, first: bool) -> None:
-        depth = None
-        if scene.pool_depths is not None and (profile.depth == "all" or (
-                profile.depth == "init" and first)):
-            depth = scene.pool_depths[i]
-        mapper.add_view(scene.pool_camera(i).to(device=dev), scene.pool_images[i].to(dev),
-                        depth=None if depth is None else depth.to(dev), name=f"pool_{i}")
+        add_pool_view(mapper, scene, i, profile, first=first, device=dev)
 
     for i in initial:
         add(i, True)
@@ -284,8 +295,11 @@ def run_progressive(
         if on_event is not None:
             on_event({
                 "gmap": gmap,
+                "mapper": mapper,
+                "step": step,
                 "candidates": cands,
                 "remaining": remaining,
+                "acquired_indices": list(acquired),
                 "acquired": acq_poses,
                 "intrinsics": scene.intrinsics,
                 "config": cfg,

@@ -302,5 +302,6 @@ def baseline_fisher_diag(gmap: GaussianMap, camera: Camera, background: Tensor |
             mm = torch.einsum("tplac,tplbc->tlab", gvec, gvec)
             m.index_add_(0, ids.flatten(), mm.flatten(0, 1))
     jac = projection_jacobians(g0, camera, FIELD_NAMES)
-    return {f: torch.einsum("nap,nab,nbp->np", jac[f], m, jac[f]).reshape(getattr(g0, f).shape)
+    return {f: torch.einsum("nap,nab,nbp->np", jac[f], m, jac[f]).reshape(
+        getattr(g0, f).shape)
             for f in FIELD_NAMES}

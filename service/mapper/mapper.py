@@ -40,6 +40,7 @@ across such a change. Adam moments are carried for the Gaussians that survive as
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
 import threading
@@ -128,6 +129,15 @@ class Mapper:
         src_map = gmap if gmap is not None else self._empty_map()
         self._install(self._split_sh(src_map.detach().to(self.device, dtype)), carry=None)
         self._reset_stats()
+
+    def clone(self) -> Mapper:
+        """An independent copy of the whole training state: parameters, optimiser moments,
+        densification statistics, views, step counter and random generators. Two clones
+        given the same calls train identically; given different views they differ only by
+        those views (``agilegs bench value`` branches a run this way)."""
+        with self._lock:
+            memo = {id(self._lock): threading.RLock(), id(self.on_topology_change): []}
+            return copy.deepcopy(self, memo)
 
     # ------------------------------------------------------------------ properties
     @property

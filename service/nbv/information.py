@@ -175,10 +175,15 @@ def fisher_diag(
     jac = projection_jacobians(gmap, camera, want, near=near, create_graph=pose_grad)
     result: dict[str, Tensor] = {}
     for f in want:
-        h = torch.einsum("nap,nab,nbp->np", jac[f], m, jac[f])
+        h = jacobian_sandwich(jac[f], m)
         shape = getattr(gmap, f).shape
         result[f] = h.reshape(shape) if pose_grad else h.reshape(shape).detach()
     return result
+
+
+def jacobian_sandwich(j: Tensor, m: Tensor) -> Tensor:
+    """diag(Jᵀ M J) per Gaussian: J [N, 9, P], M [N, 9, 9] -> [N, P]."""
+    return (torch.bmm(m, j) * j).sum(1)
 
 
 def _check_fields(fields: Iterable[str] | None, known: tuple[str, ...]) -> tuple[str, ...]:
@@ -362,6 +367,7 @@ __all__ = [
     "fisher_diag",
     "fisher_diag_bruteforce",
     "init_information",
+    "jacobian_sandwich",
     "projection_jacobians",
     "screen_second_moments",
     "trace_surrogate",

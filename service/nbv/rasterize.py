@@ -162,8 +162,11 @@ def build_pairs(
     ny = (y1 - y0 + 1).clamp_min(0)
     counts = nx * ny
     con_all = conics.detach()[vis].to(m.dtype)
+    attrs = torch.cat([m, con_all, op[:, None]], dim=1)  # one gather per candidate
+    ints = torch.stack([x0, y0, nx], dim=1)
     keep_g: list[Tensor] = []
     keep_p: list[Tensor] = []
+    keep_a: list[Tensor] = []
     csum = torch.cumsum(counts, 0)
     start = 0
     n = vis.numel()
@@ -178,28 +181,26 @@ def build_pairs(
             owner = torch.repeat_interleave(torch.arange(start, end, device=dev), cnt)
             off = torch.cumsum(cnt, 0) - cnt
             local = torch.arange(total, device=dev) - off[owner - start]
-            w = nx[owner]
-            px = x0[owner] + local % w
-            py = y0[owner] + torch.div(local, w, rounding_mode="floor")
+            oi = ints.index_select(0, owner)
+            px = oi[:, 0] + local % oi[:, 2]
+            py = oi[:, 1] + torch.div(local, oi[:, 2], rounding_mode="floor")
+            at = attrs.index_select(0, owner)
             _, _, sigma, raw = _pair_alpha(px.to(m.dtype) + 0.5, py.to(m.dtype) + 0.5,
-                                           m[owner], con_all[owner], op[owner])
+                                           at[:, 0:2], at[:, 2:5], at[:, 5])
             ok = (sigma >= 0) & (raw >= ALPHA_MIN)
             keep_g.append(owner[ok])
             keep_p.append((py * width + px)[ok])
+            keep_a.append(raw[ok])
         start = end
     if not keep_g:
         return Pairs(empty, empty, empty, width, height)
-    order_in_depth = torch.cat(keep_g)
     pix = torch.cat(keep_p)
     order = torch.argsort(pix, stable=True)  # stable: front to back within a pixel
     pix = pix[order]
-    gid = order_in_depth[order]
+    gid = torch.cat(keep_g)[order]
+    alpha = torch.clamp_max(torch.cat(keep_a)[order], ALPHA_MAX)
     first = _first_of_runs(pix)
     # the transmittance stop: keep each pixel's pairs while T stays >= T_MIN
-    sigma_p = _pair_alpha((pix % width).to(m.dtype) + 0.5,
-                          torch.div(pix, width, rounding_mode="floor").to(m.dtype) + 0.5,
-                          m[gid], con_all[gid], op[gid])[3]
-    alpha = torch.clamp_max(sigma_p, ALPHA_MAX)
     t_incl = torch.exp(_segment_cumsum(torch.log1p(-alpha.to(torch.float64)), first))
     live = t_incl >= T_MIN
     if not bool(live.all()):

@@ -45,7 +45,7 @@ from agilegs.schemas.config import FISHERRF_FIELDS
 
 from ..camera import Camera
 from ..gaussians import GaussianMap
-from ..information import projection_jacobians, screen_second_moments
+from ..information import jacobian_sandwich, projection_jacobians, screen_second_moments
 from ..rasterize import render
 from .base import MethodResult, SelectionContext, register, timed
 from .common import argmax_first
@@ -101,7 +101,7 @@ def fisherrf_hessian(
                 sig = torch.sigmoid(g.opacity_logits)
                 out[f] = m[:, 5, 5] * sig * (1.0 - sig)
                 continue
-            h = torch.einsum("nap,nab,nbp->np", jac[f], m, jac[f])  # in the stored parameters
+            h = jacobian_sandwich(jac[f], m)  # in the stored parameters
             if f == "log_scales":  # J_logs = s J_s: H_s · s = (J_logsᵀ M J_logs) / s
                 h = h / torch.exp(g.log_scales).clamp_min(1e-30)
             out[f] = h.reshape(shape)
