@@ -138,6 +138,11 @@ class AnchorConfig:
         "is log(1 + a_i w_i(T)), a_i fitted to Hhat over the acquired views) or 'typical' (one "
         "typical Fisher value per parameter slot); without acquired views the typical model "
         "is used")
+    unseen: Literal["quarter_view", "prior"] = Field(
+        default="prior",
+        description="the fitted model's Gaussians no acquired view saw: 'quarter_view' (as "
+        "if a quarter of a typical view had seen them) or 'prior' (the seen Gaussians' "
+        "median information per unit of footprint against their own Hhat, as the exact EIG)")
     iterations: NonNegInt = Field(default=3, description="most accepted ascent steps per start")
     step_size: PosFloat = Field(default=0.15,
         description="initial step length in the twist metric (0.15: ~9 degrees or 0.15 pool "
@@ -168,7 +173,7 @@ class AnchorConfig:
         "radians, on its elevation range")
     visibility: Literal["transmittance", "zbuffer"] = Field(
         default="transmittance",
-        description="the proxy's visibility of a Gaussian: 'transmittance' (the squared "
+        description="the proxy's visibility of a Gaussian: 'transmittance' (the "
         "transmittance in front of it through the map, as the renderer "
         "composites, from per-pose deep opacity maps) or 'zbuffer' (the point z-buffer tests "
         "of occlusion_tests)")
@@ -176,7 +181,7 @@ class AnchorConfig:
         default=16, description="screen cells per image side of the deep opacity maps")
     transmittance_bins: PosInt = Field(
         default=32, description="depth slices of the deep opacity maps over the map's extent")
-    occluders: NonNegInt = Field(default=4000,
+    occluders: NonNegInt = Field(default=2000,
         description="Gaussians forming the visibility: 'transmittance' draws this many in "
         "proportion to their optical mass (reweighted; 0: all), 'zbuffer' a seeded subset of "
         "opaque ones (0: no occlusion test)")

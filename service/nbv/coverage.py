@@ -16,6 +16,7 @@ Johnson-Lindenstrauss matrix Pi [K, d] with N(0, 1/d) entries, so ``B = M Pi``.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import torch
@@ -218,6 +219,10 @@ def jl_projection(
     """
     if num_samples < 1 or dim < 1:
         raise ValueError(f"JL projection needs K >= 1 and d >= 1, got K={num_samples}, d={dim}")
-    g = torch.Generator().manual_seed(int(seed))
-    pi = torch.randn(num_samples, dim, generator=g, dtype=torch.float64) / dim**0.5
-    return pi.to(dtype=dtype, device=device)
+    return _jl_matrix(int(num_samples), int(dim), int(seed)).to(dtype=dtype, device=device)
+
+
+@functools.lru_cache(maxsize=16)
+def _jl_matrix(num_samples: int, dim: int, seed: int) -> Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return torch.randn(num_samples, dim, generator=g, dtype=torch.float64) / dim**0.5

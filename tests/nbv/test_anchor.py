@@ -466,3 +466,51 @@ def test_occluder_cover_closes_gaps_between_occluder_points() -> None:
     assert vis[((1, 0.02),)] == [1.0, 1.0]  # the hidden sample leaks through the gap
     assert vis[((3, 0.02),)] == [0.0, 1.0]  # covered; the near one is not
     assert vis[((1, 0.02), (3, 0.02))] == [0.5, 1.0]  # two tests: the mean
+
+
+# ----------------------------------------------------------------------------- transmittance
+def _wall(n_side: int = 24, z: float = 0.0, opacity: float = 0.95, scale: float = 0.08):
+    """A square wall of Gaussians in the plane z = ``z`` (facing a camera on the -z axis)."""
+    u = torch.linspace(-0.6, 0.6, n_side, dtype=torch.float64)
+    yy, xx = torch.meshgrid(u, u, indexing="ij")
+    pts = torch.stack([xx.flatten(), yy.flatten(), torch.full_like(xx.flatten(), z)], dim=1)
+    return GaussianMap.from_points(pts, torch.full_like(pts, 0.5), scale=scale, opacity=opacity)
+
+
+def test_transmittance_through_a_wall_and_in_front_of_it() -> None:
+    from agilegs.service.nbv.anchor.visibility import OpacityMaps
+
+    wall = _wall()
+    cam = look_at(torch.tensor([0.0, 0.0, -3.0], dtype=torch.float64),
+                  torch.zeros(3, dtype=torch.float64))[None]
+    maps = OpacityMaps.build(wall, INTR, torch.zeros(3, dtype=torch.float64), 1.0)
+    pts = torch.tensor([[0.0, 0.0, 0.5],    # behind the wall
+                        [0.1, -0.1, -0.5],  # in front of it
+                        [0.0, 0.0, 0.0]],   # on it: its own slab is not in front of it
+                       dtype=torch.float64)
+    t = maps.transmittance(cam, pts)[0]
+    assert float(t[0]) < 0.05
+    assert float(t[1]) > 0.99 and float(t[2]) > 0.9
+    # a faint wall hides less; two walls hide more than one
+    faint = OpacityMaps.build(_wall(opacity=0.2), INTR, torch.zeros(3, dtype=torch.float64),
+                              1.0).transmittance(cam, pts)[0]
+    assert float(t[0]) < float(faint[0]) < 1.0
+    a, b = _wall(z=-0.2, opacity=0.2), _wall(opacity=0.2)
+    double = GaussianMap(**{k: torch.cat([getattr(a, k), getattr(b, k)]) for k in FIELD_NAMES})
+    two = OpacityMaps.build(double, INTR, torch.zeros(3, dtype=torch.float64),
+                            1.0).transmittance(cam, pts)[0]
+    assert float(two[0]) < float(faint[0])
+
+
+def test_transmittance_is_differentiable_in_the_pose() -> None:
+    from agilegs.service.nbv.anchor.visibility import OpacityMaps
+
+    wall = _wall(n_side=12, scale=0.05)
+    maps = OpacityMaps.build(wall, INTR, torch.zeros(3, dtype=torch.float64), 1.0)
+    cam = look_at(torch.tensor([0.3, 0.2, -3.0], dtype=torch.float64),
+                  torch.zeros(3, dtype=torch.float64))[None]
+    xi = torch.zeros(1, 6, dtype=torch.float64, requires_grad=True)
+    pts = torch.tensor([[0.05, 0.02, 0.4]], dtype=torch.float64)
+    t = maps.transmittance(cam @ se3_exp(xi), pts)
+    (g,) = torch.autograd.grad(t.sum(), xi)
+    assert torch.isfinite(g).all() and float(g.abs().sum()) > 0

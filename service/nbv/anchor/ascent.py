@@ -238,7 +238,8 @@ def optimize_anchor(
     )
     if fitted:
         assert acquired is not None
-        fit = observation_rates(gmap, h_acc, acquired, prox_intr, fields, lam=lam, **common)
+        fit = observation_rates(gmap, h_acc, acquired, prox_intr, fields, lam=lam,
+                                unseen=config.unseen, **common)
         c = fit.slots * torch.log1p(fit.rate * fit.typical)
         proxy = ProxyPsi.build(
             gmap, c, prox_intr, num_samples=config.num_gaussians, rate=fit.rate,

@@ -106,6 +106,7 @@ def observation_rates(
     grid: OpacityMaps | None = None,
     chunk: int = 16,
     lam: float | None = None,
+    unseen: str = "quarter_view",
 ) -> FittedRates:
     """Fit the proxy's observation model to Hhat over the acquired poses [A, 4, 4].
 
@@ -121,8 +122,11 @@ def observation_rates(
     large and the leak costs little; and a Gaussian that Hhat says no view constrains although
     the proxy saw it (r ~ 0: hidden inside the surface, or too faint) gains nothing. A
     Gaussian the proxy did not see from any acquired pose (W_i below a quarter of the typical
-    term f) counts as seen by a quarter of a typical view, ``a_i = 4 / f``: new, but bounded
-    (the exact ``log(1 + H / lambda)`` of such a Gaussian depends on the arbitrary lambda).
+    term f) is modelled by ``unseen``: ``"quarter_view"`` counts it as seen by a quarter of a
+    typical view, ``a_i = 4 / f`` (new, but bounded: the exact ``log(1 + H / lambda)`` of such
+    a Gaussian depends on lambda); ``"prior"`` gives it the seen Gaussians' median
+    information per unit of footprint g_q and its own Hhat, ``a_i = mean_q(g_q / Hhat_iq)``,
+    as the exact EIG does.
     ``lam``: lambda_q, the prior in Hhat (None: each slot's minimum over Gaussians,
     :func:`prior_floor`). ``grid`` (the transmittance visibility) or ``occluders`` (the
     z-buffer's occluder means): the same visibility as the proxy it serves.
@@ -154,15 +158,25 @@ def observation_rates(
     pos = torch.cat(seen) if seen else torch.zeros(0, dtype=dt, device=dev)
     f_typ = float(pos.median()) if pos.numel() else 1.0
     floor = 0.25 * f_typ
+    seen_mask = w_sum >= floor
     r_sum = torch.zeros(n, dtype=dt, device=dev)
+    new_sum = torch.zeros(n, dtype=dt, device=dev)
     slots = 0
     for name in fields:
         flat = h_acc[name].detach().to(dt).reshape(n, -1)
         prior = prior_floor(flat, lam)
-        r_sum += ((flat - prior) / flat.clamp_min(1e-30)).clamp(0, 1).sum(1)
+        excess = (flat - prior).clamp_min(0)
+        r_sum += (excess / flat.clamp_min(1e-30)).clamp(0, 1).sum(1)
+        if unseen == "prior" and bool(seen_mask.any()):
+            g_med = (excess[seen_mask] / w_sum[seen_mask, None]).median(dim=0).values  # [P]
+            new_sum += (g_med[None, :] / flat.clamp_min(1e-30)).sum(1)
         slots += flat.shape[1]
     r = r_sum / max(slots, 1)
-    rate = torch.where(w_sum >= floor, r / w_sum.clamp_min(floor), torch.full_like(r, 1 / floor))
+    if unseen == "prior" and bool(seen_mask.any()):
+        fresh = new_sum / max(slots, 1)
+    else:
+        fresh = torch.full_like(r, 1 / floor)
+    rate = torch.where(seen_mask, r / w_sum.clamp_min(floor), fresh)
     return FittedRates(rate=rate, accumulated=w_sum, typical=f_typ, slots=slots)
 
 

@@ -3,8 +3,8 @@ terms at a virtual camera, summed over an importance sample of Gaussians.
 
 ``w_i(T) = footprint_i(T) * inside_i(T) * visible_i(T)``: ``footprint_i = sqrt(det(J Sigma_i
 J^T + 0.3 I))`` its projected area in pixels, ``inside_i`` a smooth (sigmoid) near-plane and
-image-bounds test, ``visible_i`` the squared transmittance in front of the Gaussian through
-the map, read from deep opacity maps (:mod:`agilegs.service.nbv.anchor.visibility`),
+image-bounds test, ``visible_i`` the transmittance in front of the Gaussian through the map,
+read from deep opacity maps (:mod:`agilegs.service.nbv.anchor.visibility`),
 or, as a benchmark variant, an occlusion test from a point z-buffer of opaque Gaussians' means
 (piecewise constant in the pose: no gradient, the ascent's line search sees it). The per-view
 information of Gaussian i is modelled as proportional to ``w_i(T)``; how the model is fitted
@@ -51,7 +51,7 @@ class ProxyPsi:
     With the per-sample term ``w_s(T) = footprint_s(T) * inside_s(T) * visible_s(T)``:
     ``psi(T) = sum_s weight_s * log(1 + rate_s * w_s(T))`` when ``rate`` is set (the fitted
     model, ``observation_rates``), else ``psi(T) = sum_s weight_s * w_s(T)``. ``visible_s``:
-    with ``grid``, the squared transmittance from the camera centre to the sample through the
+    with ``grid``, the transmittance from the camera centre to the sample through the
     map (deep opacity maps, differentiable in the pose); else, with ``occluders``, a point
     z-buffer test:
     the occluders' means (a seeded subset of the opaque Gaussians plus the samples
@@ -157,12 +157,11 @@ class ProxyPsi:
     def visibility(
         self, c2w: Tensor, sample_cam: tuple[Tensor, Tensor, Tensor] | None = None
     ) -> Tensor:
-        """The visibility of every sample from poses [B, 4, 4] -> [B, S]: the squared
+        """The visibility of every sample from poses [B, 4, 4] -> [B, S]: the
         transmittance (with ``grid``, differentiable in the poses), else the z-buffer
         test's (:meth:`zbuffer_visibility`), else 1."""
         if self.grid is not None:
-            t = self.grid.transmittance(c2w, self.means, sample_cam)
-            return t * t
+            return self.grid.transmittance(c2w, self.means, sample_cam)
         return self.zbuffer_visibility(c2w, sample_cam)
 
     @torch.no_grad()
