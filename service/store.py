@@ -179,7 +179,8 @@ class SessionStore:
                 written.append(folder / VIEWS / name)
                 sums[f"{VIEWS}/{name}"] = self._write(folder / VIEWS / name, data)
             self._sync_dir(folder / VIEWS)
-        return files, sums
+        named = replace(record, files=files).named_files()
+        return files, {k: v for k, v in sums.items() if k in named}
 
     def _write_manifest(self, folder: Path, record: SessionRecord, *,
                         keep_previous: bool = False) -> None:

@@ -27,7 +27,15 @@ from pydantic import BaseModel, ValidationError
 from agilegs.schemas import models as m
 from agilegs.schemas.ops import OPERATIONS
 
-from ..errors import conflict, invalid, not_found, session_damaged, too_large, too_many
+from ..errors import (
+    conflict,
+    invalid,
+    is_disk_full,
+    not_found,
+    session_damaged,
+    too_large,
+    too_many,
+)
 from ..errors import validation_error as _validation_error
 from ..integrity import Damage, FileProblem
 from ..nbv.information import init_information
@@ -98,9 +106,14 @@ class SessionRegistry:
         """Load every persisted session (checked; damaged ones are held apart) and start the
         mapper (when on); returns how many intact sessions were loaded."""
         tmp = self.env.tmp_dir
-        tmp.mkdir(parents=True, exist_ok=True)
-        for stale in tmp.iterdir():
-            stale.unlink(missing_ok=True)
+        try:
+            tmp.mkdir(parents=True, exist_ok=True)
+            for stale in tmp.iterdir():
+                stale.unlink(missing_ok=True)
+        except OSError as exc:  # a full disk: serve what is there (uploads answer 507)
+            if not is_disk_full(exc):
+                raise
+            log.warning("the state folder is full: %s", exc)
         records, damaged = self.store.load_all()
         for rec in records:
             self.sessions[rec.id] = Session(rec, self.env)
@@ -229,11 +242,13 @@ class SessionRegistry:
                           message=f"session {sid!r}: {text}; now version {done.record.version}")
 
     def _recheck(self, sid: str) -> Damage | None:
+        """Damaged session ``sid`` checked again (its listing updated); None if it is not."""
         got = self.store.inspect(sid)
-        if isinstance(got, Damage):
+        if not isinstance(got, Damage):
+            return None
+        with self.lock:
             self.damaged[sid] = got
-            return got
-        return None
+        return got
 
     def _refused_publication(self) -> None:
         if self.on_refused_write is not None:
@@ -251,7 +266,8 @@ class SessionRegistry:
 
     def list_sessions(self) -> m.SessionList:
         out = [s.summary() for s in list(self.sessions.values())]
-        out += [damaged_summary(d) for _, d in sorted(list(self.damaged.items()))]
+        out += [damaged_summary(d) for d in sorted(list(self.damaged.values()),
+                                                   key=lambda d: d.session)]
         return m.SessionList(sessions=out)
 
     def delete_session(self, sid: str | None) -> m.Deleted:
@@ -344,8 +360,7 @@ class SessionRegistry:
     def _check_new_id(self, sid: str) -> None:
         if sid in self.sessions:
             raise conflict("body.id", f"session {sid!r} already exists")
-        d = self.damaged.get(sid)
-        if d is not None:
+        if sid in self.damaged:
             raise session_damaged("body.id", f"session {sid!r} already exists and is damaged "
                                              "(see list_sessions): repair or delete it first")
         if len(self.sessions) + len(self.damaged) >= self.settings.max_sessions:

@@ -407,3 +407,38 @@ def test_a_full_disk_during_a_map_publication_is_retried(tmp_path: Path,
     assert info.version == version + 1 and info.mapper.published_steps == 4
     assert info.mapper.state == "idle"
     core.close()
+
+
+def test_with_the_mapper_on_a_repaired_session_trains_again(tmp_path: Path) -> None:
+    import time
+
+    state = tmp_path / "state"
+    settings = {"mapper": True, "mapper_steps_per_view": 4, "mapper_burst": 4}
+    opts = {"config": {"densify_from": 10_000}}
+
+    def idle(c: Client, sid: str) -> Any:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            info = c.get_session(sid)
+            if info.mapper is not None and info.mapper.state == "idle":
+                return info
+            time.sleep(0.05)
+        raise AssertionError(f"the mapper of {sid} did not finish: {info.mapper}")
+
+    with serve_in_process(state, **settings) as srv, srv.client() as c:
+        c.create_session(SMALL_INTRINSICS, id="a", init_gaussians=60, frames=[frame(0)],
+                         pool=POOL, mapper=opts)
+        c.create_session(SMALL_INTRINSICS, id="other", init_gaussians=30, bounds=BOUNDS)
+        idle(c, "a")
+        c.add_observations("a", frame(1))
+        before = idle(c, "a")
+        other = c.get_session("other").version
+    damage(state / "sessions" / "a" / MANIFEST, "truncate")
+    with serve_in_process(state, **settings) as srv, srv.client() as c:
+        listed = {s.id: s for s in c.list_sessions().sessions}
+        assert listed["a"].state == "damaged" and listed["other"].state == "ok"
+        done = c.repair_session("a")
+        assert done.rolled_back_to is not None and done.rolled_back_to < before.version
+        after = idle(c, "a")  # the mapper trains what the restored version owes
+        assert after.mapper.steps == after.mapper.published_steps == 4 * after.num_views
+        assert c.get_session("other").version == other
