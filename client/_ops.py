@@ -74,6 +74,11 @@ class SyncOperations:
     def delete_session(self, session: str) -> m.Deleted:
         return self._send(rq.call("delete_session", session))  # type: ignore[no-any-return]
 
+    def repair_session(self, session: str) -> m.Repaired:
+        """Bring a damaged session back (see ``SessionSummary.damage``): roll it back to its
+        last intact version and drop damaged frames; nothing changes if it is intact."""
+        return self._send(rq.call("repair_session", session))  # type: ignore[no-any-return]
+
     def set_gaussians(self, session: str, gaussians: GaussiansLike) -> m.SessionInfo:
         """Replace the session's Gaussians (Ĥ follows the new map)."""
         return self._send(rq.call(  # type: ignore[no-any-return]
@@ -179,6 +184,9 @@ class AsyncOperations:
 
     async def delete_session(self, session: str) -> m.Deleted:
         return await self._send(rq.call("delete_session", session))  # type: ignore[no-any-return]
+
+    async def repair_session(self, session: str) -> m.Repaired:
+        return await self._send(rq.call("repair_session", session))  # type: ignore[no-any-return]
 
     async def set_gaussians(self, session: str, gaussians: GaussiansLike) -> m.SessionInfo:
         return await self._send(rq.call(  # type: ignore[no-any-return]

@@ -12,10 +12,12 @@
         ├── NotFoundError              404  unknown session, candidate, view or route
         │   └── SessionUnavailableError     no instance answers for the session
         ├── ConflictError              409  state forbids it (id taken, empty pool, ...)
+        │   └── SessionDamagedError         the session's files on disk do not check out
         ├── PayloadTooLargeError       413  a size limit (body, pool, pixels, Gaussians)
         ├── ValidationError            422  a malformed or out-of-range value
         ├── TooManyError               429  a count limit (sessions, views)
         └── ServerError                5xx  a server fault
+            └── InsufficientStorageError  507  the server's disk is full (nothing changed)
 
 An :class:`APIError` carries the error body's ``status``, ``code``, ``message``, ``field``
 (the path of the offending input, e.g. ``body.poses[3].matrix``) and ``errors`` (every
@@ -37,11 +39,13 @@ __all__ = [
     "AuthenticationError",
     "BadRequestError",
     "ConflictError",
+    "InsufficientStorageError",
     "NotFoundError",
     "PayloadTooLargeError",
     "ProtocolError",
     "RequestTimeout",
     "ServerError",
+    "SessionDamagedError",
     "SessionUnavailableError",
     "TooManyError",
     "TransportError",
@@ -107,6 +111,12 @@ class ConflictError(APIError):
     """409: the session's state forbids it (id taken, empty pool, map empty...)."""
 
 
+class SessionDamagedError(ConflictError):
+    """409 ``session_damaged``: the session's files on the server's disk do not check out;
+    ``list_sessions`` shows what is damaged, ``repair_session`` brings it back to its last
+    intact version, ``delete_session`` removes it."""
+
+
 class PayloadTooLargeError(APIError):
     """413: a size limit of the server (body bytes, pool size, pixels, Gaussians)."""
 
@@ -123,6 +133,11 @@ class ServerError(APIError):
     """5xx: a fault on the server side."""
 
 
+class InsufficientStorageError(ServerError):
+    """507 ``insufficient_storage``: the server's state folder is full; the change was not
+    made (reads keep working; retry once space is freed)."""
+
+
 _BY_STATUS: dict[int, type[APIError]] = {
     400: BadRequestError,
     401: AuthenticationError,
@@ -134,6 +149,7 @@ _BY_STATUS: dict[int, type[APIError]] = {
     415: BadRequestError,
     422: ValidationError,
     429: TooManyError,
+    507: InsufficientStorageError,
 }
 
 
@@ -157,4 +173,6 @@ def error_from_body(status: int | None, body: bytes, kind: str | None) -> APIErr
     cls = _BY_STATUS.get(st, ServerError if st >= 500 else APIError)
     if info.code == "session_unavailable":
         cls = SessionUnavailableError
+    elif info.code == "session_damaged":
+        cls = SessionDamagedError
     return cls(st, info.code, info.message, info.field, list(info.errors))

@@ -19,6 +19,7 @@ code                      status  meaning
 ``method_not_allowed``    405     the route exists but not with this method
 ``not_acceptable``        406     Accept names no type the server produces
 ``conflict``              409     the session's state forbids it (id taken, view has a frame)
+``session_damaged``       409     the session's files on disk do not check out (see its ``damage``)
 ``empty_pool``            409     a selection on an empty candidate pool
 ``map_empty``             409     a selection on a session without Gaussians
 ``payload_too_large``     413     body over the ``max_body_bytes`` setting
@@ -27,6 +28,7 @@ code                      status  meaning
 ``invalid``               422     a value is malformed or out of range (the field says which)
 ``too_many``              429     a count limit was reached (sessions, views per session)
 ``internal``              500     a server bug (bad input never yields it)
+``insufficient_storage``  507     the state folder is full: the change was not made
 ``bad_gateway``           502     scale-out: the owning instance's answer was unusable
 ``unavailable``           503     the server is shutting down or a dependency is missing
 ``gateway_timeout``       504     scale-out: the owning instance did not answer in time
@@ -53,6 +55,7 @@ class ErrorCode(StrEnum):
     METHOD_NOT_ALLOWED = "method_not_allowed"
     NOT_ACCEPTABLE = "not_acceptable"
     CONFLICT = "conflict"
+    SESSION_DAMAGED = "session_damaged"
     EMPTY_POOL = "empty_pool"
     MAP_EMPTY = "map_empty"
     PAYLOAD_TOO_LARGE = "payload_too_large"
@@ -61,6 +64,7 @@ class ErrorCode(StrEnum):
     INVALID = "invalid"
     TOO_MANY = "too_many"
     INTERNAL = "internal"
+    INSUFFICIENT_STORAGE = "insufficient_storage"
     BAD_GATEWAY = "bad_gateway"
     UNAVAILABLE = "unavailable"
     GATEWAY_TIMEOUT = "gateway_timeout"
@@ -75,6 +79,7 @@ ERROR_STATUS: dict[ErrorCode, int] = {
     ErrorCode.METHOD_NOT_ALLOWED: 405,
     ErrorCode.NOT_ACCEPTABLE: 406,
     ErrorCode.CONFLICT: 409,
+    ErrorCode.SESSION_DAMAGED: 409,
     ErrorCode.EMPTY_POOL: 409,
     ErrorCode.MAP_EMPTY: 409,
     ErrorCode.PAYLOAD_TOO_LARGE: 413,
@@ -83,6 +88,7 @@ ERROR_STATUS: dict[ErrorCode, int] = {
     ErrorCode.INVALID: 422,
     ErrorCode.TOO_MANY: 429,
     ErrorCode.INTERNAL: 500,
+    ErrorCode.INSUFFICIENT_STORAGE: 507,
     ErrorCode.BAD_GATEWAY: 502,
     ErrorCode.UNAVAILABLE: 503,
     ErrorCode.GATEWAY_TIMEOUT: 504,

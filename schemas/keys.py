@@ -61,6 +61,7 @@ SERVICE_OPS: tuple[str, ...] = ("health", "create_session", "list_sessions")
 SESSION_OPS: tuple[str, ...] = (
     "get_session",
     "delete_session",
+    "repair_session",
     "set_gaussians",
     "add_observations",
     "list_views",

@@ -37,6 +37,7 @@ __all__ = [
     "Deleted",
     "FieldName",
     "FieldSummary",
+    "FileProblem",
     "GaussianArrays",
     "GaussiansIn",
     "GaussiansOut",
@@ -54,14 +55,17 @@ __all__ = [
     "ObservationsIn",
     "PoolIn",
     "PoolOut",
+    "Repaired",
     "ScoredCandidate",
     "SelectDefaults",
     "SelectRequest",
     "SelectResponse",
     "SessionCreate",
+    "SessionDamage",
     "SessionId",
     "SessionInfo",
     "SessionList",
+    "SessionState",
     "SessionSummary",
     "ShortlistStrategy",
     "View",
@@ -278,13 +282,52 @@ class InformationSummary(BaseModel):
     digest: str = Field(description="sha256 over every field's float32 little-endian bytes")
 
 
+class FileProblem(BaseModel):
+    """One state file of a session that does not check out."""
+
+    file: str = Field(description="path under the session's folder: manifest.json, "
+                                  "gaussians.<v>.pt, information.<v>.pt, pool.<v>.pt, "
+                                  "views/<view>.rgb.<ext>, views/<view>.depth.npy")
+    problem: str = Field(description="what is wrong: missing, truncated (n of m bytes), "
+                                     "checksum mismatch, unreadable (why)")
+
+
+class SessionDamage(BaseModel):
+    """Why a session is damaged, and what ``repair_session`` would do about it."""
+
+    files: list[FileProblem] = Field(description="every file that does not check out")
+    version: int | None = Field(
+        default=None, description="the damaged version (None: its manifest is unreadable)")
+    repairable: bool = Field(
+        description="whether repair_session can bring the session back; if not, delete it or "
+                    "restore its folder from a backup")
+    rollback_to: int | None = Field(
+        default=None, description="repair_session rolls the session back to this intact "
+                                  "earlier version (what later versions changed is lost)")
+    drop_frames: list[int] = Field(
+        default_factory=list, description="views whose damaged image / depth repair_session "
+                                          "drops (the views, their poses and Ĥ stay)")
+    repair: str = Field(description="what repair_session would do, in words")
+    detected_at: float = Field(description="unix time (s) the damage was found")
+
+
+SessionState = Literal["ok", "damaged"]
+
+
 class SessionSummary(BaseModel):
     id: str
-    version: int = Field(description="incremented by every acknowledged state change")
-    num_gaussians: int
-    pool_size: int
-    num_views: int
-    updated_at: float
+    state: SessionState = Field(
+        default="ok", description="damaged: the session's files on disk do not check out "
+                                  "(see damage); its operations answer 409 session_damaged, "
+                                  "but for repair_session and delete_session")
+    version: int | None = Field(description="incremented by every acknowledged state change "
+                                            "(None: damaged and unknown)")
+    num_gaussians: int | None = Field(description="None: damaged and unknown")
+    pool_size: int | None = Field(description="None: damaged and unknown")
+    num_views: int | None = Field(description="None: damaged and unknown")
+    updated_at: float | None = Field(description="None: damaged and unknown")
+    damage: SessionDamage | None = Field(default=None, description="what is damaged (state "
+                                                                   "damaged only)")
 
 
 class SessionInfo(BaseModel):
@@ -316,10 +359,25 @@ class Deleted(BaseModel):
     deleted: bool = True
 
 
+class Repaired(BaseModel):
+    """What ``repair_session`` did."""
+
+    id: str
+    repaired: bool = Field(description="False: the session was not damaged; nothing changed")
+    rolled_back_to: int | None = Field(
+        default=None, description="the intact earlier version restored (what later versions "
+                                  "changed is lost)")
+    dropped_frames: list[int] = Field(
+        default_factory=list, description="views whose damaged image / depth was dropped")
+    version: int = Field(description="the session's version now (a repair is a state change)")
+    message: str = Field(description="what was done, in words")
+
+
 class Health(BaseModel):
     status: Literal["ok"] = "ok"
     version: str
-    sessions: int
+    sessions: int = Field(description="sessions held (damaged ones included)")
+    damaged: int = Field(default=0, description="sessions held whose files do not check out")
     zenoh: bool
     uptime_s: float
 

@@ -50,6 +50,8 @@ OPERATIONS: dict[str, Operation] = {
             "list sessions"),
         _op("get_session", "session", "GET", _S, None, m.SessionInfo, "read a session's state"),
         _op("delete_session", "session", "DELETE", _S, None, m.Deleted, "delete a session"),
+        _op("repair_session", "session", "POST", _S + "/repair", None, m.Repaired,
+            "bring a damaged session back (its last intact version, damaged frames dropped)"),
         _op("set_gaussians", "session", "PUT", _S + "/gaussians", m.GaussiansIn, m.SessionInfo,
             "replace the Gaussians"),
         _op("add_observations", "session", "POST", _S + "/observations", m.ObservationsIn,

@@ -17,6 +17,10 @@ from collections.abc import Sequence
 COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("serve",), "agilegs.service.serve", "run the NBV server (HTTP and Zenoh)"),
     (("demo",), "agilegs.service.demo", "closed-loop demo on the bundled scene"),
+    (("store", "check"), "agilegs.service.store_tool",
+     "check a state folder's sessions against their checksums (offline)"),
+    (("store", "repair"), "agilegs.service.store_tool",
+     "roll damaged sessions of a state folder back to their last intact version (offline)"),
     (("bench", "render"), "agilegs.service.bench.render_bench", "rasterizer and Fisher timings"),
     (("bench", "latency"), "agilegs.service.bench.latency", "selection latency of every method"),
     (("bench", "run"), "agilegs.service.bench.run_cli", "the paper's progressive protocol"),

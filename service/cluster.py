@@ -269,7 +269,7 @@ class ClusterNode:
             z = self._z
             if z is None:
                 return
-            want = {sid for sid, s in list(self.registry.sessions.items()) if not s.closed}
+            want = self.registry.held()  # damaged sessions too: their owner answers for them
             for sid in sorted(set(self._owned) - want):
                 for entity in self._owned.pop(sid):
                     try:
@@ -346,7 +346,7 @@ class ClusterNode:
                 raise ServiceError(422, "invalid", str(exc), "query.instance") from None
         if spec.scope == "session":
             if (self._z is None or session is None or not _SESSION_RE.match(session)
-                    or session in self.registry.sessions):
+                    or self.registry.holds(session)):
                 return self._local(op, run_local)
             return self._forward_session(spec, session, req, run_local)
         if op == "list_sessions" and self._z is not None:
@@ -389,7 +389,7 @@ class ClusterNode:
 
     def _check_id_free(self, sid: str | None) -> None:
         """409 if the requested session id is held here or by another live instance."""
-        if sid is not None and (sid in self.registry.sessions or self._remote_replies(
+        if sid is not None and (self.registry.holds(sid) or self._remote_replies(
                 keys.session_key(sid, "get_session"), PROBE_TIMEOUT)):
             raise ServiceError(409, "conflict", f"session {sid!r} already exists", "body.id")
 

@@ -8,6 +8,7 @@ The gateway turns it into the same body over HTTP and Zenoh.
 
 from __future__ import annotations
 
+import errno
 from collections.abc import Iterable
 
 from pydantic import ValidationError
@@ -18,9 +19,12 @@ __all__ = [
     "ServiceError",
     "conflict",
     "field_path",
+    "insufficient_storage",
     "invalid",
+    "is_disk_full",
     "not_found",
     "too_large",
+    "session_damaged",
     "too_many",
     "validation_error",
 ]
@@ -83,6 +87,35 @@ def too_large(field: str | None, message: str) -> ServiceError:
 
 def too_many(field: str | None, message: str) -> ServiceError:
     return ServiceError.of(ErrorCode.TOO_MANY, message, field)
+
+
+def session_damaged(field: str | None, message: str) -> ServiceError:
+    return ServiceError.of(ErrorCode.SESSION_DAMAGED, message, field)
+
+
+DISK_FULL_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT})
+"""``errno`` values of a write refused for lack of space (the disk, or a quota)."""
+
+
+def is_disk_full(exc: BaseException) -> bool:
+    """Whether ``exc`` (or what it was raised from) is a write refused for lack of space."""
+    seen = 0
+    cur: BaseException | None = exc
+    while cur is not None and seen < 8:
+        if isinstance(cur, OSError) and cur.errno in DISK_FULL_ERRNOS:
+            return True
+        cur = cur.__cause__ or cur.__context__
+        seen += 1
+    return False
+
+
+def insufficient_storage(exc: BaseException | None = None) -> ServiceError:
+    """507: the state folder is full; nothing was changed."""
+    why = f" ({exc.strerror})" if isinstance(exc, OSError) and exc.strerror else ""
+    return ServiceError.of(
+        ErrorCode.INSUFFICIENT_STORAGE,
+        f"the server's state folder is full{why}: the change was not made; reads keep "
+        "working, and writes succeed again once space is freed")
 
 
 def field_path(prefix: str, loc: Iterable[int | str]) -> str:

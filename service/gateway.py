@@ -14,7 +14,8 @@ which does, once for every transport:
 6. encoding of the answer or of the error body, in the type the request accepts,
 7. metrics, and the decision hooks after a selection made here.
 
-It returns a :class:`Reply` (status, bytes, media type); a bug in a handler is logged and
+It returns a :class:`Reply` (status, bytes, media type); a write refused for lack of space
+is answered 507 ``insufficient_storage`` (and counted), a bug in a handler is logged and
 answered 500. The HTTP routes (:mod:`agilegs.service.http_routes`) and the Zenoh queryables
 and subscriptions (:mod:`agilegs.service.zenoh_adapter`) are glue around it.
 """
@@ -37,7 +38,7 @@ from agilegs.schemas.errors import ErrorCode
 from agilegs.schemas.models import SelectResponse
 from agilegs.schemas.ops import OPERATIONS
 
-from .errors import ServiceError, invalid
+from .errors import ServiceError, insufficient_storage, invalid, is_disk_full
 from .metrics import Metrics
 from .sessions.registry import SessionRegistry, parse_request
 from .settings import Settings
@@ -205,6 +206,12 @@ class Gateway:
         except ServiceError as err:
             return self.error_reply(err, kind, req.transport, req.op)
         except Exception as exc:
+            if is_disk_full(exc):  # nothing was changed: the store undoes a refused write
+                log.warning("%s (%s) refused: the state folder is full (%s)", req.op,
+                            req.transport, exc)
+                if self.metrics is not None:
+                    self.metrics.observe_refused_write(req.transport, req.op)
+                return self.error_reply(insufficient_storage(exc), kind, req.transport, req.op)
             log.exception("internal error on %s (%s)", req.op, req.transport)
             crash = ServiceError(500, ErrorCode.INTERNAL,
                                  f"internal error ({type(exc).__name__})")

@@ -24,6 +24,8 @@ def _error_responses(op: Operation) -> dict[int | str, dict[str, Any]]:
         codes += [404, 409, 429]
     elif op.name == "create_session":
         codes += [404, 409, 429]  # 404: no instance answers as ?instance=
+    if op.http_method != "GET":
+        codes.append(507)  # the state folder is full
     return {
         c: {
             "model": ErrorBody,

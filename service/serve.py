@@ -4,6 +4,10 @@ HTTP, Zenoh or both, until SIGTERM or SIGINT.
 Every flag has an ``AGILEGS_*`` environment variable (see :mod:`agilegs.service.settings`);
 a flag given on the command line wins. The bearer token is read from ``AGILEGS_TOKEN`` only
 (a command line is visible to every user of the machine).
+
+The state folder is claimed before anything else (:mod:`agilegs.service.state_dir`): a folder
+that cannot be created, is read-only, or is held by another server ends the command with one
+line on stderr and exit status 2.
 """
 
 from __future__ import annotations
@@ -11,12 +15,14 @@ from __future__ import annotations
 import argparse
 import logging
 import signal
+import sys
 import threading
 from typing import Any
 
 from .http_app import create_app
 from .server import Server
 from .settings import Settings
+from .state_dir import StateDirError
 
 __all__ = ["add_arguments", "build_settings", "run"]
 
@@ -107,6 +113,12 @@ def run(args: argparse.Namespace) -> int:
     settings = build_settings(args)
     settings.warn_if_unsafe()
     server = Server(settings)
+    try:
+        server.claim_state()
+    except StateDirError as exc:  # read-only, cannot be created, or held by another server
+        sys.stderr.write(f"agilegs serve: {exc}\n")
+        server.close()
+        return 2
     if not settings.http:
         return _serve_zenoh_only(server)
     import uvicorn

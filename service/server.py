@@ -19,6 +19,7 @@ from .gateway import Gateway
 from .metrics import Metrics
 from .sessions.registry import SessionRegistry
 from .settings import Settings
+from .state_dir import StateLock, claim_state_dir
 from .zenoh_adapter import ZenohAdapter
 
 __all__ = ["Server"]
@@ -29,6 +30,9 @@ log = logging.getLogger(__name__)
 class Server:
     """One server instance: sessions, gateway, cluster node, Zenoh, metrics.
 
+    The state folder is claimed exclusively (:mod:`agilegs.service.state_dir`) from
+    :meth:`claim_state` (:meth:`start` claims it if that was not called) until :meth:`close`.
+
     Args:
         settings: the server's settings.
     """
@@ -36,14 +40,27 @@ class Server:
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
         self.registry = SessionRegistry(settings)
-        self.metrics = Metrics(sessions=lambda: len(self.registry.sessions))
+        self.metrics = Metrics(sessions=lambda: len(self.registry.sessions),
+                               damaged=lambda: len(self.registry.damaged))
+        self.registry.on_refused_write = self.metrics.observe_refused_write
         self.gateway = Gateway(self.registry, settings, self.metrics)
         self.cluster = ClusterNode(self.registry, settings, self.gateway.executor)
         self.gateway.router = self.cluster
         self.zenoh: ZenohAdapter | None = None
+        self.state_lock: StateLock | None = None
+
+    def claim_state(self) -> None:
+        """Claim the state folder (created if missing); a one-line
+        :class:`~agilegs.service.state_dir.StateDirError` if it is read-only, cannot be
+        created, or another server holds it."""
+        if self.state_lock is None:
+            self.state_lock = claim_state_dir(self.settings.state_dir, command="agilegs serve",
+                                              instance=self.cluster.instance_id)
 
     def start(self) -> None:
-        """Load the sessions (the mapper starts with them) and join Zenoh when it is on."""
+        """Claim the state folder, load the sessions (the mapper starts with them) and join
+        Zenoh when it is on."""
+        self.claim_state()
         self.registry.load()
         if self.settings.zenoh:
             self.zenoh = ZenohAdapter(self.gateway, self.cluster, self.settings)
@@ -56,3 +73,6 @@ class Server:
             self.zenoh = None
         self.registry.close()
         self.gateway.close()
+        if self.state_lock is not None:
+            self.state_lock.release()
+            self.state_lock = None

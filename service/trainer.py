@@ -56,6 +56,7 @@ from torch import Tensor
 
 from agilegs.schemas import models as m
 
+from .errors import is_disk_full
 from .mapper import Mapper, TopologyChange
 from .nbv.camera import Camera
 from .nbv.gaussians import GaussianMap
@@ -107,6 +108,7 @@ class SessionTrainer:
         self.published_version = 0  # the session version of the last publication
         self.error: str | None = None
         self.error_owed: int | None = None
+        self.full_until: float | None = None  # monotonic time: a publication refused for space
 
     # ------------------------------------------------------------------ hook
     def integrate(self, session: Session, views: list[Any]) -> None:
@@ -132,14 +134,19 @@ class SessionTrainer:
 
     def failed(self, rec: SessionRecord | None = None) -> bool:
         """Training failed and nothing new arrived since (new views retry)."""
-        return self.error is not None and self.error_owed == self.owed(rec)
+        return (self.error is not None and self.full_until is None
+                and self.error_owed == self.owed(rec))
+
+    def waiting_for_space(self) -> bool:
+        """A publication was refused for lack of space moments ago (retried after a wait)."""
+        return self.full_until is not None and time.monotonic() < self.full_until
 
     def has_work(self) -> bool:
         s = self.session
         if s.closed or not self.options.enabled:
             return False
         rec = s.record
-        if self.failed(rec):
+        if self.failed(rec) or self.waiting_for_space():
             return False
         return self.pending(rec) > 0 or self.dirty
 
@@ -152,7 +159,7 @@ class SessionTrainer:
         published = int((rec.mapper or {}).get("steps", 0))
         if not options.enabled:
             state: m.MapperState = "off"
-        elif self.failed(rec):
+        elif self.failed(rec) or self.full_until is not None:
             state = "error"
         elif (self.pending(rec) > 0 or self.dirty or self.steps != published
               or rec.version < self.published_version):
@@ -303,14 +310,19 @@ class Trainer:
         sessions: returns the sessions to serve (the registry's, at the time of the call).
         settings: the server's ``mapper_steps_per_view``, ``mapper_burst`` and
             ``max_gaussians``.
-        idle_wait: seconds the worker sleeps when no session has work, unless woken.
+        idle_wait: seconds the worker sleeps when no session has work, unless woken; also
+            how long a session whose publication was refused for lack of space waits
+            before the next try (its trained steps are kept meanwhile).
+        on_refused_write: called each time a publication is refused for lack of space.
     """
 
     def __init__(self, sessions: Callable[[], list[Session]], settings: Settings, *,
-                 idle_wait: float = 5.0) -> None:
+                 idle_wait: float = 5.0,
+                 on_refused_write: Callable[[], None] | None = None) -> None:
         self.sessions = sessions
         self.settings = settings
         self.idle_wait = float(idle_wait)
+        self.on_refused_write = on_refused_write
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -386,10 +398,19 @@ class Trainer:
                 log.debug("session %s is busy; publishing after the next burst", s.id)
             st.error = None
             st.error_owed = None
+            st.full_until = None
         except Exception as exc:  # a failing session must not stop the others
-            if s.closed:  # deleted under the burst (its files are gone)
-                log.debug("session %s was deleted during a burst", s.id)
+            if s.closed:  # deleted (its files are gone) or found damaged under the burst
+                log.debug("session %s was closed during a burst", s.id)
                 st.drop()
+                return 0
+            if is_disk_full(exc):  # keep what was trained; publish once space is freed
+                log.warning("mapper of session %s: the state folder is full; publishing "
+                            "again in %.0f s", s.id, self.idle_wait)
+                st.error = f"the state folder is full ({exc}); publishing again soon"
+                st.full_until = time.monotonic() + self.idle_wait
+                if self.on_refused_write is not None:
+                    self.on_refused_write()
                 return 0
             log.exception("mapper of session %s failed", s.id)
             st.error = f"{type(exc).__name__}: {exc}"

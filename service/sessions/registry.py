@@ -27,13 +27,23 @@ from pydantic import BaseModel, ValidationError
 from agilegs.schemas import models as m
 from agilegs.schemas.ops import OPERATIONS
 
-from ..errors import conflict, invalid, not_found, too_large, too_many
+from ..errors import (
+    conflict,
+    invalid,
+    is_disk_full,
+    not_found,
+    session_damaged,
+    too_large,
+    too_many,
+)
 from ..errors import validation_error as _validation_error
+from ..integrity import Damage, FileProblem
 from ..nbv.information import init_information
 from ..settings import Settings
-from ..store import SessionRecord, SessionStore
+from ..store import SessionRecord, SessionStore, StoreError
 from ..trainer import Trainer
 from .convert import gaussians_from_depth, parse_frame, parse_gaussians, random_gaussians
+from .listing import damaged_error, damaged_summary
 from .mapper_state import initial_mapper_state, mapper_config
 from .session import Session, SessionEnv
 
@@ -66,6 +76,10 @@ def parse_request(op: str, payload: Any) -> BaseModel | None:
 class SessionRegistry:
     """The sessions of one server, its store, and the mapper's lifecycle.
 
+    Sessions whose files do not check out (found on loading, or when a frame is read back)
+    are held apart in :attr:`damaged`: listed with state ``damaged``, their operations
+    refused with 409 ``session_damaged`` but for ``repair_session`` and ``delete_session``.
+
     Args:
         settings: the server's settings (limits, state folder, mapper schedule).
     """
@@ -74,25 +88,40 @@ class SessionRegistry:
         self.settings = settings
         self.store = SessionStore(settings.state_dir, fsync=settings.fsync)
         self.sessions: dict[str, Session] = {}
+        self.damaged: dict[str, Damage] = {}
         self.lock = threading.Lock()
+        self._repairing = threading.Lock()  # one repair or deletion of a damaged session
         self.started = time.time()
         self.zenoh_enabled = False
         self.trainer: Trainer | None = None  # while the mapper runs (see load)
+        self.on_refused_write: Callable[[str, str], None] | None = None  # (source, op)
         self.env = SessionEnv(settings=settings, store=self.store,
-                              tmp_dir=Path(settings.state_dir) / "tmp")
+                              tmp_dir=Path(settings.state_dir) / "tmp",
+                              report_damage=self.report_damage)
         if settings.torch_threads:
             torch.set_num_threads(settings.torch_threads)
 
     # ------------------------------------------------------------------ lifecycle
     def load(self) -> int:
-        """Load every persisted session and start the mapper (when on); returns how many."""
+        """Load every persisted session (checked; damaged ones are held apart) and start the
+        mapper (when on); returns how many intact sessions were loaded."""
         tmp = self.env.tmp_dir
-        tmp.mkdir(parents=True, exist_ok=True)
-        for stale in tmp.iterdir():
-            stale.unlink(missing_ok=True)
-        for rec in self.store.load_all():
+        try:
+            tmp.mkdir(parents=True, exist_ok=True)
+            for stale in tmp.iterdir():
+                stale.unlink(missing_ok=True)
+        except OSError as exc:  # a full disk: serve what is there (uploads answer 507)
+            if not is_disk_full(exc):
+                raise
+            log.warning("the state folder is full: %s", exc)
+        records, damaged = self.store.load_all()
+        for rec in records:
             self.sessions[rec.id] = Session(rec, self.env)
-        log.info("loaded %d session(s) from %s", len(self.sessions), self.settings.state_dir)
+        for d in damaged:
+            self.damaged[d.session] = d
+        log.info("loaded %d session(s) from %s%s", len(self.sessions), self.settings.state_dir,
+                 f" ({len(damaged)} damaged: {', '.join(sorted(self.damaged))})"
+                 if damaged else "")
         if self.settings.mapper:
             self.start_mapper()
         return len(self.sessions)
@@ -101,7 +130,8 @@ class SessionRegistry:
         """Start the background mapper (:mod:`agilegs.service.trainer`) for every session;
         sessions with steps still owed (e.g. after a restart) resume training."""
         if self.trainer is None:
-            self.trainer = Trainer(lambda: list(self.sessions.values()), self.settings)
+            self.trainer = Trainer(lambda: list(self.sessions.values()), self.settings,
+                                   on_refused_write=self._refused_publication)
             for s in list(self.sessions.values()):
                 self.trainer.attach(s)
         self.trainer.start()
@@ -124,12 +154,105 @@ class SessionRegistry:
         return self.execute(op, session, parse_request(op, payload))
 
     def session(self, sid: str | None) -> Session:
-        if sid is None or not _SESSION_RE.match(sid):
-            raise invalid("session", f"session id must match {m.SESSION_ID_PATTERN}")
+        sid = self._checked_id(sid)
         s = self.sessions.get(sid)
         if s is None or s.closed:
+            d = self.damaged.get(sid)
+            if d is not None:
+                raise damaged_error(d)
             raise not_found("session", f"session {sid!r} does not exist")
         return s
+
+    @staticmethod
+    def _checked_id(sid: str | None) -> str:
+        if sid is None or not _SESSION_RE.match(sid):
+            raise invalid("session", f"session id must match {m.SESSION_ID_PATTERN}")
+        return sid
+
+    def holds(self, sid: str) -> bool:
+        """Whether session ``sid`` is here (intact or damaged)."""
+        return sid in self.sessions or sid in self.damaged
+
+    def held(self) -> set[str]:
+        """The ids of the sessions here, intact (not deleted) and damaged."""
+        return {sid for sid, s in list(self.sessions.items()) if not s.closed} | set(
+            self.damaged)
+
+    # ------------------------------------------------------------------ damage
+    def report_damage(self, session: Session, problem: FileProblem) -> None:
+        """A file of ``session`` read back does not check out (``problem``): the session's
+        folder is checked again, and if it is damaged the session leaves service and is
+        listed as damaged (a transient read error that checks out again changes nothing)."""
+        log.error("session %s: %s", session.id, problem)
+        # checked under the session's lock: no write of its own races the check (frames are
+        # read outside that lock, by the mapper's worker)
+        if not session.lock.acquire(timeout=60):
+            log.warning("session %s is busy: its files are checked on the next read", session.id)
+            return
+        try:
+            got = self.store.inspect(session.id)
+        finally:
+            session.lock.release()
+        if not isinstance(got, Damage):
+            log.warning("session %s checks out again after: %s", session.id, problem)
+            return
+        with self.lock:
+            if self.sessions.get(session.id) is not session:
+                return
+            session.damaged = got.reason()
+            session.closed = True
+            self.sessions.pop(session.id, None)
+            self.damaged[session.id] = got
+        log.error("session %s is damaged: %s (repair: %s)", session.id, got.reason(), got.plan())
+
+    def repair_session(self, sid: str | None) -> m.Repaired:
+        """Bring a damaged session back (:meth:`SessionStore.repair
+        <agilegs.service.store.SessionStore.repair>`); nothing changes for an intact one."""
+        sid = self._checked_id(sid)
+        with self._repairing:
+            s = self.sessions.get(sid)
+            if s is not None and not s.closed:
+                return m.Repaired(id=sid, repaired=False, version=s.record.version,
+                                  message=f"session {sid!r} is not damaged: nothing to do")
+            d = self.damaged.get(sid)
+            if d is None:
+                raise not_found("session", f"session {sid!r} does not exist")
+            try:
+                done = self.store.repair(sid)
+            except StoreError:
+                raise damaged_error(self._recheck(sid) or d) from None
+            s = Session(done.record, self.env)
+            with self.lock:
+                if self.trainer is not None:
+                    self.trainer.attach(s)
+                self.damaged.pop(sid, None)
+                self.sessions[sid] = s
+        if self.trainer is not None:
+            self.trainer.wake()
+        what = []
+        if done.rolled_back_to is not None:
+            what.append(f"rolled back to version {done.rolled_back_to}")
+        if done.dropped_frames:
+            what.append("dropped the damaged frames of views "
+                        + ", ".join(str(i) for i in done.dropped_frames))
+        text = (" and ".join(what) or "rewrote the manifest") if done.repaired else (
+            "the files check out again: nothing to do")
+        return m.Repaired(id=sid, repaired=done.repaired, rolled_back_to=done.rolled_back_to,
+                          dropped_frames=list(done.dropped_frames), version=done.record.version,
+                          message=f"session {sid!r}: {text}; now version {done.record.version}")
+
+    def _recheck(self, sid: str) -> Damage | None:
+        """Damaged session ``sid`` checked again (its listing updated); None if it is not."""
+        got = self.store.inspect(sid)
+        if not isinstance(got, Damage):
+            return None
+        with self.lock:
+            self.damaged[sid] = got
+        return got
+
+    def _refused_publication(self) -> None:
+        if self.on_refused_write is not None:
+            self.on_refused_write("mapper", "publish")
 
     # ------------------------------------------------------------------ service operations
     def health(self) -> m.Health:
@@ -137,13 +260,24 @@ class SessionRegistry:
             ver = version("agilegs")
         except PackageNotFoundError:  # pragma: no cover - running from a source tree
             ver = "0+unknown"
-        return m.Health(version=ver, sessions=len(self.sessions), zenoh=self.zenoh_enabled,
+        return m.Health(version=ver, sessions=len(self.sessions) + len(self.damaged),
+                        damaged=len(self.damaged), zenoh=self.zenoh_enabled,
                         uptime_s=time.time() - self.started)
 
     def list_sessions(self) -> m.SessionList:
-        return m.SessionList(sessions=[s.summary() for s in list(self.sessions.values())])
+        out = [s.summary() for s in list(self.sessions.values())]
+        out += [damaged_summary(d) for d in sorted(list(self.damaged.values()),
+                                                   key=lambda d: d.session)]
+        return m.SessionList(sessions=out)
 
     def delete_session(self, sid: str | None) -> m.Deleted:
+        sid = self._checked_id(sid)
+        with self._repairing:
+            if sid in self.damaged and sid not in self.sessions:
+                self.store.delete(sid)
+                with self.lock:
+                    self.damaged.pop(sid, None)
+                return m.Deleted(id=sid)
         s = self.session(sid)
         with s.lock:
             if s.closed:
@@ -226,7 +360,10 @@ class SessionRegistry:
     def _check_new_id(self, sid: str) -> None:
         if sid in self.sessions:
             raise conflict("body.id", f"session {sid!r} already exists")
-        if len(self.sessions) >= self.settings.max_sessions:
+        if sid in self.damaged:
+            raise session_damaged("body.id", f"session {sid!r} already exists and is damaged "
+                                             "(see list_sessions): repair or delete it first")
+        if len(self.sessions) + len(self.damaged) >= self.settings.max_sessions:
             raise too_many("body", f"max_sessions ({self.settings.max_sessions}) reached")
 
 
@@ -240,6 +377,7 @@ HANDLERS: dict[str, Handler] = {
     "list_sessions": lambda reg, sid, req: reg.list_sessions(),
     "get_session": _on_session(lambda s, req: s.info()),
     "delete_session": lambda reg, sid, req: reg.delete_session(sid),
+    "repair_session": lambda reg, sid, req: reg.repair_session(sid),
     "set_gaussians": _on_session(Session.set_gaussians),
     "get_gaussians": _on_session(lambda s, req: s.get_gaussians()),
     "add_observations": _on_session(Session.add_observations),

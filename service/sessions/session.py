@@ -18,7 +18,7 @@ from __future__ import annotations
 import io
 import threading
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Protocol
@@ -30,7 +30,8 @@ from torch import Tensor
 from agilegs.schemas import models as m
 from agilegs.schemas.geometry import Intrinsics as WireIntrinsics
 
-from ..errors import conflict, not_found, too_large, too_many
+from ..errors import conflict, not_found, session_damaged, too_large, too_many
+from ..integrity import DamagedFile, FileProblem
 from ..mapper import remap_per_gaussian
 from ..nbv.camera import Camera, Intrinsics
 from ..nbv.gaussians import GaussianMap
@@ -47,6 +48,7 @@ from .convert import (
     poses_array,
     view_out,
 )
+from .listing import record_summary
 from .mapper_state import mapper_status
 from .selection import run_select
 
@@ -55,11 +57,14 @@ __all__ = ["MapperHook", "Session", "SessionEnv", "fisher_background", "view_inf
 
 @dataclass(frozen=True)
 class SessionEnv:
-    """What every session shares: the server's settings, the store, a scratch folder."""
+    """What every session shares: the server's settings, the store, a scratch folder, and
+    whom to tell when a file read back does not check out (``report_damage(session,
+    problem)``: the registry marks the session damaged)."""
 
     settings: Settings
     store: SessionStore
     tmp_dir: Path
+    report_damage: Callable[[Session, FileProblem], None] | None = None
 
 
 class MapperHook(Protocol):
@@ -98,6 +103,7 @@ class Session:
         self.env = env
         self.lock = threading.Lock()
         self.closed = False
+        self.damaged: str | None = None  # why, once a file read back did not check out
         self.mapper: MapperHook | None = None  # the trainer plugs in (on_observation)
         self._summary: tuple[int, m.InformationSummary] | None = None  # (version, summary)
 
@@ -111,6 +117,9 @@ class Session:
         return self.env.settings
 
     def check_open(self) -> None:
+        if self.damaged is not None:
+            raise session_damaged("path.session", f"session {self.id!r} is damaged: "
+                                                  f"{self.damaged}")
         if self.closed:
             raise not_found("session", f"session {self.id!r} was deleted")
 
@@ -210,10 +219,7 @@ class Session:
                               version=rec.version, mapper_steps=steps)
 
     def summary(self) -> m.SessionSummary:
-        rec = self.record
-        return m.SessionSummary(id=rec.id, version=rec.version, num_gaussians=len(rec.gmap),
-                                pool_size=len(rec.pool_ids), num_views=len(rec.views),
-                                updated_at=rec.updated_at)
+        return record_summary(self.record)
 
     def get_pool(self) -> m.PoolOut:
         rec = self.record
@@ -235,7 +241,7 @@ class Session:
         v = self._find_view(self.record, view_id)
         if v.image_file is None:
             return None
-        data = self.env.store.read_blob(self.id, v.image_file)
+        data = self._read_frame_file(v.image_file)
         if v.image_encoding == "raw":
             return np.load(io.BytesIO(data), allow_pickle=False)
         from PIL import Image
@@ -248,8 +254,18 @@ class Session:
         v = self._find_view(self.record, view_id)
         if v.depth_file is None:
             return None
-        return np.load(io.BytesIO(self.env.store.read_blob(self.id, v.depth_file)),
-                       allow_pickle=False)
+        return np.load(io.BytesIO(self._read_frame_file(v.depth_file)), allow_pickle=False)
+
+    def _read_frame_file(self, name: str) -> bytes:
+        """The bytes of ``views/<name>``, checked against the record's checksum; a file
+        that does not check out is reported (the session becomes damaged) and raised."""
+        rec = self.record
+        try:
+            return self.env.store.read_blob(self.id, name, rec.checksums.get(f"views/{name}"))
+        except DamagedFile as exc:
+            if self.env.report_damage is not None:
+                self.env.report_damage(self, exc.problem)
+            raise
 
     @staticmethod
     def _find_view(rec: SessionRecord, view_id: int, field: str = "view_id") -> ViewRecord:

@@ -1,0 +1,127 @@
+"""``agilegs store check DIR`` and ``agilegs store repair DIR``: a server's state folder
+checked, and its damaged sessions repaired, offline.
+
+``check`` reads every session of the folder back and checks every file against the
+checksums of its manifest (:mod:`agilegs.service.store_read`); it changes nothing, and
+prints one line per session (``--json``: the ``list_sessions`` entries). Exit status 0 when
+every session checks out, 1 when one is damaged, 2 when the folder cannot be read.
+
+``repair`` claims the folder (it refuses while a server holds it: use that server's
+``repair_session`` operation instead) and repairs each damaged session
+(:meth:`~agilegs.service.store.SessionStore.repair`: roll back to the previous version, drop
+damaged frames); ``--dry-run`` prints what it would do. Exit status 0 when every session
+checks out afterwards, 1 when one could not be repaired, 2 when the folder cannot be used.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import TextIO
+
+from .integrity import Damage
+from .sessions.listing import damaged_summary, record_summary
+from .state_dir import StateDirError, claim_state_dir, describe_holder, is_claimed, read_holder
+from .store import SessionStore, StoreError
+
+__all__ = ["add_arguments", "check", "repair", "run"]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("state_dir", metavar="DIR", help="the server's state folder "
+                                                         "(--state-dir of agilegs serve)")
+    parser.add_argument("--session", action="append", metavar="ID",
+                        help="only this session (repeatable)")
+    if parser.prog.split()[-1] == "repair":
+        parser.add_argument("--dry-run", action="store_true",
+                            help="print what would be done, change nothing")
+    else:
+        parser.add_argument("--json", action="store_true",
+                            help="print the list_sessions entries as JSON")
+
+
+def run(args: argparse.Namespace) -> int:
+    root = Path(args.state_dir)
+    if not root.is_dir():
+        sys.stderr.write(f"agilegs store: no state folder at {root}\n")
+        return 2
+    if args.subcommand == "repair":
+        return repair(root, args.session, dry_run=args.dry_run)
+    return check(root, args.session, as_json=args.json)
+
+
+def _select(store: SessionStore, only: list[str] | None) -> list[str]:
+    ids = store.session_ids(tidy=False)
+    return [s for s in ids if s in set(only)] if only else ids
+
+
+def check(root: Path, only: list[str] | None = None, *, as_json: bool = False,
+          out: TextIO | None = None) -> int:
+    """Check every session of ``root`` (or those in ``only``); see the module docstring."""
+    out = out or sys.stdout
+    store = SessionStore(root)
+    try:
+        ids = _select(store, only)
+    except OSError as exc:
+        sys.stderr.write(f"agilegs store check: cannot read {root} ({exc.strerror or exc})\n")
+        return 2
+    results = [store.inspect(sid) for sid in ids]
+    damaged = [r for r in results if isinstance(r, Damage)]
+    if as_json:
+        entries = [damaged_summary(r) if isinstance(r, Damage) else record_summary(r)
+                   for r in results]
+        out.write(json.dumps([e.model_dump(mode="json") for e in entries], indent=1) + "\n")
+        return 1 if damaged else 0
+    if is_claimed(root):
+        holder = read_holder(root)
+        out.write(f"note: {describe_holder(holder)} holds {root}; it reports damage itself "
+                  "(list_sessions)\n")
+    out.write(f"{root}: {len(results)} session(s), {len(damaged)} damaged\n")
+    for r in results:
+        if isinstance(r, Damage):
+            out.write(f"  {r.session:<20} damaged  {r.reason()}\n")
+            way = r.plan() if r.repairable else f"impossible: {r.plan()}"
+            out.write(f"  {'':<20}          repair: {way}\n")
+        else:
+            out.write(f"  {r.id:<20} ok       version {r.version}, {len(r.views)} views, "
+                      f"{len(r.gmap)} Gaussians, pool {len(r.pool_ids)}\n")
+    return 1 if damaged else 0
+
+
+def repair(root: Path, only: list[str] | None = None, *, dry_run: bool = False,
+           out: TextIO | None = None) -> int:
+    """Repair the damaged sessions of ``root`` (or of those in ``only``); see the module
+    docstring."""
+    out = out or sys.stdout
+    try:
+        lock = claim_state_dir(root, command="agilegs store repair")
+    except StateDirError as exc:
+        sys.stderr.write(f"agilegs store repair: {exc}\n")
+        return 2
+    left = 0
+    with lock:
+        store = SessionStore(root)
+        for sid in _select(store, only):
+            got = store.inspect(sid)
+            if not isinstance(got, Damage):
+                continue
+            out.write(f"{sid}: damaged: {got.reason()}\n")
+            if not got.repairable:
+                out.write(f"{sid}: cannot be repaired: {got.plan()}\n")
+                left += 1
+                continue
+            if dry_run:
+                out.write(f"{sid}: would {got.plan()}\n")
+                left += 1
+                continue
+            try:
+                done = store.repair(sid)
+            except (StoreError, OSError) as exc:
+                out.write(f"{sid}: repair failed: {exc}\n")
+                left += 1
+                continue
+            out.write(f"{sid}: repaired ({got.plan()}); now version {done.record.version}\n")
+    out.write(f"{left} damaged session(s) left\n" if left else "every session checks out\n")
+    return 1 if left else 0
