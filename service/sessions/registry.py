@@ -25,9 +25,11 @@ import torch
 from pydantic import BaseModel, ValidationError
 
 from agilegs.schemas import models as m
+from agilegs.schemas.decisions import DecisionsOut, DecisionsRequest
 from agilegs.schemas.ops import OPERATIONS
 
-from ..errors import conflict, invalid, not_found, too_large, too_many
+from ..decisions import DecisionLog
+from ..errors import ServiceError, conflict, invalid, not_found, too_large, too_many
 from ..errors import validation_error as _validation_error
 from ..nbv.information import init_information
 from ..settings import Settings
@@ -37,7 +39,7 @@ from .convert import gaussians_from_depth, parse_frame, parse_gaussians, random_
 from .mapper_state import initial_mapper_state, mapper_config
 from .session import Session, SessionEnv
 
-__all__ = ["HANDLERS", "Handler", "SessionRegistry", "parse_request"]
+__all__ = ["HANDLERS", "Handler", "QueryParams", "SessionRegistry", "parse_request"]
 
 log = logging.getLogger(__name__)
 
@@ -47,9 +49,13 @@ Handler = Callable[["SessionRegistry", "str | None", Any], BaseModel]
 """``handler(registry, session id, validated request or None) -> response model``."""
 
 
+class QueryParams(dict[str, str]):
+    """A request's fields as they came in HTTP query parameters (strings)."""
+
+
 def parse_request(op: str, payload: Any) -> BaseModel | None:
-    """The request model of operation ``op`` from decoded data (None for bodiless ones);
-    a 422 naming every bad field."""
+    """The request model of operation ``op`` from decoded data, or from
+    :class:`QueryParams` (None for bodiless ones); a 422 naming every bad field."""
     spec = OPERATIONS.get(op)
     if spec is None:
         raise not_found("op", f"unknown operation {op!r}")
@@ -58,9 +64,12 @@ def parse_request(op: str, payload: Any) -> BaseModel | None:
     if payload is None:
         raise invalid("body", "body: a request body is required")
     try:
+        if isinstance(payload, QueryParams):
+            return spec.request.model_validate_strings(dict(payload))
         return spec.request.model_validate(payload)
     except ValidationError as exc:
-        raise _validation_error(exc) from None
+        raise _validation_error(exc, "query" if isinstance(payload, QueryParams) else "body"
+                                ) from None
 
 
 class SessionRegistry:
@@ -78,6 +87,9 @@ class SessionRegistry:
         self.started = time.time()
         self.zenoh_enabled = False
         self.trainer: Trainer | None = None  # while the mapper runs (see load)
+        # the decisions feed; the server hooks record() to the gateway's decisions
+        self.decisions = DecisionLog(settings.decision_log,
+                                     max_waiters=max(1, settings.workers // 2))
         self.env = SessionEnv(settings=settings, store=self.store,
                               tmp_dir=Path(settings.state_dir) / "tmp")
         if settings.torch_threads:
@@ -107,6 +119,7 @@ class SessionRegistry:
         self.trainer.start()
 
     def close(self) -> None:
+        self.decisions.shutdown()
         if self.trainer is not None:
             self.trainer.close()
 
@@ -152,7 +165,25 @@ class SessionRegistry:
             s.closed = True
             with self.lock:
                 self.sessions.pop(s.id, None)
+        self.decisions.close(s.id)
         return m.Deleted(id=s.id)
+
+    def get_decisions(self, sid: str | None, req: DecisionsRequest) -> DecisionsOut:
+        """The decisions feed of a session (:mod:`agilegs.service.decisions`): after
+        ``req.after``, waiting up to ``req.wait`` (at most ``max_poll_wait``) s for one; for a
+        deleted session, what its closed log holds, with ``closed`` (404 once it is no
+        longer kept)."""
+        try:
+            self.session(sid)
+        except ServiceError as err:
+            if err.status == 404 and sid is not None:
+                rest = self.decisions.read_closed(sid, req.after, req.limit)
+                if rest is not None:
+                    return rest
+            raise
+        assert sid is not None
+        wait = min(req.wait, self.settings.max_poll_wait)
+        return self.decisions.read(sid, req.after, req.limit, wait)
 
     def create_session(self, req: m.SessionCreate) -> m.SessionInfo:
         settings = self.settings
@@ -219,6 +250,7 @@ class SessionRegistry:
             if self.trainer is not None:
                 self.trainer.attach(s)
             self.sessions[sid] = s
+            self.decisions.open(sid)
         if frames:
             s.on_observation(list(rec.views))
         return s.info()
@@ -250,6 +282,7 @@ HANDLERS: dict[str, Handler] = {
     "get_pool": _on_session(lambda s, req: s.get_pool()),
     "select": _on_session(Session.select),
     "get_information": _on_session(lambda s, req: s.get_information()),
+    "get_decisions": lambda reg, sid, req: reg.get_decisions(sid, req),
 }
 """Each operation's handler (a test checks that it covers :data:`OPERATIONS` exactly)."""
 
