@@ -17,6 +17,8 @@ from collections.abc import Sequence
 COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("serve",), "agilegs.service.serve", "run the NBV server (HTTP and Zenoh)"),
     (("demo",), "agilegs.service.demo", "closed-loop demo on the bundled scene"),
+    (("view",), "agilegs.service.viewer.cli",
+     "a live browser view of a session, or the replay of a benchmark run (agilegs[viewer])"),
     (("bench", "render"), "agilegs.service.bench.render_bench", "rasterizer and Fisher timings"),
     (("bench", "latency"), "agilegs.service.bench.latency", "selection latency of every method"),
     (("bench", "run"), "agilegs.service.bench.run_cli", "the paper's progressive protocol"),
