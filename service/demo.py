@@ -379,10 +379,9 @@ def _hold(client: Client, viewer: Any, view: argparse.Namespace, console: Consol
         version = client.get_session(session_id("agile_plus")).version
     viewer.wait_until(lambda v: v.info is not None and v.info.version >= version, 30.0)
     if view.screenshot:
-        from agilegs.service.viewer.browser import capture
+        from agilegs.service.viewer.browser import capture, write_png
 
-        Path(view.screenshot).parent.mkdir(parents=True, exist_ok=True)
-        Path(view.screenshot).write_bytes(capture(viewer.url))
+        write_png(view.screenshot, capture(viewer.url))
         console.print(f"screenshot: {view.screenshot}", soft_wrap=True)
     if view.hold is None:
         console.print(f"view: {viewer.url} stays up; Ctrl-C to end", soft_wrap=True)

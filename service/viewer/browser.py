@@ -30,7 +30,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["CHROMIUM_FLAGS", "Browser", "canvas_fraction", "capture", "find_chromium", "pixels"]
+__all__ = ["CHROMIUM_FLAGS", "Browser", "canvas_fraction", "capture", "find_chromium", "pixels",
+           "write_png"]
 
 log = logging.getLogger(__name__)
 
@@ -192,6 +193,18 @@ def pixels(png: bytes) -> np.ndarray:
 
     with Image.open(io.BytesIO(png)) as img:
         return np.asarray(img.convert("RGB"))
+
+
+def write_png(path: Path | str, png: bytes) -> Path:
+    """Write a screenshot small: 256 colours, optimised (a few times smaller than the
+    browser's PNG); the folder is created."""
+    from PIL import Image
+
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with Image.open(io.BytesIO(png)) as img:
+        img.convert("RGB").quantize(256, method=Image.Quantize.MEDIANCUT).save(out, optimize=True)
+    return out
 
 
 def canvas_fraction(png: bytes, tolerance: int = 24) -> float:

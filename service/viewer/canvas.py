@@ -85,15 +85,20 @@ class SceneCanvas:
 
     def fit(self, poses: np.ndarray, means: np.ndarray | None = None, *, orient: bool = True
             ) -> None:
-        """Size frustums and points to the scene (camera centres and map means); with
-        ``orient``, set the world's up direction and the initial camera from the cameras'
-        orientations (once)."""
+        """Size frustums and points to the scene (the cameras' spread, or the map's when
+        larger); with ``orient``, set the world's up direction from the cameras' orientations
+        and the initial view to take in the cameras and the map (once)."""
         poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
-        centres = poses[:, :3, 3]
-        centre, radius = scene_extent(centres, means if means is not None else np.zeros((0, 3)))
+        pts = np.zeros((0, 3)) if means is None else np.asarray(means, np.float64).reshape(-1, 3)
+        c_centre, c_radius = scene_extent(poses[:, :3, 3])
+        m_centre, m_radius = scene_extent(pts)
+        centre = m_centre if len(pts) else c_centre
+        radius = max(c_radius if len(poses) else 0.0, m_radius if len(pts) else 0.0, 1e-6)
+        if not len(poses) and not len(pts):
+            radius = 1.0
         with self.lock:
-            self.size = 0.07 * radius
-            self.point_size = 0.012 * radius
+            self.size = 0.06 * radius
+            self.point_size = 0.008 * radius
             if orient and not self._up_set and len(poses):
                 up = up_direction(poses)
                 if up is not None:
@@ -101,8 +106,8 @@ class SceneCanvas:
                     side = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else
                                     [0.0, 0.0, 1.0])
                     side /= np.linalg.norm(side)
-                    far = centre + radius * (2.4 * side + 1.2 * up)
-                    self.server.initial_camera.position = tuple(float(x) for x in far)
+                    eye = centre + radius * (1.9 * side + 1.3 * up)  # above, the ring in view
+                    self.server.initial_camera.position = tuple(float(x) for x in eye)
                     self.server.initial_camera.look_at = tuple(float(x) for x in centre)
                     self._up_set = True
 
@@ -232,7 +237,7 @@ class SceneCanvas:
                 centres = np.stack([np.asarray(p)[:3, 3] for p in poses]).astype(np.float32)
                 seg = np.stack([centres[:-1], centres[1:]], axis=1)
                 self.path_line = self.scene.add_line_segments(
-                    "/path/line", points=seg, colors=PATH, thickness=3.0,
+                    "/path/line", points=seg, colors=PATH, thickness=2.0,
                     thickness_units="screen", visible=self.show_path)
 
     def set_path_visible(self, visible: bool) -> None:

@@ -19,7 +19,6 @@ import os
 import signal
 import sys
 import threading
-from pathlib import Path
 from typing import Any
 
 from .extra import ViewerMissing, require_viser
@@ -121,7 +120,7 @@ def _serve(viewer: Any, args: argparse.Namespace, *, ready: Any, problem: Any) -
     sys.stdout.write(f"agilegs view: open {viewer.url}\n")
     sys.stdout.flush()
     if args.screenshot:
-        from .browser import capture
+        from .browser import capture, write_png
 
         got = viewer_wait(ready, problem, 60.0)
         if got is not None:
@@ -132,8 +131,7 @@ def _serve(viewer: Any, args: argparse.Namespace, *, ready: Any, problem: Any) -
         except RuntimeError as exc:
             sys.stderr.write(f"agilegs view: {exc}\n")
             return 1
-        Path(args.screenshot).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.screenshot).write_bytes(png)
+        write_png(args.screenshot, png)
         sys.stdout.write(f"agilegs view: wrote {args.screenshot}\n")
         return 0
     stop = threading.Event()

@@ -242,9 +242,10 @@ class SessionViewer:
 
     def _trouble(self, text: str) -> bool:
         self._need_load = True
+        if text != self.problem:  # said once, not at every retry
+            log.warning("viewer: %s", text)
         self.problem = text
         self._set_status(f"**⚠ {text}**")
-        log.warning("viewer: %s", text)
         return False
 
     def _load(self) -> None:

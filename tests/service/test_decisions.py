@@ -339,3 +339,22 @@ def test_the_feed_needs_the_token(api_factory: Any) -> None:
         r = h.get("/v1/sessions/s/decisions", params={"wait": "0"}, headers={
             "accept": "text/event-stream", "authorization": f"Bearer {TOKEN}"})
         assert [e["event"] for e in events(r.text)] == ["feed", "decision"]
+
+
+def test_the_stream_says_what_it_missed_and_keeps_alive(api_factory: Any,
+                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    from agilegs.service import http_decisions
+
+    monkeypatch.setattr(http_decisions, "HEARTBEAT_S", 0.3)
+    api = api_factory(decision_log=2)
+    make(api)
+    with api.client() as c, api.http() as h:
+        for i in range(4):
+            c.select("s", seed=i)
+        r = h.get("/v1/sessions/s/decisions", params={"wait": "1"},
+                  headers={"accept": "text/event-stream"})
+        evs = events(r.text)
+        assert [e["event"] for e in evs] == ["feed", "missed", "decision", "decision"]
+        assert evs[1]["data"] == {"missed": 2, "after": 0}
+        assert [e["data"]["seq"] for e in evs[2:]] == [3, 4]
+        assert ": keep-alive" in r.text  # a second of silence, heartbeats every 0.3 s

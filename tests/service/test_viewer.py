@@ -14,7 +14,7 @@ from typing import Any
 import httpx
 import numpy as np
 import pytest
-from conftest import SMALL_INTRINSICS, InProcess, ring_poses
+from conftest import SMALL_INTRINSICS, InProcess, gaussian_blob, ring_poses
 
 from agilegs.client import Client
 from agilegs.service.cli import main
@@ -24,7 +24,6 @@ from agilegs.service.viewer.canvas import ANCHOR, CHOSEN
 from agilegs.service.viewer.live import SessionViewer
 from agilegs.service.viewer.replay import RunReplay, load_runs
 from agilegs.service.viewer.scene import (
-    C0,
     GREY,
     colormap,
     pose_wxyz_position,
@@ -34,20 +33,7 @@ from agilegs.service.viewer.scene import (
 )
 
 GREEN = (0.1, 0.8, 0.2)
-
-
-def blob(n: int, color: tuple[float, float, float] = GREEN, radius: float = 0.3,
-         seed: int = 0) -> dict[str, np.ndarray]:
-    """``n`` Gaussians of one colour in a ball (the five arrays)."""
-    rng = np.random.default_rng(seed)
-    dc = (np.asarray(color) - 0.5) / C0
-    return {
-        "means": (rng.normal(size=(n, 3)) * radius / 2).astype(np.float32),
-        "log_scales": np.full((n, 3), math.log(0.04), np.float32),
-        "quats": np.tile(np.array([1.0, 0, 0, 0], np.float32), (n, 1)),
-        "opacity_logits": np.full(n, 2.0, np.float32),
-        "sh": np.tile(dc.astype(np.float32), (n, 1, 1)),
-    }
+blob = gaussian_blob
 
 
 def viewer_for(api: InProcess, session: str = "s", **kwargs: Any) -> SessionViewer:
@@ -164,6 +150,14 @@ def test_map_pool_and_psnr_updates_are_followed(api: InProcess) -> None:
         v.report_psnr(4, 19.25)
         assert v.psnr_chart.data[0].tolist() == [3.0, 4.0]
         assert v.psnr_chart.data[1].tolist() == [18.5, 19.25]
+
+
+def test_a_large_pool_is_drawn_in_part_and_said_so(api: InProcess) -> None:
+    with api.client() as c, viewer_for(api, max_frustums=5) as v:
+        make(c, pool=12)
+        assert v.step()
+        assert sorted(v.canvas.pool) == [0, 1, 2, 3, 4] and v.canvas.pool_hidden == 7
+        assert "pool **12** (7 not drawn)" in v.session_md.content
 
 
 def test_a_deleted_session_is_said_in_the_panel_and_followed_again(api: InProcess) -> None:
