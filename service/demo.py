@@ -365,16 +365,17 @@ def closed_loop(url: str, robot: Robot, size: DemoSize, seed: int, console: Cons
                 where=url)).start(poll=0.5)
             console.print(f"view: {viewer.url} (AGILE-GS+)", soft_wrap=True)
         results = _loop(url, robot, size, seed, console, viewer)
-        if viewer is not None:
-            _hold(Client(url), viewer, view, console)  # type: ignore[arg-type]
-        with Client(url) as c:
-            for key, _ in METHODS:
-                c.delete_session(session_id(key))
+        if viewer is not None and _hold(Client(url), viewer, view, console):  # type: ignore[arg-type]
+            return results  # Ctrl-C stopped the server too: nothing left to delete
+    with Client(url) as c:  # the view closed first: it does not report the deletion
+        for key, _ in METHODS:
+            c.delete_session(session_id(key))
     return results
 
 
-def _hold(client: Client, viewer: Any, view: argparse.Namespace, console: Console) -> None:
-    """After the last event: let the view catch up, write its screenshot, keep it up."""
+def _hold(client: Client, viewer: Any, view: argparse.Namespace, console: Console) -> bool:
+    """After the last event: let the view catch up, write its screenshot, keep it up;
+    whether Ctrl-C ended it."""
     with client:
         version = client.get_session(session_id("agile_plus")).version
     viewer.wait_until(lambda v: v.info is not None and v.info.version >= version, 30.0)
@@ -388,7 +389,8 @@ def _hold(client: Client, viewer: Any, view: argparse.Namespace, console: Consol
     try:
         time.sleep(view.hold if view.hold is not None else 10.0 ** 9)
     except KeyboardInterrupt:
-        pass
+        return True
+    return False
 
 
 def _loop(url: str, robot: Robot, size: DemoSize, seed: int, console: Console,

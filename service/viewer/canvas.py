@@ -106,7 +106,7 @@ class SceneCanvas:
                     side = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else
                                     [0.0, 0.0, 1.0])
                     side /= np.linalg.norm(side)
-                    eye = centre + radius * (1.9 * side + 1.3 * up)  # above, the ring in view
+                    eye = centre + radius * (1.5 * side + 1.0 * up)  # above, the ring in view
                     self.server.initial_camera.position = tuple(float(x) for x in eye)
                     self.server.initial_camera.look_at = tuple(float(x) for x in centre)
                     self._up_set = True

@@ -42,6 +42,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
       help="seconds each long poll waits for a decision (default 1)")
     a("--screenshot", metavar="PNG", help="write a screenshot of the page (headless "
                                           "chromium) once it is drawn, then exit")
+    a("--timeout", type=float, default=60.0,
+      help="with --screenshot: seconds to wait for the session and the drawing (default 60)")
     a("--duration", type=float, default=None,
       help="serve the page this many seconds, then exit (default: until Ctrl-C)")
 
@@ -122,12 +124,12 @@ def _serve(viewer: Any, args: argparse.Namespace, *, ready: Any, problem: Any) -
     if args.screenshot:
         from .browser import capture, write_png
 
-        got = viewer_wait(ready, problem, 60.0)
+        got = viewer_wait(ready, problem, args.timeout)
         if got is not None:
             sys.stderr.write(f"agilegs view: {got}\n")
             return 1
         try:
-            png = capture(viewer.url)
+            png = capture(viewer.url, timeout=max(args.timeout, 30.0))
         except RuntimeError as exc:
             sys.stderr.write(f"agilegs view: {exc}\n")
             return 1

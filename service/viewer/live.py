@@ -150,8 +150,13 @@ class SessionViewer:
                                             label=f"agilegs · {session}")
         self.port = int(self.server.get_port())  # viser takes the next port if it is taken
         self.canvas = SceneCanvas(self.server, max_frustums=max_frustums)
-        self.feed = (_SubscriptionFeed(client, session) if decisions == "zenoh"
-                     else _PollFeed(client, session))
+        try:
+            self.feed = (_SubscriptionFeed(client, session) if decisions == "zenoh"
+                         else _PollFeed(client, session))
+        except BaseException:
+            with quiet("stop"):
+                self.server.stop()
+            raise
         self.decisions: list[m.SelectResponse] = []
         self.psnr: list[tuple[float, float]] = []
         self.info: m.SessionInfo | None = None
@@ -219,9 +224,9 @@ class SessionViewer:
         except _Closed:
             return self._trouble(f"the session `{sid}` was deleted on {self.where}; this page "
                                  "shows its last state and waits for a session of that id")
-        except NotFoundError as exc:
+        except NotFoundError as exc:  # it may come: a viewer can start before the robot
             return self._trouble(f"no session `{sid}` on {self.where} ({exc.message}); waiting "
-                                 "for it")
+                                 "for it", level=logging.INFO)
         except AuthenticationError:
             return self._trouble(f"{self.where} refused the viewer's token (401): start it "
                                  "with the server's --token")
@@ -240,10 +245,10 @@ class SessionViewer:
                          f"updated {time.strftime('%H:%M:%S')}")
         return True
 
-    def _trouble(self, text: str) -> bool:
+    def _trouble(self, text: str, level: int = logging.WARNING) -> bool:
         self._need_load = True
         if text != self.problem:  # said once, not at every retry
-            log.warning("viewer: %s", text)
+            log.log(level, "viewer: %s", text)
         self.problem = text
         self._set_status(f"**⚠ {text}**")
         return False

@@ -124,6 +124,31 @@ def test_the_replay_command_writes_a_screenshot(tmp_path: Path) -> None:
     assert "websockets" not in got.stderr  # viser's connection chatter stays quiet
 
 
+@needs_chromium
+def test_the_view_command_follows_a_session_over_http_and_zenoh(server: ServerProcess,
+                                                                tmp_path: Path) -> None:
+    sid = new_id()
+    with Client(server.url) as c:
+        c.create_session(SMALL_INTRINSICS, id=sid, gaussians=blob(200, radius=0.6),
+                         pool=ring_poses(8), defaults={"method": "agile", "shortlist_size": 3})
+        c.select(sid, commit=True)
+    for how in ([server.url], ["--zenoh", server.zenoh_endpoint]):
+        png = tmp_path / f"{how[0].split(':')[0].strip('-')}.png"
+        got = subprocess.run(
+            [sys.executable, "-m", "agilegs.service.cli", "view", *how, "--session", sid,
+             "--port", str(free_port()), "--screenshot", str(png)],
+            capture_output=True, text=True, timeout=300)
+        assert got.returncode == 0, got.stdout + got.stderr
+        rgb = pixels(png.read_bytes())
+        assert green(rgb).mean() > 0.005 and red(rgb).sum() > 20, how  # the map, the chosen view
+    got = subprocess.run(
+        [sys.executable, "-m", "agilegs.service.cli", "view", server.url, "--session",
+         "no-such-session", "--port", str(free_port()), "--screenshot", str(tmp_path / "x.png"),
+         "--timeout", "3"],
+        capture_output=True, text=True, timeout=300)
+    assert got.returncode == 1 and "no session `no-such-session`" in got.stderr
+
+
 # ============================================================================ over Zenoh
 def test_the_viewer_follows_the_decisions_published_over_zenoh(server: ServerProcess) -> None:
     sid = new_id()
