@@ -14,6 +14,7 @@ from typing import Any, TypeVar
 import numpy as np
 from pydantic import BaseModel
 
+from agilegs.schemas import decisions as d
 from agilegs.schemas import models as m
 from agilegs.schemas.geometry import Bounds, Intrinsics
 
@@ -145,6 +146,15 @@ class SyncOperations:
         the service's mapper last published, or the one last set."""
         return self._send(rq.call("get_gaussians", session))  # type: ignore[no-any-return]
 
+    def get_decisions(self, session: str, *, after: int = 0, wait: float = 0.0,
+                      limit: int = 100) -> d.DecisionsOut:
+        """The session's decisions with a sequence number above ``after``, oldest first;
+        with none newer, the server waits up to ``wait`` s for one (a long poll; keep
+        ``wait`` below the client's timeout). Follow a session by passing the last
+        ``next_after`` back, and start over from 0 when ``epoch`` changes."""
+        return self._send(rq.get_decisions(  # type: ignore[no-any-return]
+            session, after=after, wait=wait, limit=limit))
+
 
 class AsyncOperations:
     """The same operations as :class:`SyncOperations`, as coroutines."""
@@ -245,3 +255,8 @@ class AsyncOperations:
 
     async def get_gaussians(self, session: str) -> m.GaussiansOut:
         return await self._send(rq.call("get_gaussians", session))  # type: ignore[no-any-return]
+
+    async def get_decisions(self, session: str, *, after: int = 0, wait: float = 0.0,
+                            limit: int = 100) -> d.DecisionsOut:
+        return await self._send(rq.get_decisions(  # type: ignore[no-any-return]
+            session, after=after, wait=wait, limit=limit))

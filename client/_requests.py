@@ -15,6 +15,7 @@ from pydantic import ValidationError as PydanticValidationError
 
 from agilegs.schemas import models as m
 from agilegs.schemas.arrays import NDArray
+from agilegs.schemas.decisions import DecisionsRequest
 from agilegs.schemas.geometry import Bounds, Intrinsics, Pose
 from agilegs.schemas.ops import OPERATIONS, Operation
 
@@ -188,3 +189,14 @@ def add_observations(session: str, observations: m.ObservationIn | Mapping[str, 
     body = m.ObservationsIn.model_construct(
         observations=[to_observation(o) for o in observations])
     return call("add_observations", session, body)
+
+
+@checked
+def get_decisions(session: str, *, after: int = 0, wait: float = 0.0, limit: int = 100) -> Call:
+    return call("get_decisions", session, DecisionsRequest(after=after, wait=wait, limit=limit))
+
+
+def query_params(body: BaseModel) -> dict[str, str]:
+    """A request model's fields as HTTP query parameters (an operation with ``query``)."""
+    return {k: str(v).lower() if isinstance(v, bool) else str(v)
+            for k, v in body.model_dump(mode="json").items() if v is not None}

@@ -11,7 +11,7 @@ from pydantic import ValidationError as PydanticValidationError
 from agilegs.schemas import codec
 
 from ._ops import AsyncOperations, SyncOperations
-from ._requests import Call
+from ._requests import Call, query_params
 from .errors import ProtocolError, RequestTimeout, TransportError, error_from_body
 
 __all__ = ["AsyncClient", "Client"]
@@ -36,11 +36,14 @@ class _HTTPBase:
             path = path.replace("{session}", call.session)
         headers = dict(self.headers)
         content = None
-        if call.body is not None:
+        params = call.params
+        if call.body is not None and call.op.query:
+            params = {**query_params(call.body), **(params or {})}
+        elif call.body is not None:
             content = codec.dump(call.body, self.kind)
             headers["content-type"] = self.kind
         return {"method": call.op.http_method, "url": path, "content": content,
-                "headers": headers, "params": call.params}
+                "headers": headers, "params": params}
 
     def _response(self, call: Call, r: httpx.Response) -> BaseModel:
         kind = codec.media_type(r.headers.get("content-type")) or codec.JSON

@@ -7,6 +7,7 @@ or position + quaternion x, y, z, w; bytes raw in msgpack and base64 in JSON) ar
 """
 
 from .arrays import B64Bytes, DType, NDArray
+from .decisions import DecisionEvent, DecisionsOut, DecisionsRequest
 from .errors import ErrorBody, ErrorInfo, ErrorItem
 from .geometry import (
     MAX_COORD,
@@ -70,6 +71,9 @@ __all__ = [
     "Candidate",
     "CommitRequest",
     "DType",
+    "DecisionEvent",
+    "DecisionsOut",
+    "DecisionsRequest",
     "Deleted",
     "ErrorBody",
     "ErrorInfo",

@@ -72,6 +72,7 @@ SESSION_OPS: tuple[str, ...] = (
     "select",
     "get_information",
     "get_gaussians",
+    "get_decisions",
 )
 FRAMES = "frames"
 CANDIDATES = "candidates"

@@ -8,6 +8,7 @@ from typing import Literal
 
 from pydantic import BaseModel
 
+from . import decisions as d
 from . import models as m
 
 __all__ = ["OPERATIONS", "Operation"]
@@ -24,6 +25,10 @@ class Operation:
     request: type[BaseModel] | None
     response: type[BaseModel]
     summary: str
+    query: bool = False
+    """Over HTTP the request's fields are query parameters (a GET), not a body."""
+    event_stream: bool = False
+    """Over HTTP it also answers ``Accept: text/event-stream`` with server-sent events."""
 
 
 def _op(
@@ -34,8 +39,9 @@ def _op(
     request: type[BaseModel] | None,
     response: type[BaseModel],
     summary: str,
+    **more: bool,
 ) -> Operation:
-    return Operation(name, scope, method, path, request, response, summary)
+    return Operation(name, scope, method, path, request, response, summary, **more)
 
 
 _S = "/v1/sessions/{session}"
@@ -71,5 +77,8 @@ OPERATIONS: dict[str, Operation] = {
             "read Ĥ"),
         _op("get_gaussians", "session", "GET", _S + "/gaussians", None, m.GaussiansOut,
             "read the current Gaussians (the mapper's published map)"),
+        _op("get_decisions", "session", "GET", _S + "/decisions", d.DecisionsRequest,
+            d.DecisionsOut, "the decisions after a sequence number (long poll; server-sent "
+            "events)", query=True, event_stream=True),
     )
 }

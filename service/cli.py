@@ -21,6 +21,8 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
      "check a state folder's sessions against their checksums (offline)"),
     (("store", "repair"), "agilegs.service.store_tool",
      "roll damaged sessions of a state folder back to their last intact version (offline)"),
+    (("view",), "agilegs.service.viewer.cli",
+     "a live browser view of a session, or the replay of a benchmark run (agilegs[viewer])"),
     (("bench", "render"), "agilegs.service.bench.render_bench", "rasterizer and Fisher timings"),
     (("bench", "latency"), "agilegs.service.bench.latency", "selection latency of every method"),
     (("bench", "run"), "agilegs.service.bench.run_cli", "the paper's progressive protocol"),

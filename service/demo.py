@@ -21,6 +21,11 @@ folder, HTTP only) and plays a simulated robot written with the client SDK
 4. A summary table, ``psnr.png`` (test PSNR against views, both methods) and ``demo.json``
    in ``--out``, and the scene's attribution.
 
+With ``--view`` a live browser view (:class:`~agilegs.service.viewer.live.SessionViewer`,
+``pip install "agilegs[viewer]"``) follows the AGILE-GS+ session from the start, the robot
+reporting its PSNR to it; after the last event the server and the page stay up (``--hold``
+seconds, default until Ctrl-C), and ``--screenshot PNG`` writes a screenshot of the page.
+
 The server is stopped (terminate, then kill) whatever happens. Sizes: 64x64 images, the
 ground truth subsampled to 3000 Gaussians, a pool of 60, 8 test views, 3 initial views and
 8 events; ``--quick`` is a reduced mode for tests (32x32, 2 events, seconds).
@@ -111,6 +116,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--server-threads", type=int, default=1,
       help="torch threads of the server (default 1: this process and the server share the "
            "machine)")
+    a("--view", action="store_true",
+      help='open a live browser view of the AGILE-GS+ session (pip install "agilegs[viewer]")')
+    a("--view-port", type=int, default=8080, help="port of the view's page (default 8080)")
+    a("--hold", type=float, default=None, metavar="S",
+      help="with --view: keep the server and the page up S seconds after the last event "
+           "(default: until Ctrl-C)")
+    a("--screenshot", metavar="PNG",
+      help="with --view: a screenshot of the page (headless chromium) after the last event")
 
 
 # ============================================================================ helpers
@@ -198,6 +211,11 @@ class Robot:
         return float(sum(vals) / len(vals))
 
 
+def session_id(method: str) -> str:
+    """The demo's session of a method (``demo-agile-plus``)."""
+    return f"demo-{method.replace('_', '-')}"
+
+
 def initial_indices(pool_size: int, count: int) -> list[int]:
     """``count`` pool indices spread evenly in capture order."""
     step = pool_size / count
@@ -277,9 +295,16 @@ def run(args: argparse.Namespace) -> int:
         if size.pool_size - size.initial_views < size.events:
             raise ValueError(f"--events: the pool ({size.pool_size}) cannot give {size.events} "
                              f"events after {size.initial_views} initial views")
+        if (args.screenshot or args.hold is not None) and not args.view:
+            raise ValueError("--screenshot and --hold go with --view")
+        if args.view:
+            from agilegs.service.viewer.extra import require_viser
+
+            require_viser()
+            logging.getLogger("websockets").setLevel(logging.WARNING)  # viser's chatter
         t_start = time.perf_counter()
         robot = Robot(args.scene, size, int(args.seed))
-    except (ValueError, OSError) as exc:
+    except (ValueError, OSError, RuntimeError) as exc:  # RuntimeError: the viewer's extra
         console.print(f"agilegs demo: {exc}", soft_wrap=True, markup=False)
         return 2
     out = Path(args.out)
@@ -299,7 +324,8 @@ def run(args: argparse.Namespace) -> int:
             server.start(timeout=120.0)
             console.print(f"server: {server.url} (pid {server.proc.pid if server.proc else '?'}"
                           f", log {out / 'server.log'})", soft_wrap=True)
-            results = closed_loop(server.url, robot, size, int(args.seed), console)
+            results = closed_loop(server.url, robot, size, int(args.seed), console,
+                                  view=args if args.view else None)
         except Exception as exc:
             log.error("demo failed: %s", exc)
             tail = server.log()[-3000:]
@@ -321,9 +347,54 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def closed_loop(url: str, robot: Robot, size: DemoSize, seed: int, console: Console
-                ) -> dict[str, Any]:
-    """The robot's side over HTTP; returns the per-method curves and events."""
+def closed_loop(url: str, robot: Robot, size: DemoSize, seed: int, console: Console,
+                view: argparse.Namespace | None = None) -> dict[str, Any]:
+    """The robot's side over HTTP; returns the per-method curves and events. ``view``:
+    the ``--view`` options (a live view of the AGILE-GS+ session)."""
+    from contextlib import ExitStack
+
+    from agilegs.client import Client
+
+    with ExitStack() as stack:
+        viewer = None
+        if view is not None:
+            from agilegs.service.viewer.live import SessionViewer
+
+            viewer = stack.enter_context(SessionViewer(
+                stack.enter_context(Client(url)), session_id("agile_plus"), port=view.view_port,
+                where=url)).start(poll=0.5)
+            console.print(f"view: {viewer.url} (AGILE-GS+)", soft_wrap=True)
+        results = _loop(url, robot, size, seed, console, viewer)
+        if viewer is not None and _hold(Client(url), viewer, view, console):  # type: ignore[arg-type]
+            return results  # Ctrl-C stopped the server too: nothing left to delete
+    with Client(url) as c:  # the view closed first: it does not report the deletion
+        for key, _ in METHODS:
+            c.delete_session(session_id(key))
+    return results
+
+
+def _hold(client: Client, viewer: Any, view: argparse.Namespace, console: Console) -> bool:
+    """After the last event: let the view catch up, write its screenshot, keep it up;
+    whether Ctrl-C ended it."""
+    with client:
+        version = client.get_session(session_id("agile_plus")).version
+    viewer.wait_until(lambda v: v.info is not None and v.info.version >= version, 30.0)
+    if view.screenshot:
+        from agilegs.service.viewer.browser import capture, write_png
+
+        write_png(view.screenshot, capture(viewer.url))
+        console.print(f"screenshot: {view.screenshot}", soft_wrap=True)
+    if view.hold is None:
+        console.print(f"view: {viewer.url} stays up; Ctrl-C to end", soft_wrap=True)
+    try:
+        time.sleep(view.hold if view.hold is not None else 10.0 ** 9)
+    except KeyboardInterrupt:
+        return True
+    return False
+
+
+def _loop(url: str, robot: Robot, size: DemoSize, seed: int, console: Console,
+          viewer: Any) -> dict[str, Any]:
     from agilegs.client import Client
 
     intr = robot.intrinsics
@@ -333,7 +404,7 @@ def closed_loop(url: str, robot: Robot, size: DemoSize, seed: int, console: Cons
     initial = initial_indices(size.pool_size, size.initial_views)
     remaining = [i for i in range(size.pool_size) if i not in initial]
     frames = [robot.observation(pool[i]) for i in initial]
-    sids = {key: f"demo-{key.replace('_', '-')}" for key, _ in METHODS}
+    sids = {key: session_id(key) for key, _ in METHODS}
     results: dict[str, Any] = {"methods": {}, "initial_views": initial}
     with Client(url, timeout=600.0) as c:
         for key, _name in METHODS:
@@ -351,6 +422,8 @@ def closed_loop(url: str, robot: Robot, size: DemoSize, seed: int, console: Cons
         for key, name in METHODS:
             p = robot.psnr(c.get_gaussians(sids[key]).to_numpy())
             results["methods"][key]["curve"].append({"views": size.initial_views, "psnr": p})
+            if viewer is not None and key == "agile_plus":
+                viewer.report_psnr(size.initial_views, p)
             console.print(f"event 0  {name:<9}  {size.initial_views} initial views"
                           f"{'':>49}  PSNR {p:6.2f} dB", soft_wrap=True)
         for event in range(1, size.events + 1):
@@ -372,11 +445,11 @@ def closed_loop(url: str, robot: Robot, size: DemoSize, seed: int, console: Cons
                        "mapper_steps": states[sids[key]].steps}
                 results["methods"][key]["events"].append(rec)
                 results["methods"][key]["curve"].append({"views": views, "psnr": p})
+                if viewer is not None and key == "agile_plus":
+                    viewer.report_psnr(views, p)
                 console.print(f"event {event}  {name:<9}  view #{d.chosen.id:<3}  "
                               f"{latency_text(d.latency_ms, d.server_ms)}  PSNR {p:6.2f} dB",
                               soft_wrap=True)
-        for sid in sids.values():
-            c.delete_session(sid)
     return results
 
 

@@ -40,7 +40,7 @@ from agilegs.schemas.ops import OPERATIONS
 
 from .errors import ServiceError, insufficient_storage, invalid, is_disk_full
 from .metrics import Metrics
-from .sessions.registry import SessionRegistry, parse_request
+from .sessions.registry import QueryParams, SessionRegistry, parse_request
 from .settings import Settings
 
 __all__ = ["RAW_TYPES", "Gateway", "Reply", "Request", "Router"]
@@ -169,6 +169,8 @@ class Gateway:
         spec = OPERATIONS[op]
         if spec.request is None:
             return None
+        if spec.query and not body:  # HTTP: the fields are query parameters
+            return QueryParams(params)
         base = (content_type or "").split(";", 1)[0].strip().lower()
         if op == "set_gaussians" and base in RAW_TYPES and body:
             fmt = params.get("format") or ("ply" if body[:4] == b"ply\n" else "splat")

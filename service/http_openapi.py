@@ -18,7 +18,7 @@ __all__ = ["DESCRIPTION", "build_openapi", "route_openapi"]
 
 def _error_responses(op: Operation) -> dict[int | str, dict[str, Any]]:
     codes = [400, 401, 406, 422, 500]
-    if op.request is not None:
+    if op.request is not None and not op.query:
         codes += [413, 415]
     if op.scope == "session":
         codes += [404, 409, 429]
@@ -36,9 +36,24 @@ def _error_responses(op: Operation) -> dict[int | str, dict[str, Any]]:
     }
 
 
+def _query_parameters(op: Operation) -> dict[str, Any]:
+    """The request model's fields as query parameters (an operation with ``query``)."""
+    assert op.request is not None
+    js = op.request.model_json_schema(mode="validation")
+    required = set(js.get("required", []))
+    return {"parameters": [
+        {"name": name, "in": "query", "required": name in required,
+         "description": prop.get("description", ""),
+         "schema": {k: v for k, v in prop.items() if k not in ("title", "description")}}
+        for name, prop in js["properties"].items()
+    ]}
+
+
 def _request_body(op: Operation) -> dict[str, Any] | None:
     if op.request is None:
         return None
+    if op.query:
+        return _query_parameters(op)
     ref = {"$ref": f"#/components/schemas/{op.request.__name__}"}
     content: dict[str, Any] = {codec.JSON: {"schema": ref}, codec.MSGPACK: {"schema": ref}}
     extra: dict[str, Any] = {"requestBody": {"required": True, "content": content}}
@@ -62,12 +77,14 @@ def _request_body(op: Operation) -> dict[str, Any] | None:
 
 def route_openapi(op: Operation) -> dict[str, Any]:
     """The ``add_api_route`` keywords that describe ``op``'s bodies and answers."""
+    content: dict[str, Any] = {codec.MSGPACK: {
+        "schema": {"$ref": f"#/components/schemas/{op.response.__name__}"}}}
+    if op.event_stream:
+        content["text/event-stream"] = {"schema": {
+            "type": "string", "description": "server-sent events (Accept: text/event-stream): "
+            "feed, decision (id <epoch>:<seq>, data a DecisionEvent), missed, closed, error"}}
     return {
-        "responses": {
-            200: {"content": {codec.MSGPACK: {
-                "schema": {"$ref": f"#/components/schemas/{op.response.__name__}"}}}},
-            **_error_responses(op),
-        },
+        "responses": {200: {"content": content}, **_error_responses(op)},
         "openapi_extra": _request_body(op),
     }
 
@@ -80,7 +97,7 @@ def build_openapi(app: FastAPI, *, bearer: bool) -> dict[str, Any]:
                          description=app.description, routes=app.routes)
     components = schema.setdefault("components", {}).setdefault("schemas", {})
     for op in OPERATIONS.values():
-        if op.request is None:
+        if op.request is None or op.query:
             continue
         js = op.request.model_json_schema(ref_template="#/components/schemas/{model}",
                                           mode="validation")

@@ -4,7 +4,8 @@ the gateway.
 Each route checks that the response type is acceptable (406) and reads the body, refusing
 more than ``max_body_bytes`` (413) before it has all arrived; then a worker thread runs the
 gateway's pipeline on it (:meth:`Gateway.handle <agilegs.service.gateway.Gateway.handle>`).
-``/healthz`` answers on the event loop, never behind session work.
+``/healthz`` answers on the event loop, never behind session work. The decisions feed's
+long poll and event stream are :mod:`agilegs.service.http_decisions`.
 """
 
 from __future__ import annotations
@@ -25,9 +26,10 @@ from agilegs.schemas.ops import OPERATIONS, Operation
 from .errors import ServiceError
 from .gateway import Gateway, Reply
 from .gateway import Request as GatewayRequest
+from .http_decisions import decisions_endpoint
 from .http_openapi import route_openapi
 
-__all__ = ["build_router", "read_body", "response"]
+__all__ = ["build_router", "read_body", "response", "run_pipeline"]
 
 SessionPath = Annotated[
     str,
@@ -61,6 +63,17 @@ async def read_body(request: Request, gateway: Gateway) -> bytes:
     return b"".join(chunks)
 
 
+async def run_pipeline(gateway: Gateway, req: GatewayRequest) -> Reply:
+    """The gateway's pipeline on ``req`` in a worker thread (503 once the server stops)."""
+    try:
+        return await asyncio.get_running_loop().run_in_executor(
+            gateway.executor, gateway.handle, req)
+    except RuntimeError:  # the executor is shut down: the server is stopping
+        stopping = ServiceError(503, ErrorCode.UNAVAILABLE, "the server is stopping")
+        return gateway.error_reply(stopping, codec.negotiate(req.accept) or codec.JSON, "http",
+                                   req.op)
+
+
 def build_router(gateway: Gateway) -> APIRouter:
     """The routes of every operation."""
     router = APIRouter()
@@ -71,7 +84,7 @@ def build_router(gateway: Gateway) -> APIRouter:
         body = None
         try:
             gateway.negotiate(accept)
-            if op.request is not None:
+            if op.request is not None and not op.query:
                 body = await read_body(request, gateway)
         except ServiceError as err:
             kind = codec.negotiate(accept) or codec.JSON
@@ -81,14 +94,7 @@ def build_router(gateway: Gateway) -> APIRouter:
             content_type=request.headers.get("content-type"), accept=accept,
             params=dict(request.query_params), transport="http", t0=t0, authenticated=True,
         )
-        try:
-            reply = await asyncio.get_running_loop().run_in_executor(
-                gateway.executor, gateway.handle, req)
-        except RuntimeError:  # the executor is shut down: the server is stopping
-            stopping = ServiceError(503, ErrorCode.UNAVAILABLE, "the server is stopping")
-            reply = gateway.error_reply(stopping, codec.negotiate(accept) or codec.JSON, "http",
-                                        op.name)
-        return response(reply)
+        return response(await run_pipeline(gateway, req))
 
     def endpoint_for(op: Operation) -> Callable[..., Awaitable[Response]]:
         if op.name == "health":
@@ -99,6 +105,14 @@ def build_router(gateway: Gateway) -> APIRouter:
                                 media_type=codec.JSON)
 
             return health
+        if op.event_stream:
+            feed = decisions_endpoint(gateway, op, handle=handle, run=run_pipeline,
+                                      respond=response)
+
+            async def feed_endpoint(request: Request, session: SessionPath) -> Response:
+                return await feed(request, session)
+
+            return feed_endpoint
         if op.scope == "service":
 
             async def service_endpoint(request: Request) -> Response:

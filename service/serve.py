@@ -70,6 +70,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--max-gaussians", type=int, help="most Gaussians per session (AGILEGS_MAX_GAUSSIANS)")
     a("--max-views", type=int, help="most views per session (AGILEGS_MAX_VIEWS)")
     a("--max-shortlist", type=int, help="largest shortlist size (AGILEGS_MAX_SHORTLIST)")
+    a("--max-poll-wait", type=float,
+      help="longest wait of a decisions poll or event stream, s (AGILEGS_MAX_POLL_WAIT, 25)")
+    a("--decision-log", type=int,
+      help="decisions held per session for get_decisions (AGILEGS_DECISION_LOG, 100)")
     f = parser.add_mutually_exclusive_group()
     f.add_argument("--fsync", dest="fsync", action="store_const", const=True,
                    help="fsync before acknowledging (AGILEGS_FSYNC, the default)")
@@ -91,8 +95,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 _FIELDS = ("host", "port", "state_dir", "http", "zenoh", "zenoh_mode", "instance_id",
            "forward_timeout", "workers", "torch_threads", "max_body_bytes",
            "max_pool_size", "max_image_pixels", "max_sessions", "max_gaussians", "max_views",
-           "max_shortlist", "fsync", "mapper", "mapper_steps_per_view", "mapper_burst",
-           "log_level")
+           "max_shortlist", "max_poll_wait", "decision_log", "fsync", "mapper",
+           "mapper_steps_per_view", "mapper_burst", "log_level")
 
 
 def build_settings(args: argparse.Namespace) -> Any:
@@ -126,8 +130,20 @@ def run(args: argparse.Namespace) -> int:
     app = create_app(settings, server)
     log.info("agilegs serve: http://%s:%d (state in %s, zenoh %s)", settings.host, settings.port,
              settings.state_dir, "on" if settings.zenoh else "off")
-    uvicorn.run(app, host=settings.host, port=settings.port, log_level=settings.log_level.lower(),
-                access_log=False, timeout_graceful_shutdown=10)
+    config = uvicorn.Config(app, host=settings.host, port=settings.port,
+                            log_level=settings.log_level.lower(), access_log=False,
+                            timeout_graceful_shutdown=10)
+    http = uvicorn.Server(config)
+    exit_now = http.handle_exit
+
+    def handle_exit(sig: int, frame: Any) -> None:
+        # waiting decision polls and event streams answer now: uvicorn waits for open
+        # responses before it stops
+        server.registry.decisions.shutdown()
+        exit_now(sig, frame)
+
+    http.handle_exit = handle_exit  # type: ignore[method-assign]
+    http.run()
     return 0
 
 

@@ -46,6 +46,7 @@ class Server:
         self.gateway = Gateway(self.registry, settings, self.metrics)
         self.cluster = ClusterNode(self.registry, settings, self.gateway.executor)
         self.gateway.router = self.cluster
+        self.gateway.decision_hooks.append(self.registry.decisions.record)
         self.zenoh: ZenohAdapter | None = None
         self.state_lock: StateLock | None = None
 

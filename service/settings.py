@@ -59,6 +59,14 @@ class Settings(BaseSettings):
     max_gaussians: int = Field(default=2_000_000, ge=1, description="most Gaussians per session")
     max_views: int = Field(default=10_000, ge=1, description="most acquired views per session")
     max_shortlist: int = Field(default=256, ge=1, description="largest shortlist size N")
+    # the decisions feed (see agilegs.service.decisions)
+    max_poll_wait: float = Field(
+        default=25.0, ge=0.0, le=60.0, description="longest wait of a decisions poll, and "
+                                                   "longest decisions event stream (s)"
+    )
+    decision_log: int = Field(
+        default=100, ge=1, description="decisions held per session for get_decisions"
+    )
     # execution
     workers: int = Field(default=16, ge=1, description="threads running session work")
     torch_threads: int = Field(default=0, ge=0, description="torch intra-op threads (0: default)")

@@ -15,7 +15,7 @@ from agilegs.service.launch import ServerProcess as _Launcher
 from agilegs.service.launch import free_port
 
 __all__ = ["ROOT", "SHARED_SCENES", "SMALL_INTRINSICS", "InProcess", "ServerProcess", "free_port",
-           "ring_poses"]
+           "gaussian_blob", "ring_poses"]
 
 ROOT = Path(__file__).resolve().parents[1]
 """The repository's root."""
@@ -109,6 +109,21 @@ def ring_poses(n: int, radius: float = 2.0, height: float = -0.3) -> np.ndarray:
 def ring() -> object:
     """``ring(n)``: camera poses on a ring around the origin (see :func:`ring_poses`)."""
     return ring_poses
+
+
+def gaussian_blob(n: int, color: tuple[float, float, float] = (0.1, 0.8, 0.2),
+                  radius: float = 0.3, seed: int = 0) -> dict[str, np.ndarray]:
+    """``n`` opaque Gaussians of one colour (RGB in [0, 1]) in a ball of about ``radius``
+    around the origin: the five arrays (``create_session(gaussians=...)``)."""
+    rng = np.random.default_rng(seed)
+    dc = (np.asarray(color) - 0.5) / 0.28209479177387814  # colour = 0.5 + C0 * DC
+    return {
+        "means": (rng.normal(size=(n, 3)) * radius / 2).astype(np.float32),
+        "log_scales": np.full((n, 3), np.log(0.04), np.float32),
+        "quats": np.tile(np.array([1.0, 0, 0, 0], np.float32), (n, 1)),
+        "opacity_logits": np.full(n, 2.0, np.float32),
+        "sh": np.tile(dc.astype(np.float32), (n, 1, 1)),
+    }
 
 
 SMALL_INTRINSICS = {"fx": 28.0, "fy": 28.0, "cx": 16.0, "cy": 16.0, "width": 32, "height": 32}

@@ -339,6 +339,10 @@ def run_progressive(
             # cost per view
             "upkeep_ms": h_ms / len(acquired) if uses_information else 0.0,
             "num_gaussians": gmap.num_gaussians,
+            # for the replay (agilegs view --run): pool indices and their scores, the anchor
+            "scores": [[remaining[i], float(v)] for i, v in sel.scores.items()
+                       if math.isfinite(float(v))],
+            "anchor": None if sel.anchor_c2w is None else _matrix(sel.anchor_c2w),
         })
         times["select_s"] += wall_ms / 1e3
         times["information_s"] += h_ms / 1e3
@@ -385,6 +389,10 @@ def run_progressive(
         "path_length": traj["path_length"],
         "mean_index_jump": traj["mean_index_jump"],
         "trajectory": [[float(x) for x in p] for p in scene.pool_poses[seq, :3, 3]],
+        # the pool's camera-to-world poses [D, 4, 4] and intrinsics (agilegs view --run)
+        "pool_poses": [_matrix(p) for p in scene.pool_poses],
+        "intrinsics": {k: float(getattr(scene.intrinsics, k))
+                       for k in ("fx", "fy", "cx", "cy", "width", "height")},
         "num_gaussians": mapper.num_gaussians,
         "steps": step,
         "views": len(acquired),
@@ -392,6 +400,11 @@ def run_progressive(
         "wall_s": time.perf_counter() - t_run,
     }
     return record
+
+
+def _matrix(pose: Tensor) -> list[list[float]]:
+    """A pose [4, 4] as nested lists, rounded to 1e-7 (the records stay small)."""
+    return [[round(float(x), 7) for x in row] for row in pose.detach().cpu().double()]
 
 
 def _median(values: Sequence[float]) -> float | None:

@@ -25,9 +25,12 @@ import torch
 from pydantic import BaseModel, ValidationError
 
 from agilegs.schemas import models as m
+from agilegs.schemas.decisions import DecisionsOut, DecisionsRequest
 from agilegs.schemas.ops import OPERATIONS
 
+from ..decisions import DecisionLog
 from ..errors import (
+    ServiceError,
     conflict,
     invalid,
     is_disk_full,
@@ -47,7 +50,7 @@ from .listing import damaged_error, damaged_summary
 from .mapper_state import initial_mapper_state, mapper_config
 from .session import Session, SessionEnv
 
-__all__ = ["HANDLERS", "Handler", "SessionRegistry", "parse_request"]
+__all__ = ["HANDLERS", "Handler", "QueryParams", "SessionRegistry", "parse_request"]
 
 log = logging.getLogger(__name__)
 
@@ -57,9 +60,13 @@ Handler = Callable[["SessionRegistry", "str | None", Any], BaseModel]
 """``handler(registry, session id, validated request or None) -> response model``."""
 
 
+class QueryParams(dict[str, str]):
+    """A request's fields as they came in HTTP query parameters (strings)."""
+
+
 def parse_request(op: str, payload: Any) -> BaseModel | None:
-    """The request model of operation ``op`` from decoded data (None for bodiless ones);
-    a 422 naming every bad field."""
+    """The request model of operation ``op`` from decoded data, or from
+    :class:`QueryParams` (None for bodiless ones); a 422 naming every bad field."""
     spec = OPERATIONS.get(op)
     if spec is None:
         raise not_found("op", f"unknown operation {op!r}")
@@ -68,9 +75,12 @@ def parse_request(op: str, payload: Any) -> BaseModel | None:
     if payload is None:
         raise invalid("body", "body: a request body is required")
     try:
+        if isinstance(payload, QueryParams):
+            return spec.request.model_validate_strings(dict(payload))
         return spec.request.model_validate(payload)
     except ValidationError as exc:
-        raise _validation_error(exc) from None
+        raise _validation_error(exc, "query" if isinstance(payload, QueryParams) else "body"
+                                ) from None
 
 
 class SessionRegistry:
@@ -95,6 +105,9 @@ class SessionRegistry:
         self.zenoh_enabled = False
         self.trainer: Trainer | None = None  # while the mapper runs (see load)
         self.on_refused_write: Callable[[str, str], None] | None = None  # (source, op)
+        # the decisions feed; the server hooks record() to the gateway's decisions
+        self.decisions = DecisionLog(settings.decision_log,
+                                     max_waiters=max(1, settings.workers // 2))
         self.env = SessionEnv(settings=settings, store=self.store,
                               tmp_dir=Path(settings.state_dir) / "tmp",
                               report_damage=self.report_damage)
@@ -137,6 +150,7 @@ class SessionRegistry:
         self.trainer.start()
 
     def close(self) -> None:
+        self.decisions.shutdown()
         if self.trainer is not None:
             self.trainer.close()
 
@@ -286,7 +300,25 @@ class SessionRegistry:
             s.closed = True
             with self.lock:
                 self.sessions.pop(s.id, None)
+        self.decisions.close(s.id)
         return m.Deleted(id=s.id)
+
+    def get_decisions(self, sid: str | None, req: DecisionsRequest) -> DecisionsOut:
+        """The decisions feed of a session (:mod:`agilegs.service.decisions`): after
+        ``req.after``, waiting up to ``req.wait`` (at most ``max_poll_wait``) s for one; for a
+        deleted session, what its closed log holds, with ``closed`` (404 once it is no
+        longer kept)."""
+        try:
+            self.session(sid)
+        except ServiceError as err:
+            if err.status == 404 and sid is not None:
+                rest = self.decisions.read_closed(sid, req.after, req.limit)
+                if rest is not None:
+                    return rest
+            raise
+        assert sid is not None
+        wait = min(req.wait, self.settings.max_poll_wait)
+        return self.decisions.read(sid, req.after, req.limit, wait)
 
     def create_session(self, req: m.SessionCreate) -> m.SessionInfo:
         settings = self.settings
@@ -353,6 +385,7 @@ class SessionRegistry:
             if self.trainer is not None:
                 self.trainer.attach(s)
             self.sessions[sid] = s
+            self.decisions.open(sid)
         if frames:
             s.on_observation(list(rec.views))
         return s.info()
@@ -388,6 +421,7 @@ HANDLERS: dict[str, Handler] = {
     "get_pool": _on_session(lambda s, req: s.get_pool()),
     "select": _on_session(Session.select),
     "get_information": _on_session(lambda s, req: s.get_information()),
+    "get_decisions": lambda reg, sid, req: reg.get_decisions(sid, req),
 }
 """Each operation's handler (a test checks that it covers :data:`OPERATIONS` exactly)."""
 

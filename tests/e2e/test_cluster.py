@@ -184,6 +184,26 @@ def test_sessions_created_on_each_are_found_and_selected_through_either(pair: Pa
             ca.get_session(s5)
 
 
+def test_the_decisions_feed_is_read_through_any_instance(pair: Pair) -> None:
+    zc = pair.zc
+    with Client(pair.a.url) as ca, Client(pair.b.url) as cb:
+        sid = _new(zc, instance="b")
+        made = [ca.select(sid, method="random", seed=i) for i in range(2)]  # forwarded to b
+        # a long poll through a is forwarded to b with its wait, and wakes on the decision
+        later = threading.Timer(0.5, lambda: made.append(
+            cb.select(sid, method="random", seed=7)))
+        later.start()
+        t0 = time.monotonic()
+        waited = ca.get_decisions(sid, after=2, wait=20)
+        assert time.monotonic() - t0 < 15
+        later.join(30)
+        assert [e.seq for e in waited.decisions] == [3]
+        for c in (ca, cb, zc):  # the one log of the owner, whoever asks
+            out = c.get_decisions(sid)
+            assert [e.seq for e in out.decisions] == [1, 2, 3] and out.epoch == waited.epoch
+            assert [e.decision.chosen.id for e in out.decisions] == [d.chosen.id for d in made]
+
+
 def test_a_killed_instance_fails_clearly_and_comes_back(pair: Pair) -> None:
     zc = pair.zc
     with Client(pair.a.url) as ca:

@@ -55,6 +55,7 @@ def fuzz_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerProc
         "AGILEGS_MAX_GAUSSIANS": "300", "AGILEGS_MAX_IMAGE_PIXELS": "1024",
         "AGILEGS_MAX_POOL_SIZE": "16", "AGILEGS_MAX_SESSIONS": "50",
         "AGILEGS_MAX_BODY_BYTES": str(2**20), "AGILEGS_MAX_VIEWS": "8",
+        "AGILEGS_MAX_POLL_WAIT": "0.2",  # decisions polls and streams end quickly
     }).start()
     with Client(srv.url) as c:
         c.create_session(SMALL_INTRINSICS, id="fuzz", init_gaussians=200, pool=ring_poses(12),

@@ -120,3 +120,13 @@ def test_files_stay_small() -> None:
         if name.startswith("agilegs.service") and name not in allowed:
             n = len(path.read_text().splitlines())
             assert n <= 580, f"{name}: {n} lines"
+
+
+def test_the_viewer_is_a_client_of_the_service() -> None:
+    # it reaches the server through the client SDK only: no torch, no server code
+    viewer = [n for n in MODULES if n.startswith("agilegs.service.viewer")]
+    assert len(viewer) >= 6
+    for name in viewer:
+        assert not _third_party(MODULES[name]) & {"torch", "fastapi", "uvicorn"}, name
+        inside = {d for d in GRAPH[name] if d.startswith("agilegs.service")}
+        assert all(d.startswith("agilegs.service.viewer") for d in inside), (name, inside)
