@@ -20,7 +20,7 @@ from torch import Tensor
 from agilegs.service.nbv.camera import Camera
 from agilegs.service.nbv.gaussians import FIELD_NAMES, GaussianMap
 from agilegs.service.nbv.information import projection_jacobians
-from agilegs.service.nbv.projection import project_map
+from agilegs.service.nbv.projection import Projected, project_map
 from agilegs.service.nbv.rasterize import ALPHA_MAX, ALPHA_MIN, T_MIN
 
 __all__ = ["baseline_fisher_diag", "baseline_render"]
@@ -247,7 +247,7 @@ def dcolor_dalpha(terms: ChunkTerms, col: Tensor, bg: Tensor) -> Tensor:
 
 
 def _chunks(gmap: GaussianMap, camera: Camera, bg: Tensor, max_elements: int
-            ) -> tuple[object, Binning, list[tuple[Tensor, int]]]:
+            ) -> tuple[Projected, Binning, list[tuple[Tensor, int]]]:
     proj = project_map(gmap, camera)
     binning = bin_gaussians(proj.means2d, proj.radii, proj.depths, camera.width, camera.height)
     return proj, binning, binning.chunks(max_elements)
