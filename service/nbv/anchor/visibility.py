@@ -1,10 +1,10 @@
 """Visibility by transmittance: how much of a Gaussian a virtual camera sees through the map.
 
 The renderer composites front to back: a Gaussian's pixels carry the transmittance T of
-everything in front of it, and its Fisher information scales with T² (the colour block is
-Σ_p (T_p α_p)², the geometric blocks carry the same factor through ∂C/∂α). The anchor needs
-that factor for a few thousand Gaussians at hundreds of poses per selection, so it does not
-rasterize: :class:`OpacityMaps` builds, per pose, a coarse *deep opacity map* (a frustum grid
+everything in front of it (its Fisher information scales with T²; the proxy uses T, see
+docs/notes/2026-11-23-transmittance-visibility.md). The anchor needs T for a few thousand
+Gaussians at hundreds of poses per selection, so it does not rasterize: :class:`OpacityMaps`
+builds, per pose, a coarse *deep opacity map* (a frustum grid
 of ``cells`` x ``cells`` screen cells by ``bins`` depth slices) of the map's optical depth,
 and reads each Gaussian's transmittance from it:
 
