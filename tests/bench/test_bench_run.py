@@ -96,6 +96,14 @@ def test_tiny_run_writes_outputs_and_rerun_skips(tmp_path: Path) -> None:
         scene["runs"]["agile_plus"]["0"]["psnr"] - scene["runs"]["random"]["0"]["psnr"])
     assert set(res["paired_psnr"]) == {"random", "agile_plus"}
     assert "## Paired PSNR differences" in table
+    # the same per scene and per scene type
+    assert res["paired_psnr_by_scene"]["spot_10k"]["agile_plus"]["random"]["mean"] == \
+        pytest.approx(pair["mean"])
+    assert res["paired_psnr_by_type"]["object"]["agile_plus"]["random"]["n"] == 1
+    assert "per scene type and per scene" in table and "| spot_10k (object) |" in table
+    # latency per event: the selection alone and with the method's information upkeep
+    s_ap = res["summary"]["agile_plus"]
+    assert s_ap["event_ms_mean"] > s_ap["selection_ms_mean"] > 0
 
     pngs = ["psnr_vs_views.png", "latency.png", "trajectories_spot_10k.png"]
     for name in pngs:
@@ -241,6 +249,30 @@ def test_transforms_json_scene(tmp_path: Path) -> None:
     prof = PROFILES["tiny"]
     rec = run_progressive(scene, Variant("cover", "cover"), 0, prof)
     assert len(rec["sequence"]) == prof.view_budget and math.isfinite(rec["psnr"])
+
+
+def test_transforms_json_scene_with_depth(tmp_path: Path) -> None:
+    poses, imgs, intr = _posed_frames(9, 16)
+    frames = []
+    for i, (p, im) in enumerate(zip(poses, imgs)):
+        Image.fromarray(im).save(tmp_path / f"r_{i}.png")
+        # a constant 2.5 m in uint16 millimetres, as a depth camera writes it
+        Image.fromarray(np.full((16, 16), 2500, dtype=np.uint16)).save(tmp_path / f"d_{i}.png")
+        gl = p.clone().double()
+        gl[:3, 1:3] = -gl[:3, 1:3]
+        frames.append({"file_path": f"./r_{i}", "depth_file_path": f"d_{i}.png",
+                       "transform_matrix": gl.tolist()})
+    fov = 2 * math.atan(0.5 * intr.width / intr.fx)
+    (tmp_path / "transforms.json").write_text(json.dumps(
+        {"camera_angle_x": fov, "frames": frames}))
+    scene = load_bench_scene(tmp_path, SceneOptions(width=16))
+    assert scene.pool_depths is not None and scene.pool_depths.shape == (7, 16, 16)
+    torch.testing.assert_close(scene.pool_depths, torch.full((7, 16, 16), 2.5))
+    assert scene.init_points is None  # the mapper back-projects the depth maps instead
+    assert scene.info["type"] == "posed" and scene.info["init"] == "depth"
+    # the splat scenes are objects, or captures when their meta.json says so
+    assert load_bench_scene(bundled_scene("spot"), PROFILES["tiny"].scene).info["type"] == \
+        "object"
 
 
 def test_colmap_text_scene(tmp_path: Path) -> None:
