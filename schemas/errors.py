@@ -3,6 +3,9 @@
 ``{"error": {"status": 422, "code": "invalid", "message": "...", "field": "body.poses[3].matrix",
 "errors": [{"field": ..., "message": ...}, ...]}}``
 
+``supported`` lists what the server takes instead where that is the problem: the methods of
+a route (405), the media types it produces (406) or reads (415).
+
 ``field`` names the offending input as a path: ``body`` (the request body, over either
 transport), ``path.session``, ``query.<name>``, ``header.<name>``, followed by attribute
 names and ``[i]`` list indices. ``errors`` lists every problem found (``field`` and
@@ -113,6 +116,12 @@ class ErrorInfo(BaseModel):
     message: str = Field(description="human-readable reason")
     field: str | None = Field(default=None, description="path of the offending input, if any")
     errors: list[ErrorItem] = Field(default_factory=list, description="every problem found")
+    supported: list[str] | None = Field(
+        default=None,
+        description="what the server takes instead: the methods of the route (405, also in "
+        "the Allow header), the media types it produces (406) or reads (415, also in the "
+        "Accept header)",
+    )
 
 
 class ErrorBody(BaseModel):

@@ -42,12 +42,18 @@ from .metrics import Metrics
 from .sessions.registry import SessionRegistry, parse_request
 from .settings import Settings
 
-__all__ = ["RAW_TYPES", "Gateway", "Reply", "Request", "Router"]
+__all__ = ["RAW_TYPES", "Gateway", "Reply", "Request", "Router", "request_media_types"]
 
 log = logging.getLogger(__name__)
 
 RAW_TYPES = ("application/octet-stream", "application/x-ply", "application/x-splat")
 """Content types of a raw .ply / .splat upload to ``set_gaussians``."""
+
+
+def request_media_types(op: str) -> list[str]:
+    """The body media types operation ``op`` reads (JSON, msgpack; raw files for
+    ``set_gaussians``)."""
+    return [codec.JSON, codec.MSGPACK] + (list(RAW_TYPES) if op == "set_gaussians" else [])
 
 
 @dataclass
@@ -151,7 +157,7 @@ class Gateway:
         if kind is None:
             raise ServiceError(406, ErrorCode.NOT_ACCEPTABLE,
                                f"Accept names neither {codec.JSON} nor {codec.MSGPACK}",
-                               "header.accept")
+                               "header.accept", supported=[codec.JSON, codec.MSGPACK])
         return kind
 
     def check_size(self, size: int) -> None:
@@ -176,7 +182,8 @@ class Gateway:
         if kind is None:
             raise ServiceError(415, ErrorCode.UNSUPPORTED_MEDIA,
                                f"Content-Type {content_type!r} is neither {codec.JSON} nor "
-                               f"{codec.MSGPACK}", "header.content-type")
+                               f"{codec.MSGPACK}", "header.content-type",
+                               supported=request_media_types(op))
         if not body:
             raise invalid("body", "body: a request body is required")
         try:
@@ -189,9 +196,12 @@ class Gateway:
         """Run ``req`` through every step; never raises."""
         kind = codec.negotiate(req.accept) or codec.JSON
         try:
-            if req.op not in OPERATIONS:
-                raise ServiceError(404, ErrorCode.NOT_FOUND, f"unknown operation {req.op!r}",
-                                   "key")
+            spec = OPERATIONS.get(req.op)
+            if spec is None or (spec.scope == "session") != (req.session is not None):
+                where = "a session operation" if req.session is not None else "a service operation"
+                raise ServiceError(404, ErrorCode.NOT_FOUND,
+                                   f"{req.op!r} is not {where}" if spec is not None
+                                   else f"unknown operation {req.op!r}", "key")
             if not req.authenticated:
                 self.authenticate(req.credentials, req.credentials_field)
             kind = self.negotiate(req.accept)

@@ -21,7 +21,7 @@ from torch import Tensor
 
 from agilegs.schemas import models as m
 from agilegs.schemas.geometry import Intrinsics as WireIntrinsics
-from agilegs.schemas.geometry import Pose
+from agilegs.schemas.geometry import Pose, PoseArrayList
 
 from ..errors import ServiceError, invalid, too_large
 from ..mapper import backproject_depth, nearest_neighbour_scales
@@ -65,6 +65,8 @@ def poses_array(poses: list[Pose]) -> np.ndarray:
     """Camera-to-world matrices [D, 4, 4] (float64) of validated wire poses."""
     if not poses:
         return np.zeros((0, 4, 4))
+    if isinstance(poses, PoseArrayList):  # validated as one array: it is there already
+        return poses.matrices
     if all(p.matrix is not None for p in poses):  # the common case, in one conversion
         return np.asarray([p.matrix for p in poses], dtype=np.float64)
     return np.stack([p.to_matrix() for p in poses])

@@ -25,6 +25,7 @@ import torch
 from pydantic import BaseModel, ValidationError
 
 from agilegs.schemas import models as m
+from agilegs.schemas.config import patch_dict
 from agilegs.schemas.ops import OPERATIONS
 
 from ..errors import conflict, invalid, not_found, too_large, too_many
@@ -35,6 +36,7 @@ from ..store import SessionRecord, SessionStore
 from ..trainer import Trainer
 from .convert import gaussians_from_depth, parse_frame, parse_gaussians, random_gaussians
 from .mapper_state import initial_mapper_state, mapper_config
+from .selection import check_render_widths
 from .session import Session, SessionEnv
 
 __all__ = ["HANDLERS", "Handler", "SessionRegistry", "parse_request"]
@@ -160,6 +162,11 @@ class SessionRegistry:
         with self.lock:
             self._check_new_id(sid)
         intr = req.intrinsics.model_dump()
+        if req.defaults.shortlist_size > settings.max_shortlist:
+            raise invalid("body.defaults.shortlist_size",
+                          f"must be <= {settings.max_shortlist} (max_shortlist)")
+        check_render_widths(patch_dict(req.defaults.config), "body.defaults.config",
+                            settings.max_image_pixels)
         pixels = req.intrinsics.width * req.intrinsics.height
         if pixels > settings.max_image_pixels:
             raise too_large("body.intrinsics", f"{pixels} pixels exceed max_image_pixels "

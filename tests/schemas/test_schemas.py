@@ -99,8 +99,11 @@ def test_pose_forms_are_exclusive_and_quaternion_unit() -> None:
     with pytest.raises(ValidationError, match="give matrix"):
         Pose(position=[0, 0, 0])
     with pytest.raises(ValidationError) as exc:
-        Pose(position=[0, 0, 0], orientation_xyzw=[0, 0, 0, 2])
+        Pose(position=[0, 0, 0], orientation_xyzw=[0, 0, 0.3, 1])  # |q| = 1.044
     assert _loc(exc.value)[0] == ("orientation_xyzw",)
+    with pytest.raises(ValidationError) as exc:  # a component over the published bound
+        Pose(position=[0, 0, 0], orientation_xyzw=[0, 0, 0, 2])
+    assert _loc(exc.value)[0] == ("orientation_xyzw", 3)
 
 
 def test_ndarray_round_trips_through_json_and_msgpack() -> None:

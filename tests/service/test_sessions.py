@@ -82,7 +82,7 @@ def _bad_cases() -> list[tuple[str, Any, int, str]]:
         ("select", {"shortlist_size": 300}, 422, "body.shortlist_size"),  # > max_shortlist
         ("select", {"method": "oracle"}, 422, "body.method"),
         ("select", {"current_id": 12345}, 404, "body.current_id"),
-        ("select", {"embodied_k": 3}, 422, "body.embodied_k"),  # no current view yet
+        ("select", {"embodied_k": 3}, 409, "body.embodied_k"),  # no current view yet: the state
         ("select", {"config": {"warp": 9}}, 422, "body.config.warp"),
         ("select", {"config": {"anchor": {"iterations": "many"}}}, 422,
          "body.config.anchor.iterations"),
