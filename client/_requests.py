@@ -7,7 +7,7 @@ import functools
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, ParamSpec, TypeVar
+from typing import Any, ParamSpec, TypeVar, cast
 
 import numpy as np
 from pydantic import BaseModel
@@ -106,6 +106,16 @@ def to_observation(o: m.ObservationIn | Mapping[str, Any]) -> m.ObservationIn:
 
 
 @checked
+def to_frame(o: m.ObservationIn | Mapping[str, Any]) -> m.InitialFrame:
+    """An initial frame of a session (an observation at a pose)."""
+    if isinstance(o, m.InitialFrame):
+        return o
+    if isinstance(o, m.ObservationIn):
+        return m.InitialFrame.model_validate({k: getattr(o, k) for k in o.model_fields_set})
+    return cast(m.InitialFrame, m.InitialFrame.from_numpy(**dict(o)))
+
+
+@checked
 def create_session(
     intrinsics: Intrinsics | Mapping[str, Any],
     *,
@@ -126,7 +136,7 @@ def create_session(
         intrinsics=Intrinsics.model_validate(intrinsics),
         bounds=Bounds.model_validate(bounds) if bounds is not None else None,
         gaussians=to_gaussians(gaussians) if gaussians is not None else None,
-        frames=[to_observation(f) for f in frames],
+        frames=[to_frame(f) for f in frames],
         init_gaussians=init_gaussians,
         seed=seed,
         pool=to_pool(pool, None) if pool is not None else None,

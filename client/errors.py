@@ -12,9 +12,10 @@
         ├── NotFoundError              404  unknown session, candidate, view or route
         │   └── SessionUnavailableError     no instance answers for the session
         ├── ConflictError              409  state forbids it (id taken, empty pool, ...)
-        ├── PayloadTooLargeError       413  a size limit (body, pool, pixels, Gaussians)
+        ├── PayloadTooLargeError       413  a body over the server's max_body_bytes
         ├── ValidationError            422  a malformed or out-of-range value
-        ├── TooManyError               429  a count limit (sessions, views)
+        │   └── LimitExceededError          a value over a server limit (pool, pixels, ...)
+        ├── TooManyError               429  a count limit (sessions, views, a pool extended)
         └── ServerError                5xx  a server fault
 
 An :class:`APIError` carries the error body's ``status``, ``code``, ``message``, ``field``
@@ -37,6 +38,7 @@ __all__ = [
     "AuthenticationError",
     "BadRequestError",
     "ConflictError",
+    "LimitExceededError",
     "NotFoundError",
     "PayloadTooLargeError",
     "ProtocolError",
@@ -108,11 +110,16 @@ class ConflictError(APIError):
 
 
 class PayloadTooLargeError(APIError):
-    """413: a size limit of the server (body bytes, pool size, pixels, Gaussians)."""
+    """413: the body exceeds the server's ``max_body_bytes``."""
 
 
 class ValidationError(APIError):
     """422: a value is malformed or out of range; ``field`` says which."""
+
+
+class LimitExceededError(ValidationError):
+    """422 ``limit_exceeded``: a value over a limit of the server (pool size, image pixels,
+    Gaussians, render width); the server's OpenAPI schema states each limit."""
 
 
 class TooManyError(APIError):
@@ -157,4 +164,6 @@ def error_from_body(status: int | None, body: bytes, kind: str | None) -> APIErr
     cls = _BY_STATUS.get(st, ServerError if st >= 500 else APIError)
     if info.code == "session_unavailable":
         cls = SessionUnavailableError
+    elif info.code == "limit_exceeded" and st == 422:
+        cls = LimitExceededError
     return cls(st, info.code, info.message, info.field, list(info.errors))

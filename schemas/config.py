@@ -119,7 +119,9 @@ def _unique(values: tuple[str, ...] | None) -> tuple[str, ...] | None:
     return values
 
 
-Blocks = Annotated[tuple[FieldName, ...], Field(min_length=1), AfterValidator(_unique)]
+Blocks = Annotated[tuple[FieldName, ...],
+                   Field(min_length=1, json_schema_extra={"uniqueItems": True}),
+                   AfterValidator(_unique)]
 """A non-empty set of parameter blocks (no repeats)."""
 
 OcclusionTests = Annotated[

@@ -16,19 +16,21 @@ code                      status  meaning
 ========================  ======  ====================================================
 ``bad_request``           400     the body could not be decoded (not JSON / msgpack)
 ``unauthorized``          401     missing or wrong bearer token
-``not_found``             404     unknown session, candidate, view, or route
+``not_found``             404     unknown session, operation, or route
 ``session_unavailable``   404     scale-out: no live instance answers for the session
 ``instance_unavailable``  404     scale-out: no live instance has the requested id
 ``method_not_allowed``    405     the route exists but not with this method
 ``not_acceptable``        406     Accept names no type the server produces
-``conflict``              409     the session's state forbids it (id taken, view has a frame)
+``conflict``              409     the session's state forbids it (id taken, view has a frame,
+                                  the body names a candidate or view the session lacks)
 ``empty_pool``            409     a selection on an empty candidate pool
 ``map_empty``             409     a selection on a session without Gaussians
 ``payload_too_large``     413     body over the ``max_body_bytes`` setting
-``limit_exceeded``        413     a value over a server limit (pool size, pixels, ...)
+``limit_exceeded``        422     a value over a server limit (pool size, pixels, ...)
 ``unsupported_media``     415     Content-Type is neither JSON nor msgpack
 ``invalid``               422     a value is malformed or out of range (the field says which)
-``too_many``              429     a count limit was reached (sessions, views per session)
+``too_many``              429     a count limit was reached (sessions, views per session,
+                                  candidates when extending the pool)
 ``internal``              500     a server bug (bad input never yields it)
 ``bad_gateway``           502     scale-out: the owning instance's answer was unusable
 ``unavailable``           503     the server is shutting down or a dependency is missing
@@ -81,7 +83,7 @@ ERROR_STATUS: dict[ErrorCode, int] = {
     ErrorCode.EMPTY_POOL: 409,
     ErrorCode.MAP_EMPTY: 409,
     ErrorCode.PAYLOAD_TOO_LARGE: 413,
-    ErrorCode.LIMIT_EXCEEDED: 413,
+    ErrorCode.LIMIT_EXCEEDED: 422,
     ErrorCode.UNSUPPORTED_MEDIA: 415,
     ErrorCode.INVALID: 422,
     ErrorCode.TOO_MANY: 429,

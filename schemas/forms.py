@@ -83,7 +83,8 @@ def nullable(schema: Schema) -> Schema:
 
 
 def one_of(forms: Iterable[Form], rules: Iterable[str] = ()) -> Callable[[Schema], None]:
-    """A ``json_schema_extra`` that publishes a model as a ``oneOf`` of its ``forms``."""
+    """A ``json_schema_extra`` that publishes a model as a ``oneOf`` of its ``forms`` (as
+    the one form itself when there is one)."""
     forms = tuple(forms)
 
     def extra(schema: Schema) -> None:
@@ -109,7 +110,10 @@ def one_of(forms: Iterable[Form], rules: Iterable[str] = ()) -> Callable[[Schema
             if form.description:
                 branch["description"] = form.description
             branches.append(branch)
-        schema["oneOf"] = branches
+        if len(branches) == 1:  # one form: the object itself
+            schema.update({k: v for k, v in branches[0].items() if k != "title"})
+        else:
+            schema["oneOf"] = branches
         if rules:
             schema[RULES_KEY] = list(rules)
 

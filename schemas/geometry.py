@@ -274,8 +274,8 @@ class Intrinsics(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=True,
                               json_schema_extra={"x-agilegs-rules": ["pixels"]})
 
-    fx: float = Field(gt=0, le=1e7, allow_inf_nan=False, description="focal length x (px)")
-    fy: float = Field(gt=0, le=1e7, allow_inf_nan=False, description="focal length y (px)")
+    fx: float = Field(ge=1e-3, le=1e7, allow_inf_nan=False, description="focal length x (px)")
+    fy: float = Field(ge=1e-3, le=1e7, allow_inf_nan=False, description="focal length y (px)")
     cx: float = Field(ge=-1e7, le=1e7, allow_inf_nan=False, description="principal point x (px)")
     cy: float = Field(ge=-1e7, le=1e7, allow_inf_nan=False, description="principal point y (px)")
     width: WireInt = Field(ge=1, le=16384, description="image width (px)")

@@ -53,6 +53,7 @@ __all__ = [
     "Health",
     "ImageData",
     "InformationConfig",
+    "InitialFrame",
     "InformationOut",
     "InformationSummary",
     "MapperOptions",
@@ -216,32 +217,27 @@ class SessionCreate(BaseModel):
 
     With RGB-D frames and no Gaussians, the map is initialised by back-projecting the depth
     (``init_gaussians`` points, coloured from the images; the depth must hold a positive
-    value); with RGB frames only, ``bounds`` is required. Frames become acquired views (and
-    update Ĥ). ``pool`` sets the initial candidate pool.
+    value); with RGB frames only, from ``bounds`` when given, else the session starts without
+    Gaussians (set them with ``set_gaussians``; a selection answers ``map_empty`` until then).
+    Frames become acquired views (and update Ĥ). ``pool`` sets the initial candidate pool.
     """
 
     model_config = ConfigDict(
         extra="forbid",
         strict=True,
-        json_schema_extra={
-            "anyOf": [
-                {"required": ["bounds"], "properties": {"bounds": {"type": "object"}}},
-                {"required": ["gaussians"], "properties": {"gaussians": {"type": "object"}}},
-                {"required": ["frames"], "properties": {"frames": {"contains": {
-                    "required": ["depth"], "properties": {"depth": {"type": "object"}}}}}},
-            ]
-        },
+        # bounds, gaussians or a frame: "not none of them" (an anyOf of the three would make
+        # code generators publish no model for the body)
+        json_schema_extra={"not": {"properties": {
+            "bounds": {"type": "null"}, "gaussians": {"type": "null"}, "frames": {"maxItems": 0}}}},
     )
 
     id: SessionId | None = Field(default=None, description="session id (generated if absent)")
     intrinsics: Intrinsics = Field(description="camera of the candidates and of Ĥ")
     bounds: Bounds | None = Field(default=None, description="scene bounds")
     gaussians: GaussiansIn | None = Field(default=None, description="initial Gaussians")
-    frames: list[ObservationIn] = Field(
+    frames: Annotated[list[InitialFrame], BeforeValidator(_frames_in)] = Field(
         default_factory=list, max_length=MAX_OBSERVATIONS_WIRE,
         description="initial posed frames (each with a pose; no candidate_id or view_id)",
-        json_schema_extra=_narrowed({"properties": {"candidate_id": {"type": "null"},
-                                                    "view_id": {"type": "null"}}}),
     )
     init_gaussians: WireInt = Field(
         default=1000, ge=0, le=1_000_000, description="Gaussians created from bounds or depth"
@@ -257,9 +253,6 @@ class SessionCreate(BaseModel):
     def _has_scene(self) -> SessionCreate:
         if self.bounds is None and self.gaussians is None and not self.frames:
             raise ValueError("give bounds, gaussians, or frames")
-        for frame in self.frames:
-            if frame.candidate_id is not None or frame.view_id is not None:
-                raise ValueError("initial frames take a pose, not candidate_id or view_id")
         return self
 
 
@@ -301,8 +294,10 @@ class MapperStatus(BaseModel):
 
 
 class FieldSummary(BaseModel):
+    """One block of Ĥ in brief (None where a value is not finite, or the block is empty)."""
+
     shape: list[int]
-    sum: float
+    sum: float | None
     min: float | None
     max: float | None
 
@@ -567,6 +562,29 @@ class ObservationIn(BaseModel):
         return self
 
 
+class InitialFrame(ObservationIn):
+    """A frame a session starts with: an :class:`ObservationIn` at a ``pose`` (no
+    ``candidate_id`` or ``view_id``: there are no candidates or views yet)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, json_schema_extra=one_of([
+        Form("InitialFrame", ("pose",), ("candidate_id", "view_id"))], rules=("image-size",)))
+
+    @model_validator(mode="after")
+    def _at_pose(self) -> InitialFrame:
+        if self.candidate_id is not None or self.view_id is not None:
+            raise ValueError("initial frames take a pose, not candidate_id or view_id")
+        return self
+
+
+def _frames_in(value: Any) -> Any:
+    """Initial frames given as :class:`ObservationIn` objects, as the fields they set."""
+    if isinstance(value, list | tuple):
+        return [{k: getattr(o, k) for k in o.model_fields_set}
+                if isinstance(o, ObservationIn) and not isinstance(o, InitialFrame) else o
+                for o in value]
+    return value
+
+
 class ObservationsIn(BaseModel):
     model_config = _STRICT
 
@@ -649,7 +667,9 @@ class SelectRequest(BaseModel):
 
     Embodied mode (``embodied_k``) restricts the choice to the K candidates nearest the
     current view: ``current_id`` (a candidate), ``current_pose``, or else the last acquired
-    view. ``pool`` replaces the pool first (as set_pool does, persisted). ``commit``
+    view. ``pool`` replaces the pool first (as set_pool does, persisted); a pool that is the
+    session's pool as it is (the same poses in the same order, the same ids or none) leaves
+    it, its ids and the version unchanged. ``commit``
     acquires the chosen candidate (as a commit does) in the same step. A selection without
     commit changes nothing.
     """

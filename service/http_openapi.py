@@ -135,6 +135,9 @@ def _limit(components: dict[str, Any], model: str, field: str, key: str, value: 
         for target in [prop, *prop.get("anyOf", [])]:
             if target.get("type") in ("integer", "array"):
                 target[key] = min(value, target.get(key, value))
+        default = prop.get("default")
+        if key == "maximum" and isinstance(default, int) and default > value:
+            prop["default"] = value  # the server lowers the default to its limit too
 
 
 def apply_limits(components: dict[str, Any], settings: Settings) -> None:

@@ -87,9 +87,9 @@ def information_summary(h: Mapping[str, Tensor]) -> m.InformationSummary:
         digest.update(t.numpy().astype("<f4").tobytes())
         fields[name] = m.FieldSummary(
             shape=list(t.shape),
-            sum=float(t.sum(dtype=torch.float64)),
-            min=float(t.min()) if t.numel() else None,
-            max=float(t.max()) if t.numel() else None,
+            sum=finite_float(float(t.sum(dtype=torch.float64))),
+            min=finite_float(float(t.min())) if t.numel() else None,
+            max=finite_float(float(t.max())) if t.numel() else None,
         )
     return m.InformationSummary(fields=fields, digest=digest.hexdigest())
 

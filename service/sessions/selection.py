@@ -18,13 +18,14 @@ from agilegs.schemas.errors import ErrorCode
 from ..errors import conflict, invalid, too_large, validation_error
 from ..nbv.errors import InputError
 from ..nbv.selectors import select
-from ..store import ViewRecord
-from .convert import finite_float, pose_out, storable_state, view_out
+from ..store import SessionRecord, ViewRecord
+from .convert import finite_float, pose_out, poses_array, storable_state, view_out
 
 if TYPE_CHECKING:
     from .session import Session
 
-__all__ = ["RENDER_WIDTHS", "TOP_LEVEL", "check_render_widths", "resolve_config", "run_select"]
+__all__ = ["RENDER_WIDTHS", "TOP_LEVEL", "check_render_widths", "resolve_config", "run_select",
+           "same_pool"]
 
 TOP_LEVEL = ("shortlist_size", "shortlist", "embodied_k", "seed", "fields")
 """SelectConfig fields a select request carries at its top level."""
@@ -46,7 +47,7 @@ server's ``max_image_pixels``."""
 
 
 def check_render_widths(patch: dict[str, Any], field: str, max_pixels: int) -> None:
-    """413 naming the field if a render width in the SelectConfig patch ``patch`` (plain data)
+    """422 naming the field if a render width in the SelectConfig patch ``patch`` (plain data)
     squared exceeds ``max_pixels``."""
     for path in RENDER_WIDTHS:
         value: Any = patch
@@ -55,6 +56,16 @@ def check_render_widths(patch: dict[str, Any], field: str, max_pixels: int) -> N
         if isinstance(value, int) and value * value > max_pixels:
             raise too_large(".".join((field, *path)), f"{value} x {value} pixels exceed "
                             f"max_image_pixels ({max_pixels})")
+
+
+def same_pool(rec: SessionRecord, pool: m.PoolIn) -> bool:
+    """Whether ``pool`` is the session's pool as it is: the same poses in the same order, and
+    the same ids or none (a robot that sends its candidates with every selection)."""
+    if len(pool.poses) != len(rec.pool_ids):
+        return False
+    if pool.ids is not None and not np.array_equal(np.asarray(pool.ids), rec.pool_ids):
+        return False
+    return bool(np.array_equal(poses_array(pool.poses), rec.pool_poses))
 
 
 def resolve_config(defaults: dict[str, Any], req: m.SelectRequest, top: dict[str, Any]
@@ -77,7 +88,7 @@ def run_select(s: Session, req: m.SelectRequest) -> m.SelectResponse:
         t_core = time.perf_counter()
         rec = s.record
         dirty: list[str] = []
-        if req.pool is not None:
+        if req.pool is not None and not same_pool(rec, req.pool):
             rec = s.pool_changed(rec, req.pool, "body.pool", replace_pool=True)
             dirty.append("pool")
         d = rec.defaults

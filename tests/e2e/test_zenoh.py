@@ -16,6 +16,7 @@ from conftest import SMALL_INTRINSICS, ServerProcess, ring_poses
 
 from agilegs.client import (
     Client,
+    ConflictError,
     NotFoundError,
     ObservationIn,
     TransportError,
@@ -85,8 +86,8 @@ def test_error_replies_map_like_http(server: ServerProcess, zc: ZenohClient) -> 
         zc.select(sid, shortlist_size=0)
     assert via_zenoh.value.field == via_http.value.field == "body.shortlist_size"
     assert via_zenoh.value.message == via_http.value.message
-    with pytest.raises(NotFoundError):
-        zc.commit(sid, 999)
+    with pytest.raises(ConflictError):
+        zc.commit(sid, 999)  # no such candidate: the session's state refuses it
     with pytest.raises(NotFoundError):
         zc.get_session("no-such-session")
     with pytest.raises(ValidationError):
