@@ -29,8 +29,9 @@ description says each in words): ``rotation`` (a pose's rotation is proper and o
 within 1e-3), ``unit-quaternion`` (norm within 1e-3 of 1), ``ordered-bounds`` (``min <
 max`` on every axis), ``array-size`` (``data`` holds prod(shape) x itemsize bytes),
 ``image-size`` (an image matches its intrinsics), ``same-length`` (``ids`` has one entry per
-pose), ``gaussian-arrays`` (the five arrays describe the same N Gaussians), ``pixels`` (width
-x height within the server's max_image_pixels)."""
+pose), ``gaussian-arrays`` (the five arrays describe the same N Gaussians), ``gaussians-file`` (a
+readable .ply or .splat file), ``pixels`` (width x height within the server's
+max_image_pixels)."""
 
 Schema = dict[str, Any]
 

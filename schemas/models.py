@@ -380,7 +380,7 @@ class GaussiansIn(BaseModel):
              {"format": {"type": "string", "enum": ["ply", "splat"]}}),
         Form("GaussiansArrays", ("format", "arrays"), ("data",),
              {"format": {"type": "string", "const": "arrays"}}),
-    ]))
+    ], rules=("gaussians-file",)))
 
     format: Literal["ply", "splat", "arrays"]
     data: B64Bytes | None = Field(default=None, description="file bytes (ply / splat)")

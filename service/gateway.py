@@ -175,6 +175,8 @@ class Gateway:
         if spec.request is None:
             return None
         base = (content_type or "").split(";", 1)[0].strip().lower()
+        if op == "set_gaussians" and params.get("format") not in (None, "ply", "splat"):
+            raise invalid("query.format", "query.format: must be 'ply' or 'splat'")
         if op == "set_gaussians" and base in RAW_TYPES and body:
             fmt = params.get("format") or ("ply" if body[:4] == b"ply\n" else "splat")
             return {"format": fmt, "data": body}

@@ -11,6 +11,7 @@ from fastapi.openapi.utils import get_openapi
 
 from agilegs.schemas import codec
 from agilegs.schemas.errors import ErrorBody
+from agilegs.schemas.forms import RULES_KEY
 from agilegs.schemas.keys import INSTANCE_ID_PATTERN
 from agilegs.schemas.ops import OPERATIONS, Operation
 
@@ -54,7 +55,9 @@ def _request_body(op: Operation) -> dict[str, Any] | None:
     extra: dict[str, Any] = {"requestBody": {"required": True, "content": content}}
     if op.name == "set_gaussians":
         # a raw .ply / .splat upload: the file as the body, its format in the query
-        content["application/octet-stream"] = {"schema": {"type": "string", "format": "binary"}}
+        content["application/octet-stream"] = {"schema": {
+            "type": "string", "format": "binary", RULES_KEY: ["gaussians-file"],
+            "description": "a .ply (Inria 3DGS) or .splat (antimatter15) file"}}
         extra["parameters"] = [{
             "name": "format", "in": "query", "required": False,
             "description": "format of an application/octet-stream body (default: sniffed)",
@@ -189,8 +192,13 @@ Next-best-view selection for active 3D Gaussian Splatting (AGILE-GS), per map se
 * Poses are camera-to-world with OpenCV axes (x right, y down, z forward): a 4x4 row-major
   `matrix`, or `position` + `orientation_xyzw` (unit quaternion, ROS order x, y, z, w). The
   rotation must be orthonormal (max |RᵀR − I| ≤ 1e-3, det > 0).
-* Every error is `{"error": {"status", "code", "message", "field", "errors"}}` with a 4xx
-  status naming the offending field; a refused request changes nothing.
+* Every error is `{"error": {"status", "code", "message", "field", "errors", "supported"}}`
+  with a 4xx status naming the offending field; a refused request changes nothing.
+* This schema states every rule the server enforces: a schema-valid request is accepted, or
+  refused only for the session's state (404, 409, 429). Rules JSON Schema cannot state (a
+  rotation orthonormal within 1e-3, min < max, byte lengths that follow from shapes) are in
+  the field descriptions and named in the `x-agilegs-rules` extension. Links chain the ids
+  that `create_session`, the pool operations, `select` and `commit` return.
 * With `AGILEGS_TOKEN` set, every request needs `Authorization: Bearer <token>`.
 * The same operations are served over Zenoh under `agilegs/<session>/<op>`.
 * With several instances joined over Zenoh, any instance serves every session: an operation

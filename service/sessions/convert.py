@@ -186,6 +186,9 @@ def parse_frame(o: m.ObservationIn, index: int, field: str,
     h, w = int(intr["height"]), int(intr["width"])
     fr = Frame(index=index, obs=o, intrinsics=intr)
     limit = max_image_pixels
+    if o.intrinsics is not None and h * w > limit:
+        raise too_large(f"{where}.intrinsics", f"{w}x{h} pixels exceed max_image_pixels "
+                                               f"({limit})")
     if o.image is not None:
         if h * w > limit:
             raise too_large(f"{where}.image", f"{w}x{h} pixels exceed max_image_pixels "

@@ -8,10 +8,12 @@
   ``x-agilegs-rules`` extension and the field descriptions spell out: a pose's rotation is
   orthonormal (the generated block is replaced by its nearest rotation) and a quaternion unit;
   bounds have ``min < max``; an array's bytes match its dtype and shape; an image or depth map
-  matches its intrinsics and decodes; uploaded Gaussians are a readable file or consistent
-  arrays; a pool's ``ids`` name one id per pose; width x height stays within the pixel limit
+  matches its intrinsics and decodes; uploaded Gaussians (in a body or as the raw body of
+  ``set_gaussians``) are a readable file or consistent arrays; a pool's ``ids`` name one id per pose; width x height stays within the pixel limit
   (here at most :data:`SIDE` per side, which also keeps the fuzzed selections cheap).
-  Negative cases are left exactly as generated.
+  Positive cases create sessions on the server under test: they drop ``?instance=``, whose
+  valid values are the ids of a cluster's live instances. Negative cases are left exactly as
+  generated.
 """
 
 from __future__ import annotations
@@ -25,6 +27,9 @@ import msgpack
 import numpy as np
 import schemathesis
 from schemathesis import GenerationMode
+
+RAW_TYPES = ("application/octet-stream", "application/x-ply", "application/x-splat")
+"""Media types of a raw Gaussians upload (``set_gaussians``)."""
 
 SIDE = 12
 """Largest image side of a repaired positive case (pixels)."""
@@ -166,6 +171,12 @@ def _decoded(arrays: dict[str, Any]) -> dict[str, Any]:
                                 .reshape(v["shape"]).copy()) for k, v in arrays.items()}
 
 
+def _gaussians_file(fmt: str) -> bytes:
+    g = {"format": fmt}
+    _fix_gaussians(g)
+    return base64.b64decode(g["data"])
+
+
 def _fix_pool(p: dict[str, Any]) -> None:
     ids = p.get("ids")
     if isinstance(ids, list):
@@ -204,5 +215,13 @@ def repair(value: Any) -> None:
 def map_case(ctx: Any, case: Any) -> Any:
     meta = case.meta
     if meta is not None and meta.generation.mode == GenerationMode.POSITIVE:
-        repair(case.body)
+        if case.media_type in RAW_TYPES:  # a raw .ply / .splat upload
+            fmt = (case.query or {}).get("format") or "splat"
+            case.body = _gaussians_file(fmt if fmt in ("ply", "splat") else "splat")
+        else:
+            repair(case.body)
+        if isinstance(case.query, dict):
+            # ?instance= places a session on a cluster's instance: only the live instances' ids
+            # are valid (404 instance_unavailable otherwise); positive cases use this server
+            case.query.pop("instance", None)
     return case

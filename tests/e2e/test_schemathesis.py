@@ -56,7 +56,7 @@ def test_schemathesis_finds_nothing_in_any_phase(tmp_path: Path) -> None:
     try:
         env = {**os.environ, "PYTHONPATH": str(HERE), "SCHEMATHESIS_HOOKS": "schemathesis_hooks"}
         cmd = [exe, "run", f"{srv.url}/openapi.json", "--checks", "all",
-               "--phases", "examples,coverage,fuzzing,stateful", "--max-examples", "8",
+               "--phases", "examples,coverage,fuzzing,stateful", "--max-examples", "30",
                "--seed", "7", "--request-timeout", "60", "--workers", "1",
                "--report", "json,har", "--report-dir", str(report)]
         proc = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True,

@@ -118,3 +118,22 @@ def test_a_value_over_a_limit_is_a_422_naming_the_field(api_factory: object) -> 
             raise AssertionError("over max_image_pixels")
         except LimitExceededError as exc:
             assert (exc.status, exc.field) == (422, "body.intrinsics")
+
+
+def test_every_parameter_the_schema_bounds_is_checked(api_factory: object) -> None:
+    srv = api_factory(max_image_pixels=1024)  # type: ignore[operator]
+    sid = _sid()
+    with srv.client() as c, srv.http() as h:
+        c.create_session(SMALL_INTRINSICS, id=sid, bounds=BOUNDS, init_gaussians=50)
+        before = h.get(f"/v1/sessions/{sid}").json()
+        # intrinsics over the pixel limit, with no image to check them against
+        r = h.post(f"/v1/sessions/{sid}/observations", json={"observations": [{
+            "pose": {"matrix": np.eye(4).tolist()},
+            "intrinsics": {**SMALL_INTRINSICS, "width": 64, "height": 64}}]})
+        assert r.status_code == 422
+        assert r.json()["error"]["field"] == "body.observations[0].intrinsics"
+        # a format outside its enum, even where the body does not use it
+        r = h.put(f"/v1/sessions/{sid}/gaussians?format=zip", json={"format": "splat",
+                                                                    "data": ""})
+        assert r.status_code == 422 and r.json()["error"]["field"] == "query.format"
+        assert h.get(f"/v1/sessions/{sid}").json() == before
