@@ -517,7 +517,8 @@ class ObservationIn(BaseModel):
         "properties": {"dtype": {"enum": ["float32", "uint16"]},
                        "shape": {"minItems": 2, "maxItems": 2}},
         "description": "[H, W] float32 (scene units) or uint16 (times depth_scale)"}))
-    depth_scale: float = Field(default=1.0, gt=0, le=1e6, allow_inf_nan=False)
+    depth_scale: float = Field(default=1.0, ge=1e-6, le=1e6, allow_inf_nan=False,
+                               description="scene units per uint16 depth step (1e-6 to 1e6)")
 
     @classmethod
     def from_numpy(

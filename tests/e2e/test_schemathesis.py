@@ -27,9 +27,19 @@ HERE = Path(__file__).resolve().parent
 #: tight limits keep whatever the fuzzer creates small (and exercise the limits)
 FUZZ_ENV = {
     "AGILEGS_MAX_GAUSSIANS": "300", "AGILEGS_MAX_IMAGE_PIXELS": "1024",
-    "AGILEGS_MAX_POOL_SIZE": "16", "AGILEGS_MAX_SESSIONS": "1000", "AGILEGS_MAX_VIEWS": "8",
+    "AGILEGS_MAX_POOL_SIZE": "16", "AGILEGS_MAX_SESSIONS": "100000", "AGILEGS_MAX_VIEWS": "8",
     "AGILEGS_MAX_SHORTLIST": "8", "AGILEGS_MAX_BODY_BYTES": str(2**20),
 }
+
+#: the stateful phase runs more and longer scenarios than the others run cases per operation
+#: (a scenario must create a session, set its pool and then select)
+STATEFUL_CONFIG = """
+[phases.stateful]
+max-steps = 12
+
+[phases.stateful.generation]
+max-examples = 80
+"""
 
 #: operations that must have answered 200 (on a live session, as only those do)
 REACHED = {
@@ -53,9 +63,12 @@ def test_schemathesis_finds_nothing_in_any_phase(tmp_path: Path) -> None:
     exe = shutil.which("schemathesis") or str(Path(sys.executable).parent / "schemathesis")
     srv = ServerProcess(tmp_path / "state", zenoh=False, env=FUZZ_ENV).start()
     report = tmp_path / "report"
+    config = tmp_path / "schemathesis.toml"
+    config.write_text(STATEFUL_CONFIG)
     try:
         env = {**os.environ, "PYTHONPATH": str(HERE), "SCHEMATHESIS_HOOKS": "schemathesis_hooks"}
-        cmd = [exe, "run", f"{srv.url}/openapi.json", "--checks", "all",
+        cmd = [exe, "--config-file", str(config), "run", f"{srv.url}/openapi.json",
+               "--checks", "all",
                "--phases", "examples,coverage,fuzzing,stateful", "--max-examples", "30",
                "--seed", "7", "--request-timeout", "60", "--workers", "1",
                "--report", "json,har", "--report-dir", str(report)]
