@@ -15,7 +15,7 @@ from pydantic import ValidationError as PydanticValidationError
 
 from agilegs.schemas import models as m
 from agilegs.schemas.arrays import NDArray
-from agilegs.schemas.geometry import Bounds, Intrinsics, Pose
+from agilegs.schemas.geometry import Bounds, Intrinsics, Pose, trusted_poses
 from agilegs.schemas.ops import OPERATIONS, Operation
 
 from .errors import ValidationError
@@ -75,9 +75,7 @@ def to_pool(poses: m.PoolIn | np.ndarray | Sequence[PoseLike], ids: Sequence[int
     if isinstance(poses, np.ndarray):
         if poses.ndim != 3 or poses.shape[1:] != (4, 4):
             raise ValueError(f"poses must have shape [D, 4, 4], got {list(poses.shape)}")
-        rows = poses.astype(np.float64).tolist()
-        plist = [Pose.model_construct(matrix=r, position=None, orientation_xyzw=None)
-                 for r in rows]
+        plist: list[Pose] = trusted_poses(poses)  # the server validates them as one array
     else:
         plist = [to_pose(p) for p in poses]
     return m.PoolIn.model_construct(poses=plist, ids=list(ids) if ids is not None else None)

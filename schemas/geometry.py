@@ -31,8 +31,10 @@ from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
+    SerializerFunctionWrapHandler,
     ValidatorFunctionWrapHandler,
     WithJsonSchema,
+    WrapSerializer,
     WrapValidator,
     field_validator,
     model_validator,
@@ -54,6 +56,7 @@ __all__ = [
     "Vec3",
     "Vec4",
     "check_matrices",
+    "trusted_poses",
     "matrix_to_quaternion_xyzw",
     "quaternion_xyzw_to_matrix",
     "rotation_error",
@@ -339,20 +342,35 @@ class PoseArrayList(list[Pose]):
     matrices: np.ndarray
 
 
-def _matrix_only(item: Any) -> bool:
-    return (type(item) is dict and item.get("matrix") is not None and item.keys() <= _POSE_KEYS
-            and item.get("position") is None and item.get("orientation_xyzw") is None)
+def _matrix_only(value: list[Any]) -> bool:
+    """Whether every item of ``value`` is a wire pose in the matrix form only."""
+    keys = _POSE_KEYS
+    return all(type(p) is dict and p.keys() <= keys and p.get("matrix") is not None
+               and p.get("position") is None and p.get("orientation_xyzw") is None
+               for p in value)
 
 
 def _trusted_pose(matrix: list[list[float]], fields_set: set[str]) -> Pose:
     """A :class:`Pose` of an already validated matrix, built without validating it again."""
-    pose = Pose.__new__(Pose)
-    object.__setattr__(pose, "__dict__", {"matrix": matrix, "position": None,
-                                          "orientation_xyzw": None})
-    object.__setattr__(pose, "__pydantic_fields_set__", fields_set)
-    object.__setattr__(pose, "__pydantic_extra__", None)
-    object.__setattr__(pose, "__pydantic_private__", None)
+    pose = _new_pose(Pose)
+    _set(pose, "__dict__", {"matrix": matrix, "position": None, "orientation_xyzw": None})
+    _set(pose, "__pydantic_fields_set__", fields_set)
+    _set(pose, "__pydantic_extra__", None)
+    _set(pose, "__pydantic_private__", None)
     return pose
+
+
+_new_pose = Pose.__new__
+_set = object.__setattr__
+
+
+def trusted_poses(matrices: np.ndarray) -> PoseArrayList:
+    """Poses of camera-to-world matrices [D, 4, 4] taken as they are, without validation
+    (poses the server made, or a client's, which the server validates on arrival)."""
+    a = np.asarray(matrices, dtype=np.float64)
+    out = PoseArrayList(_trusted_pose(m, {"matrix"}) for m in a.tolist())
+    out.matrices = a
+    return out
 
 
 def _as_matrices(value: list[Any]) -> tuple[np.ndarray, bool] | None:
@@ -360,19 +378,20 @@ def _as_matrices(value: list[Any]) -> tuple[np.ndarray, bool] | None:
     and whether an entry is an int, or None unless every entry is a number (not a bool) and
     every matrix passes :func:`check_matrices`."""
     mats = [p["matrix"] for p in value]
-    try:
-        if not all(type(m) is list and len(m) == 4 for m in mats):
-            return None
-        rows = [r for m in mats for r in m]
-        if not all(type(r) is list and len(r) == 4 for r in rows):
-            return None
-        types = set(map(type, itertools.chain.from_iterable(rows)))
-        if not types <= _NUMBER_TYPES:
-            return None
-        a = np.array(mats, dtype=np.float64)
-    except (ValueError, TypeError, OverflowError):
+    if not all(type(m) is list and len(m) == 4 for m in mats):
         return None
-    if a.shape != (len(value), 4, 4) or not np.isfinite(a).all() or not check_matrices(a).all():
+    rows = [r for m in mats for r in m]
+    if not all(type(r) is list and len(r) == 4 for r in rows):
+        return None
+    flat = list(itertools.chain.from_iterable(rows))
+    types = set(map(type, flat))
+    if not types <= _NUMBER_TYPES:
+        return None
+    try:
+        a = np.array(flat, dtype=np.float64).reshape(len(value), 4, 4)
+    except OverflowError:  # an int beyond float64
+        return None
+    if not np.isfinite(a).all() or not check_matrices(a).all():
         return None
     return a, int in types
 
@@ -382,7 +401,7 @@ def _validate_poses(value: Any, handler: ValidatorFunctionWrapHandler) -> list[P
     finiteness and every rule in :func:`check_matrices`); anything else, or a list in which
     any pose fails, goes through :class:`Pose` one by one, which names the field of every
     error (``poses[3].matrix``)."""
-    if type(value) is list and value and all(_matrix_only(p) for p in value):
+    if type(value) is list and value and _matrix_only(value):
         checked = _as_matrices(value)
         if checked is not None:
             a, has_ints = checked
@@ -394,6 +413,13 @@ def _validate_poses(value: Any, handler: ValidatorFunctionWrapHandler) -> list[P
     return handler(value)  # type: ignore[no-any-return]
 
 
-PoseList = Annotated[list[Pose], WrapValidator(_validate_poses)]
+def _dump_poses(value: list[Pose], handler: SerializerFunctionWrapHandler) -> Any:
+    """A list validated as one array is written from its array (as each pose would be)."""
+    if isinstance(value, PoseArrayList):
+        return [{"matrix": p.matrix, "position": None, "orientation_xyzw": None} for p in value]
+    return handler(value)
+
+
+PoseList = Annotated[list[Pose], WrapValidator(_validate_poses), WrapSerializer(_dump_poses)]
 """Poses validated as an array (see :func:`_validate_poses`): the same rules and error paths
 as a ``list[Pose]``."""

@@ -34,7 +34,7 @@ from .config import (
     ShortlistStrategy,
 )
 from .forms import RULES_KEY, Form, WireInt, integral, one_of
-from .geometry import Bounds, Intrinsics, Pose, PoseList
+from .geometry import Bounds, Intrinsics, Pose, PoseList, trusted_poses
 
 __all__ = [
     "FIELD_NAMES",
@@ -636,11 +636,9 @@ class PoolIn(BaseModel):
         m = np.asarray(poses, dtype=np.float64)
         if m.ndim != 3 or m.shape[1:] != (4, 4):
             raise ValueError(f"poses must have shape [D, 4, 4], got {list(m.shape)}")
-        rows = m.tolist()
-        if validate:
-            return cls(poses=[Pose(matrix=r) for r in rows], ids=ids)
-        plist = [Pose.from_matrix(r, validate=False) for r in rows]
-        return cls.model_construct(poses=plist, ids=ids)
+        if validate:  # checked as one array (PoseList)
+            return cls.model_validate({"poses": [{"matrix": r} for r in m.tolist()], "ids": ids})
+        return cls.model_construct(poses=trusted_poses(m), ids=ids)
 
 
 class Candidate(BaseModel):

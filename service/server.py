@@ -12,6 +12,7 @@ The command ``agilegs serve`` that runs one is :mod:`agilegs.service.serve`.
 
 from __future__ import annotations
 
+import gc
 import logging
 
 from .cluster import ClusterNode
@@ -43,11 +44,15 @@ class Server:
         self.zenoh: ZenohAdapter | None = None
 
     def start(self) -> None:
-        """Load the sessions (the mapper starts with them) and join Zenoh when it is on."""
+        """Load the sessions (the mapper starts with them) and join Zenoh when it is on; then
+        move everything alive to the collector's permanent generation (``gc.freeze``), so that
+        a full collection, which requests trigger, does not walk the libraries' objects."""
         self.registry.load()
         if self.settings.zenoh:
             self.zenoh = ZenohAdapter(self.gateway, self.cluster, self.settings)
             self.zenoh.start()
+        gc.collect()
+        gc.freeze()
 
     def close(self) -> None:
         """Leave Zenoh, stop the mapper and the worker threads."""
