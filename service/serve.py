@@ -106,7 +106,7 @@ def build_settings(args: argparse.Namespace) -> Any:
 def run(args: argparse.Namespace) -> int:
     settings = build_settings(args)
     settings.warn_if_unsafe()
-    server = Server(settings)
+    server = Server(settings, freeze_gc=True)
     if not settings.http:
         return _serve_zenoh_only(server)
     import uvicorn

@@ -32,10 +32,14 @@ class Server:
 
     Args:
         settings: the server's settings.
+        freeze_gc: after starting, move every object alive to the collector's permanent
+            generation (``gc.freeze``), so that the full collections that requests trigger do not
+            walk the libraries' objects (for a process that only serves: ``agilegs serve``).
     """
 
-    def __init__(self, settings: Settings) -> None:
+    def __init__(self, settings: Settings, *, freeze_gc: bool = False) -> None:
         self.settings = settings
+        self.freeze_gc = freeze_gc
         self.registry = SessionRegistry(settings)
         self.metrics = Metrics(sessions=lambda: len(self.registry.sessions))
         self.gateway = Gateway(self.registry, settings, self.metrics)
@@ -44,15 +48,14 @@ class Server:
         self.zenoh: ZenohAdapter | None = None
 
     def start(self) -> None:
-        """Load the sessions (the mapper starts with them) and join Zenoh when it is on; then
-        move everything alive to the collector's permanent generation (``gc.freeze``), so that
-        a full collection, which requests trigger, does not walk the libraries' objects."""
+        """Load the sessions (the mapper starts with them) and join Zenoh when it is on."""
         self.registry.load()
         if self.settings.zenoh:
             self.zenoh = ZenohAdapter(self.gateway, self.cluster, self.settings)
             self.zenoh.start()
-        gc.collect()
-        gc.freeze()
+        if self.freeze_gc:
+            gc.collect()
+            gc.freeze()
 
     def close(self) -> None:
         """Leave Zenoh, stop the mapper and the worker threads."""
