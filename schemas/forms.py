@@ -21,7 +21,7 @@ from typing import Annotated, Any
 
 from pydantic import BeforeValidator
 
-__all__ = ["RULES_KEY", "Form", "WireInt", "integral", "nullable", "one_of", "with_rules"]
+__all__ = ["RULES_KEY", "Form", "WireInt", "integral", "one_of"]
 
 RULES_KEY = "x-agilegs-rules"
 """Schema extension listing the rules a value must meet beyond its JSON Schema (the field's
@@ -78,11 +78,6 @@ def _non_null(prop: Schema) -> Schema:
     return out
 
 
-def nullable(schema: Schema) -> Schema:
-    """``schema`` or ``null``."""
-    return {"anyOf": [schema, {"type": "null"}]}
-
-
 def one_of(forms: Iterable[Form], rules: Iterable[str] = ()) -> Callable[[Schema], None]:
     """A ``json_schema_extra`` that publishes a model as a ``oneOf`` of its ``forms`` (as
     the one form itself when there is one)."""
@@ -117,17 +112,5 @@ def one_of(forms: Iterable[Form], rules: Iterable[str] = ()) -> Callable[[Schema
             schema["oneOf"] = branches
         if rules:
             schema[RULES_KEY] = list(rules)
-
-    return extra
-
-
-def with_rules(*rules: str, then: Callable[[Schema], None] | None = None
-               ) -> Callable[[Schema], None]:
-    """A ``json_schema_extra`` that names ``rules`` in :data:`RULES_KEY` (after ``then``)."""
-
-    def extra(schema: Schema) -> None:
-        if then is not None:
-            then(schema)
-        schema[RULES_KEY] = list(rules)
 
     return extra

@@ -91,9 +91,10 @@ _UNIQUE: JsonDict = {"uniqueItems": True}
 _STRICT = ConfigDict(extra="forbid", strict=True)
 
 
-def _bounded(lo: int, hi: int) -> Any:
-    """An integer in [lo, hi] (an integral float too; see :data:`WireInt`)."""
-    return Annotated[int, Field(ge=lo, le=hi), BeforeValidator(integral)]
+ShortlistSize = Annotated[int, Field(ge=1, le=1024), BeforeValidator(integral)]
+EmbodiedK = Annotated[int, Field(ge=1, le=100_000), BeforeValidator(integral)]
+Seed = Annotated[int, Field(ge=0, le=2**63 - 1), BeforeValidator(integral)]
+StepsPerView = Annotated[int, Field(ge=0, le=1_000_000), BeforeValidator(integral)]
 
 
 def _unique(values: list[Any] | None, what: str) -> None:
@@ -130,7 +131,7 @@ class SelectDefaults(BaseModel):
     shortlist: ShortlistStrategy = Field(
         default="leverage", description="shortlist strategy of agile / agile_plus"
     )
-    embodied_k: _bounded(1, 100_000) | None = Field(  # type: ignore[valid-type]
+    embodied_k: EmbodiedK | None = Field(
         default=None,
         description="embodied mode: only the K candidates nearest the current view are eligible",
     )
@@ -199,7 +200,7 @@ class MapperOptions(BaseModel):
     model_config = _STRICT
 
     enabled: bool = Field(default=True, description="train this session's map from its images")
-    steps_per_view: _bounded(0, 1_000_000) | None = Field(  # type: ignore[valid-type]
+    steps_per_view: StepsPerView | None = Field(
         default=None,
         description="training steps per view with an image (None: the server's "
                     "AGILEGS_MAPPER_STEPS_PER_VIEW)",
@@ -678,10 +679,10 @@ class SelectRequest(BaseModel):
             "current_id": {"type": "integer"}, "current_pose": {"type": "object"}}}})
 
     method: Method | None = None
-    shortlist_size: _bounded(1, 1024) | None = None  # type: ignore[valid-type]
+    shortlist_size: ShortlistSize | None = None
     shortlist: ShortlistStrategy | None = None
-    embodied_k: _bounded(1, 100_000) | None = None  # type: ignore[valid-type]
-    seed: _bounded(0, 2**63 - 1) | None = None  # type: ignore[valid-type]
+    embodied_k: EmbodiedK | None = None
+    seed: Seed | None = None
     fields: list[FieldName] | None = Field(default=None, json_schema_extra=_UNIQUE)
     config: SelectConfigPatch | None = Field(
         default=None, description="SelectConfig fields, merged over the session's config"
