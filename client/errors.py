@@ -9,9 +9,10 @@
     └── APIError                       the server refused the request (an error body)
         ├── BadRequestError            400  undecodable body; 406 / 415 media types
         ├── AuthenticationError        401  missing or wrong bearer token
-        ├── NotFoundError              404  unknown session, candidate, view or route
+        ├── NotFoundError              404  unknown session or route
         │   └── SessionUnavailableError     no instance answers for the session
-        ├── ConflictError              409  state forbids it (id taken, empty pool, ...)
+        ├── ConflictError              409  state forbids it (id taken, empty pool, no such
+        │                                   candidate or view in the session, ...)
         ├── PayloadTooLargeError       413  a body over the server's max_body_bytes
         ├── ValidationError            422  a malformed or out-of-range value
         │   └── LimitExceededError          a value over a server limit (pool, pixels, ...)
@@ -97,7 +98,7 @@ class AuthenticationError(APIError):
 
 
 class NotFoundError(APIError):
-    """404: unknown session, candidate, view, operation or route."""
+    """404: unknown session, operation or route."""
 
 
 class SessionUnavailableError(NotFoundError):
@@ -106,7 +107,8 @@ class SessionUnavailableError(NotFoundError):
 
 
 class ConflictError(APIError):
-    """409: the session's state forbids it (id taken, empty pool, map empty...)."""
+    """409: the session's state forbids it (id taken, empty pool, map empty, a candidate or
+    view the request names is not in the session...)."""
 
 
 class PayloadTooLargeError(APIError):
