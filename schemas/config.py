@@ -98,9 +98,9 @@ Width = Annotated[int, Strict(), Field(ge=4, le=4096), BeforeValidator(integral)
 Dim = Annotated[int, Strict(), Field(ge=1, le=4096), BeforeValidator(integral)]
 Samples = Annotated[int, Strict(), Field(ge=0, le=64), BeforeValidator(integral)]
 SupportSamples = Annotated[int, Strict(), Field(ge=1, le=65_536), BeforeValidator(integral)]
-Scale = Annotated[float, Strict(), Field(gt=0, le=1e6, allow_inf_nan=False)]
-"""A positive length, weight or tolerance: at most 1e6."""
-Softness = Annotated[float, Strict(), Field(gt=0, le=10, allow_inf_nan=False)]
+Scale = Annotated[float, Strict(), Field(ge=1e-12, le=1e6, allow_inf_nan=False)]
+"""A positive length, weight or tolerance: 1e-12 to 1e6."""
+Softness = Annotated[float, Strict(), Field(ge=1e-6, le=10, allow_inf_nan=False)]
 Margin = Annotated[float, Strict(), Field(ge=0, le=0.9, allow_inf_nan=False)]
 HalfOpenUnit = Annotated[float, Strict(), Field(ge=0, lt=1, allow_inf_nan=False)]
 Gain = Annotated[float, Strict(), Field(ge=-1e6, le=1e6, allow_inf_nan=False)]

@@ -149,7 +149,7 @@ def apply_limits(components: dict[str, Any], settings: Settings) -> None:
     ``max_image_pixels``, which JSON Schema cannot state: see the ``pixels`` rule)."""
     _limit(components, "PoolIn", "poses", "maxItems", settings.max_pool_size)
     _limit(components, "PoolIn", "ids", "maxItems", settings.max_pool_size)
-    for model in ("SelectRequest", "SelectDefaults", "SelectConfigPatch"):
+    for model in ("SelectRequest", "SelectDefaults"):  # (a config patch's is overridden by these)
         _limit(components, model, "shortlist_size", "maximum", settings.max_shortlist)
     _limit(components, "SessionCreate", "init_gaussians", "maximum", settings.max_gaussians)
     for side in ("width", "height"):

@@ -11,8 +11,9 @@
   matches its intrinsics and decodes; uploaded Gaussians (in a body or as the raw body of
   ``set_gaussians``) are a readable file or consistent arrays; a pool's ``ids`` name one id per pose; width x height stays within the pixel limit
   (here at most :data:`SIDE` per side, which also keeps the fuzzed selections cheap).
-  Positive cases create sessions on the server under test: they drop ``?instance=``, whose
-  valid values are the ids of a cluster's live instances. Negative cases are left exactly as
+  Positive cases create sessions on the server under test, with Gaussians: they drop
+  ``?instance=``, whose valid values are the ids of a cluster's live instances, and a creation
+  that would give the map none gets bounds (so that later stateful steps can select). Negative cases are left exactly as
   generated.
 """
 
@@ -211,6 +212,21 @@ def repair(value: Any) -> None:
         _fix_observation(value)
 
 
+def _with_gaussians(body: Any) -> None:
+    """A session's creation body that gives the map no Gaussians (no upload, no depth frame,
+    no bounds, or none of them asked for) gets bounds and a few: another valid body, whose
+    session later steps can select on."""
+    if not isinstance(body, dict) or body.get("gaussians") is not None:
+        return
+    frames = body.get("frames") or []
+    if any(isinstance(f, dict) and f.get("depth") is not None for f in frames):
+        return
+    if body.get("bounds") is None:
+        body["bounds"] = {"min": [-1.0, -1.0, -1.0], "max": [1.0, 1.0, 1.0]}
+    if body.get("init_gaussians", 1) == 0:
+        body["init_gaussians"] = 50
+
+
 @schemathesis.hook
 def map_case(ctx: Any, case: Any) -> Any:
     meta = case.meta
@@ -220,6 +236,8 @@ def map_case(ctx: Any, case: Any) -> Any:
             case.body = _gaussians_file(fmt if fmt in ("ply", "splat") else "splat")
         else:
             repair(case.body)
+            if case.method.upper() == "POST" and case.path == "/v1/sessions":
+                _with_gaussians(case.body)
         if isinstance(case.query, dict):
             # ?instance= places a session on a cluster's instance: only the live instances' ids
             # are valid (404 instance_unavailable otherwise); positive cases use this server

@@ -88,6 +88,8 @@ CASES: list[tuple[type[BaseModel], dict[str, Any], bool, bool, str | None]] = [
     (m.SelectRequest, {"fields": ["means", "means"]}, False, False, None),
     (m.SelectRequest, {"config": {"fields": ["sh", "sh"]}}, False, False, None),
     (m.SelectRequest, {"config": {"anchor": {"iterations": 101}}}, False, False, None),
+    (m.SelectRequest, {"config": {"shortlist_size": 1024}}, True, True, None),
+    (m.SelectRequest, {"config": {"shortlist_size": 1025}}, False, False, None),
     (m.SelectRequest, {"config": {"anchor": {"iterations": 100}}}, True, True, None),
     (m.SelectRequest, {"config": {"anchor": {"occlusion_tests": [[2, 0.1]]}}}, False, False,
      None),
@@ -154,9 +156,8 @@ def test_the_schema_accepts_what_the_model_accepts(openapi: dict[str, Any],
 def test_the_servers_limits_are_in_the_schema(openapi: dict[str, Any]) -> None:
     c = openapi["components"]["schemas"]
     assert c["PoolIn"]["properties"]["poses"]["maxItems"] == 16
-    for model in ("SelectDefaults", "SelectConfigPatch"):
-        size = c[model]["properties"]["shortlist_size"]
-        assert size["maximum"] == 8 and size["default"] == 8
+    size = c["SelectDefaults"]["properties"]["shortlist_size"]
+    assert size["maximum"] == 8 and size["default"] == 8
     assert c["SelectRequest"]["properties"]["shortlist_size"]["anyOf"][0]["maximum"] == 8
     assert c["AnchorConfigPatch"]["properties"]["resolution"]["anyOf"][0]["maximum"] == 32
     assert c["Intrinsics"]["properties"]["width"]["maximum"] == 1024
