@@ -137,3 +137,21 @@ def test_every_parameter_the_schema_bounds_is_checked(api_factory: object) -> No
                                                                     "data": ""})
         assert r.status_code == 422 and r.json()["error"]["field"] == "query.format"
         assert h.get(f"/v1/sessions/{sid}").json() == before
+
+
+def test_the_smallest_settings_the_schema_allows_are_answered(api: InProcess) -> None:
+    """The lower bounds of the selection settings (a relative ridge of 1e-12, the softest
+    widths) select; below them, 422 naming the field."""
+    sid = _sid()
+    with api.client() as c, api.http() as h:
+        c.create_session(SMALL_INTRINSICS, id=sid, bounds=BOUNDS, init_gaussians=100,
+                         pool=ring_poses(8))
+        low = {"scoring": {"ridge": 1e-12, "eps": 1e-12, "gamma": 1e-12},
+               "anchor": {"near_fraction": 1e-6, "edge_softness": 1e-6, "step_size": 1e-6}}
+        for method in ("agile", "agile_plus"):
+            r = h.post(f"/v1/sessions/{sid}/select", json={"method": method, "config": low})
+            assert r.status_code == 200, r.text
+        r = h.post(f"/v1/sessions/{sid}/select",
+                   json={"method": "agile", "config": {"scoring": {"ridge": 1e-13}}})
+        assert r.status_code == 422
+        assert r.json()["error"]["field"] == "body.config.scoring.ridge"
