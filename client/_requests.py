@@ -7,7 +7,7 @@ import functools
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, ParamSpec, TypeVar
+from typing import Any, ParamSpec, TypeVar, cast
 
 import numpy as np
 from pydantic import BaseModel
@@ -16,7 +16,7 @@ from pydantic import ValidationError as PydanticValidationError
 from agilegs.schemas import models as m
 from agilegs.schemas.arrays import NDArray
 from agilegs.schemas.decisions import DecisionsRequest
-from agilegs.schemas.geometry import Bounds, Intrinsics, Pose
+from agilegs.schemas.geometry import Bounds, Intrinsics, Pose, trusted_poses
 from agilegs.schemas.ops import OPERATIONS, Operation
 
 from .errors import ValidationError
@@ -76,9 +76,7 @@ def to_pool(poses: m.PoolIn | np.ndarray | Sequence[PoseLike], ids: Sequence[int
     if isinstance(poses, np.ndarray):
         if poses.ndim != 3 or poses.shape[1:] != (4, 4):
             raise ValueError(f"poses must have shape [D, 4, 4], got {list(poses.shape)}")
-        rows = poses.astype(np.float64).tolist()
-        plist = [Pose.model_construct(matrix=r, position=None, orientation_xyzw=None)
-                 for r in rows]
+        plist: list[Pose] = trusted_poses(poses)  # the server validates them as one array
     else:
         plist = [to_pose(p) for p in poses]
     return m.PoolIn.model_construct(poses=plist, ids=list(ids) if ids is not None else None)
@@ -107,6 +105,16 @@ def to_observation(o: m.ObservationIn | Mapping[str, Any]) -> m.ObservationIn:
 
 
 @checked
+def to_frame(o: m.ObservationIn | Mapping[str, Any]) -> m.InitialFrame:
+    """An initial frame of a session (an observation at a pose)."""
+    if isinstance(o, m.InitialFrame):
+        return o
+    if isinstance(o, m.ObservationIn):
+        return m.InitialFrame.model_validate({k: getattr(o, k) for k in o.model_fields_set})
+    return cast(m.InitialFrame, m.InitialFrame.from_numpy(**dict(o)))
+
+
+@checked
 def create_session(
     intrinsics: Intrinsics | Mapping[str, Any],
     *,
@@ -127,7 +135,7 @@ def create_session(
         intrinsics=Intrinsics.model_validate(intrinsics),
         bounds=Bounds.model_validate(bounds) if bounds is not None else None,
         gaussians=to_gaussians(gaussians) if gaussians is not None else None,
-        frames=[to_observation(f) for f in frames],
+        frames=[to_frame(f) for f in frames],
         init_gaussians=init_gaussians,
         seed=seed,
         pool=to_pool(pool, None) if pool is not None else None,

@@ -9,13 +9,15 @@
     └── APIError                       the server refused the request (an error body)
         ├── BadRequestError            400  undecodable body; 406 / 415 media types
         ├── AuthenticationError        401  missing or wrong bearer token
-        ├── NotFoundError              404  unknown session, candidate, view or route
+        ├── NotFoundError              404  unknown session or route
         │   └── SessionUnavailableError     no instance answers for the session
-        ├── ConflictError              409  state forbids it (id taken, empty pool, ...)
+        ├── ConflictError              409  state forbids it (id taken, empty pool, no such
+        │   │                               candidate or view in the session, ...)
         │   └── SessionDamagedError         the session's files on disk do not check out
-        ├── PayloadTooLargeError       413  a size limit (body, pool, pixels, Gaussians)
+        ├── PayloadTooLargeError       413  a body over the server's max_body_bytes
         ├── ValidationError            422  a malformed or out-of-range value
-        ├── TooManyError               429  a count limit (sessions, views)
+        │   └── LimitExceededError          a value over a server limit (pool, pixels, ...)
+        ├── TooManyError               429  a count limit (sessions, views, a pool extended)
         └── ServerError                5xx  a server fault
             └── InsufficientStorageError  507  the server's disk is full (nothing changed)
 
@@ -40,6 +42,7 @@ __all__ = [
     "BadRequestError",
     "ConflictError",
     "InsufficientStorageError",
+    "LimitExceededError",
     "NotFoundError",
     "PayloadTooLargeError",
     "ProtocolError",
@@ -99,7 +102,7 @@ class AuthenticationError(APIError):
 
 
 class NotFoundError(APIError):
-    """404: unknown session, candidate, view, operation or route."""
+    """404: unknown session, operation or route."""
 
 
 class SessionUnavailableError(NotFoundError):
@@ -108,7 +111,8 @@ class SessionUnavailableError(NotFoundError):
 
 
 class ConflictError(APIError):
-    """409: the session's state forbids it (id taken, empty pool, map empty...)."""
+    """409: the session's state forbids it (id taken, empty pool, map empty, a candidate or
+    view the request names is not in the session...)."""
 
 
 class SessionDamagedError(ConflictError):
@@ -118,11 +122,16 @@ class SessionDamagedError(ConflictError):
 
 
 class PayloadTooLargeError(APIError):
-    """413: a size limit of the server (body bytes, pool size, pixels, Gaussians)."""
+    """413: the body exceeds the server's ``max_body_bytes``."""
 
 
 class ValidationError(APIError):
     """422: a value is malformed or out of range; ``field`` says which."""
+
+
+class LimitExceededError(ValidationError):
+    """422 ``limit_exceeded``: a value over a limit of the server (pool size, image pixels,
+    Gaussians, render width); the server's OpenAPI schema states each limit."""
 
 
 class TooManyError(APIError):
@@ -175,4 +184,6 @@ def error_from_body(status: int | None, body: bytes, kind: str | None) -> APIErr
         cls = SessionUnavailableError
     elif info.code == "session_damaged":
         cls = SessionDamagedError
+    elif info.code == "limit_exceeded" and st == 422:
+        cls = LimitExceededError
     return cls(st, info.code, info.message, info.field, list(info.errors))

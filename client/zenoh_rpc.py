@@ -77,10 +77,12 @@ def query(
     timeout: float = 10.0,
     remote_only: bool = False,
     every_reply: bool = False,
+    encoding: str = codec.MSGPACK,
 ) -> Iterator[Answer]:
     """The answers to a get on ``key`` (msgpack payload), as they come.
 
     Args:
+        encoding: the payload's media type (msgpack; JSON is answered in JSON).
         parameters: the selector's parameters (``instance=gpu-1``).
         attachment: ``Bearer <token>``.
         remote_only: ask other Zenoh sessions only (not this one's own queryables).
@@ -89,7 +91,7 @@ def query(
     import zenoh
 
     selector = key if not parameters else f"{key}?{parameters}"
-    kwargs: dict[str, Any] = {"timeout": timeout, "encoding": codec.MSGPACK}
+    kwargs: dict[str, Any] = {"timeout": timeout, "encoding": encoding}
     if payload is not None:
         kwargs["payload"] = payload
     if attachment is not None:

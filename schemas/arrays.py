@@ -27,7 +27,14 @@ from pydantic import (
     model_validator,
 )
 
-__all__ = ["B64Bytes", "DTYPES", "DType", "NDArray"]
+from .forms import integral
+
+__all__ = ["BASE64_PATTERN", "B64Bytes", "DTYPES", "DType", "NDArray"]
+
+
+BASE64_PATTERN = r"^(?:[A-Za-z0-9+/]{4})*(?:[A-Za-z0-9+/]{2}==|[A-Za-z0-9+/]{3}=)?$"
+"""Standard base64 with padding (RFC 4648), as :func:`base64.b64decode` with
+``validate=True`` reads it."""
 
 
 def _bytes_in(value: Any) -> Any:
@@ -53,6 +60,7 @@ B64Bytes = Annotated[
         {
             "type": "string",
             "contentEncoding": "base64",
+            "pattern": BASE64_PATTERN,
             "description": "raw bytes in msgpack; a base64 string in JSON",
         }
     ),
@@ -64,12 +72,14 @@ DTYPES: tuple[str, ...] = get_args(DType)
 
 
 class NDArray(BaseModel):
-    """An n-dimensional array: dtype, shape, and the elements as little-endian C-order bytes."""
+    """An n-dimensional array: dtype, shape, and the elements as little-endian C-order bytes
+    (``data`` holds prod(shape) x itemsize bytes)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True,
+                              json_schema_extra={"x-agilegs-rules": ["array-size"]})
 
     dtype: DType = Field(description="element type (little-endian)")
-    shape: list[Annotated[int, Field(ge=0, le=2**31)]] = Field(
+    shape: list[Annotated[int, Field(ge=0, le=2**31), BeforeValidator(integral)]] = Field(
         max_length=8, description="dimensions, outermost first"
     )
     data: B64Bytes = Field(description="prod(shape) * itemsize bytes, C order, little-endian")

@@ -24,14 +24,18 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal, TypeAlias, TypeVar, g
 from pydantic import (
     AfterValidator,
     BaseModel,
+    BeforeValidator,
     ConfigDict,
     Field,
     Strict,
     TypeAdapter,
+    WithJsonSchema,
     create_model,
     model_serializer,
 )
 from pydantic.dataclasses import dataclass
+
+from .forms import integral
 
 __all__ = [
     "FIELD_NAMES",
@@ -77,17 +81,40 @@ FISHERRF_FIELDS: tuple[str, ...] = get_args(FisherRFField)
 _CONFIG = ConfigDict(extra="forbid", revalidate_instances="always")
 
 # strict scalars: a JSON string is not a number, a number is not a bool
-Int = Annotated[int, Strict()]
+Int = Annotated[int, Strict(), BeforeValidator(integral)]
 Float = Annotated[float, Strict(), Field(allow_inf_nan=False)]
 Bool = Annotated[bool, Strict()]
 
 
-PosInt = Annotated[int, Strict(), Field(ge=1)]
-NonNegInt = Annotated[int, Strict(), Field(ge=0)]
+INT_MAX = 2**31 - 1
+"""Largest value of a count or size setting without a bound of its own."""
+PosInt = Annotated[int, Strict(), Field(ge=1, le=INT_MAX), BeforeValidator(integral)]
+NonNegInt = Annotated[int, Strict(), Field(ge=0, le=INT_MAX), BeforeValidator(integral)]
 PosFloat = Annotated[float, Strict(), Field(gt=0, allow_inf_nan=False)]
 NonNegFloat = Annotated[float, Strict(), Field(ge=0, allow_inf_nan=False)]
 UnitFloat = Annotated[float, Strict(), Field(ge=0, le=1, allow_inf_nan=False)]
 OpenUnitFloat = Annotated[float, Strict(), Field(gt=0, lt=1)]
+
+# the bounds of the selection settings that set its cost (time, memory): every request that
+# keeps within them is answered
+Steps = Annotated[int, Strict(), Field(ge=0, le=100), BeforeValidator(integral)]
+"""Ascent steps or step halvings: at most 100."""
+Starts = Annotated[int, Strict(), Field(ge=1, le=64), BeforeValidator(integral)]
+Count = Annotated[int, Strict(), Field(ge=0, le=10_000_000), BeforeValidator(integral)]
+"""A number of Gaussians or samples (0 where the field says so): at most 10^7."""
+GridEdge = Annotated[int, Strict(), Field(ge=1, le=1024), BeforeValidator(integral)]
+"""The edge of a z-buffer or support grid, in cells: at most 1024."""
+Width = Annotated[int, Strict(), Field(ge=4, le=4096), BeforeValidator(integral)]
+"""A render width in pixels, 4 to 4096 (and its square within the server's max_image_pixels)."""
+Dim = Annotated[int, Strict(), Field(ge=1, le=4096), BeforeValidator(integral)]
+Samples = Annotated[int, Strict(), Field(ge=0, le=64), BeforeValidator(integral)]
+SupportSamples = Annotated[int, Strict(), Field(ge=1, le=65_536), BeforeValidator(integral)]
+Scale = Annotated[float, Strict(), Field(ge=1e-12, le=1e6, allow_inf_nan=False)]
+"""A positive length, weight or tolerance: 1e-12 to 1e6."""
+Softness = Annotated[float, Strict(), Field(ge=1e-6, le=10, allow_inf_nan=False)]
+Margin = Annotated[float, Strict(), Field(ge=0, le=0.9, allow_inf_nan=False)]
+HalfOpenUnit = Annotated[float, Strict(), Field(ge=0, lt=1, allow_inf_nan=False)]
+Gain = Annotated[float, Strict(), Field(ge=-1e6, le=1e6, allow_inf_nan=False)]
 
 
 def _odd_covers(tests: tuple[tuple[int, float], ...]) -> tuple[tuple[int, float], ...]:
@@ -103,13 +130,17 @@ def _unique(values: tuple[str, ...] | None) -> tuple[str, ...] | None:
     return values
 
 
-Blocks = Annotated[tuple[FieldName, ...], Field(min_length=1), AfterValidator(_unique)]
+Blocks = Annotated[tuple[FieldName, ...],
+                   Field(min_length=1, json_schema_extra={"uniqueItems": True}),
+                   AfterValidator(_unique)]
 """A non-empty set of parameter blocks (no repeats)."""
 
 OcclusionTests = Annotated[
-    tuple[tuple[Annotated[int, Strict(), Field(ge=1)],
-                Annotated[float, Strict(), Field(ge=0, allow_inf_nan=False)]], ...],
-    Field(min_length=1),
+    tuple[tuple[Annotated[int, Strict(), Field(ge=1, le=63), BeforeValidator(integral),
+                          WithJsonSchema({"type": "integer", "minimum": 1, "maximum": 63,
+                                          "not": {"multipleOf": 2}})],
+                Annotated[float, Strict(), Field(ge=0, le=10, allow_inf_nan=False)]], ...],
+    Field(min_length=1, max_length=8),
     AfterValidator(_odd_covers),
 ]
 """Z-buffer visibility tests, each (cover in cells, odd; relative depth tolerance)."""
@@ -143,22 +174,22 @@ class AnchorConfig:
         description="the fitted model's Gaussians no acquired view saw: 'quarter_view' (as "
         "if a quarter of a typical view had seen them) or 'prior' (the seen Gaussians' "
         "median information per unit of footprint against their own Hhat, as the exact EIG)")
-    iterations: NonNegInt = Field(default=3, description="most accepted ascent steps per start")
-    step_size: PosFloat = Field(default=0.15,
+    iterations: Steps = Field(default=3, description="most accepted ascent steps per start")
+    step_size: Softness = Field(default=0.15,
         description="initial step length in the twist metric (0.15: ~9 degrees or 0.15 pool "
         "radii)")
-    backtracks: NonNegInt = Field(default=4,
+    backtracks: Steps = Field(default=4,
         description="halvings of the step tried before a start stops")
-    min_rel_gain: Float = Field(
+    min_rel_gain: Gain = Field(
         default=1e-3, description="a start stops when an accepted step gains less than this "
         "fraction of psi")
-    num_starts: PosInt = Field(default=3,
+    num_starts: Starts = Field(default=3,
         description="pool candidates used as starts, the best under the proxy")
     warm_start: Bool = Field(default=True,
                              description="also start from the previous anchor (warm state)")
-    num_gaussians: NonNegInt = Field(default=2000,
+    num_gaussians: Count = Field(default=2000,
         description="Gaussians importance-sampled for the proxy (0: all)")
-    resolution: Annotated[int, Strict(), Field(ge=4)] | None = Field(
+    resolution: Width | None = Field(
         default=None,
         description="anchor image width in pixels (None: the proxy uses the candidates' "
         "intrinsics, the exact psi 64 pixels)")
@@ -168,7 +199,7 @@ class AnchorConfig:
         "one Fisher pass at the best start ('start_view', cached in the warm state)")
     envelope: Bool = Field(default=True,
                            description="keep the anchor inside the pool's envelope")
-    envelope_margin: Float = Field(
+    envelope_margin: Margin = Field(
         default=0.05, description="relative margin on the envelope's radius range and, in "
         "radians, on its elevation range")
     visibility: Literal["transmittance", "zbuffer"] = Field(
@@ -177,25 +208,27 @@ class AnchorConfig:
         "transmittance in front of it through the map, as the renderer "
         "composites, from per-pose deep opacity maps) or 'zbuffer' (the point z-buffer tests "
         "of occlusion_tests)")
-    transmittance_cells: Annotated[int, Strict(), Field(ge=2)] = Field(
+    transmittance_cells: Annotated[int, Strict(), Field(ge=2, le=64),
+                                   BeforeValidator(integral)] = Field(
         default=16, description="screen cells per image side of the deep opacity maps")
-    transmittance_bins: PosInt = Field(
+    transmittance_bins: Annotated[int, Strict(), Field(ge=1, le=128),
+                                  BeforeValidator(integral)] = Field(
         default=32, description="depth slices of the deep opacity maps over the map's extent")
-    occluders: NonNegInt = Field(default=2000,
+    occluders: Count = Field(default=2000,
         description="Gaussians forming the visibility: 'transmittance' draws this many in "
         "proportion to their optical mass (reweighted; 0: all), 'zbuffer' a seeded subset of "
         "opaque ones (0: no occlusion test)")
-    occlusion_grid: PosInt = Field(default=48,
+    occlusion_grid: GridEdge = Field(default=48,
         description="visibility 'zbuffer': edge of the proxy's z-buffer in cells")
     occlusion_tests: OcclusionTests = Field(
         default=COVER_ZBUFFER,
         description="visibility 'zbuffer': the tests, each [cover, tolerance]: every occluder "
         "covers cover x cover cells (odd) and a sample passes when its depth is within "
         "tolerance (relative) of the buffer; visibility is the fraction of tests passed")
-    near_fraction: Float = Field(
+    near_fraction: Softness = Field(
         default=0.05, description="the proxy's soft near plane, as a fraction of the pool "
         "radius")
-    edge_softness: Float = Field(
+    edge_softness: Softness = Field(
         default=0.05, description="width of the proxy's sigmoid image-bound test, as a "
         "fraction of the image width")
 
@@ -204,33 +237,33 @@ class AnchorConfig:
 class ScoringConfig:
     """Candidate scoring against the anchor (paper section 4.2) and the shortlist maths."""
 
-    grid: PosInt = Field(default=64,
+    grid: GridEdge = Field(default=64,
         description="edge of the point z-buffer grid giving the support samples")
-    ray_samples: NonNegInt = Field(default=1,
+    ray_samples: Samples = Field(default=1,
         description="extra support samples along the anchor ray per surface sample")
-    ray_min_fraction: Float = Field(
+    ray_min_fraction: HalfOpenUnit = Field(
         default=0.5, description="ray samples lie in [this, 1) x the surface depth")
-    max_samples: PosInt = Field(default=2048,
+    max_samples: SupportSamples = Field(default=2048,
         description="K, at most this many support samples (a seeded subset beyond)")
-    min_opacity: Float = Field(default=0.05,
+    min_opacity: UnitFloat = Field(default=0.05,
                                description="Gaussians below this opacity are no support samples")
-    jl_dim: PosInt = Field(default=64, description="d, the Johnson-Lindenstrauss dimension")
-    sigma_p: PosFloat | None = Field(
+    jl_dim: Dim = Field(default=64, description="d, the Johnson-Lindenstrauss dimension")
+    sigma_p: Scale | None = Field(
         default=None, description="positional tolerance of rho in world units (None: 0.5 x "
         "the pool's median camera distance from its centre)")
-    gamma: PosFloat = Field(default=1.0, description="sharpness of the row weight rho^gamma")
-    eps: PosFloat = Field(default=1e-3,
+    gamma: Scale = Field(default=1.0, description="sharpness of the row weight rho^gamma")
+    eps: Scale = Field(default=1e-3,
         description="the inverse-range regulariser, relative to the pool radius")
-    ridge: PosFloat = Field(default=1e-2,
+    ridge: Scale = Field(default=1e-2,
         description="lambda_G relative to the largest ||b_v||^2 (unit-free)")
     ridge_absolute: Bool = Field(default=False,
                                  description="take ridge as the absolute lambda_G")
-    online_oversample: PosFloat = Field(default=1.0,
+    online_oversample: Softness = Field(default=1.0,
         description="oversampling of the 'online' shortlist")
-    rot_weight: PosFloat | None = Field(
+    rot_weight: Scale | None = Field(
         default=None, description="world units per radian in the SE(3) distance of knearest "
         "and embodied mode (None: the pool's median camera distance from its centre)")
-    near: PosFloat = Field(default=0.01, description="near plane of the frustum tests, world units")
+    near: Scale = Field(default=0.01, description="near plane of the frustum tests, world units")
     condition_on_acquired: Bool = Field(
         default=True, description="the leverage greedy starts from the acquired views' rows "
         "(S_0 = lambda_G I + B_acq^T B_acq); False: from lambda_G I (the paper)")
@@ -244,7 +277,8 @@ class FisherRFConfig:
     reg_lambda: PosFloat = Field(
         default=1e-6, description="lambda of the acquisition score sum H_v / (H_train + "
         "lambda) (--reg_lambda)")
-    fields: Annotated[tuple[FisherRFField, ...], Field(min_length=1),
+    fields: Annotated[tuple[FisherRFField, ...],
+                      Field(min_length=1, json_schema_extra={"uniqueItems": True}),
                       AfterValidator(_unique)] = Field(
         default=("means", "log_scales", "opacity_logits", "sh"),
         description="parameter blocks of the Hessian (the default leaves rotation out, as "
@@ -255,33 +289,35 @@ class FisherRFConfig:
 class SelectConfig:
     """Settings of ``agilegs.service.nbv.select``; every field settable per call."""
 
-    shortlist_size: PosInt = Field(default=10,
+    shortlist_size: Annotated[int, Strict(), Field(ge=1, le=1024),
+                              BeforeValidator(integral)] = Field(default=10,
         description="N, the shortlist budget of agile / agile_plus")
     shortlist: ShortlistStrategy = Field(
         default="leverage", description="shortlist strategy: the paper's 'leverage', or the "
         "ablations 'knearest', 'topnorm', 'online'")
-    embodied_k: PosInt | None = Field(
+    embodied_k: Annotated[int, Strict(), Field(ge=1, le=100_000),
+                          BeforeValidator(integral)] | None = Field(
         default=None, description="only the K candidates nearest the current view are "
         "eligible (None: all; the paper's embodied protocol uses 5)")
     embodied_metric: Literal["position", "se3"] = Field(
         default="position", description="the distance of embodied mode: 'position' (camera "
         "centres, as COVER's protocol picks its K nearest frames) or 'se3' (position and "
         "rotation, scoring.rot_weight world units per radian)")
-    seed: Annotated[int, Strict(), Field(ge=0, le=2**63 - 1)] = Field(
+    seed: Annotated[int, Strict(), Field(ge=0, le=2**63 - 1), BeforeValidator(integral)] = Field(
         default=0, description="seeds every random choice")
     fields: Blocks | None = Field(
         default=None, description="parameter blocks entering phi and psi (None: all five)")
     anchor: AnchorConfig = Field(default_factory=AnchorConfig)
     scoring: ScoringConfig = Field(default_factory=ScoringConfig)
-    cover_bins: PosInt = Field(default=128, description="COVER's direction bins per Gaussian")
-    cover_resolution: PosInt | None = Field(
+    cover_bins: Dim = Field(default=128, description="COVER's direction bins per Gaussian")
+    cover_resolution: Width | None = Field(
         default=None, description="COVER's render width in pixels (None: the candidates')")
-    cover_radius_clip: NonNegFloat = Field(
+    cover_radius_clip: Annotated[float, Strict(), Field(ge=0, le=1e6, allow_inf_nan=False)] = Field(
         default=3.0, description="COVER fills no bin for a Gaussian whose projected radius "
         "in an acquired view is at most this many pixels on both axes (its code's gsplat "
         "projection, radius_clip=3.0)")
     fisherrf: FisherRFConfig = Field(default_factory=FisherRFConfig)
-    fisher_background: tuple[Float, Float, Float] | None = Field(
+    fisher_background: tuple[UnitFloat, UnitFloat, UnitFloat] | None = Field(
         default=None, description="background colour of the Fisher renders (None: black); "
         "give the background the map is trained with")
 
@@ -335,7 +371,7 @@ class MapperConfig:
     scene_extent: PosFloat | None = Field(
         default=None, description="scene radius scaling lr_means, percent_dense and "
         "max_world_scale (None: estimated from the cameras or the Gaussians)")
-    sh_degree: Annotated[int, Strict(), Field(ge=0, le=3)] = Field(
+    sh_degree: Annotated[int, Strict(), Field(ge=0, le=3), BeforeValidator(integral)] = Field(
         default=3, description="SH degree of Gaussians created from points or depth")
     sh_degree_interval: PosInt | None = Field(
         default=1000, description="the active SH degree grows by one every this many steps "
@@ -350,7 +386,7 @@ class MapperConfig:
         default=2e-4, description="mean NDC-space gradient norm that triggers densification")
     percent_dense: PosFloat = Field(default=0.01,
         description="clone when the largest scale <= this x extent, else split")
-    split_samples: Annotated[int, Strict(), Field(ge=2)] = Field(
+    split_samples: Annotated[int, Strict(), Field(ge=2, le=16), BeforeValidator(integral)] = Field(
         default=2, description="children of a split Gaussian")
     split_scale_divisor: PosFloat = Field(default=1.6,
         description="children's scales are the parent's divided by this")

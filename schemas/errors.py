@@ -3,6 +3,9 @@
 ``{"error": {"status": 422, "code": "invalid", "message": "...", "field": "body.poses[3].matrix",
 "errors": [{"field": ..., "message": ...}, ...]}}``
 
+``supported`` lists what the server takes instead where that is the problem: the methods of
+a route (405), the media types it produces (406) or reads (415).
+
 ``field`` names the offending input as a path: ``body`` (the request body, over either
 transport), ``path.session``, ``query.<name>``, ``header.<name>``, followed by attribute
 names and ``[i]`` list indices. ``errors`` lists every problem found (``field`` and
@@ -13,20 +16,22 @@ code                      status  meaning
 ========================  ======  ====================================================
 ``bad_request``           400     the body could not be decoded (not JSON / msgpack)
 ``unauthorized``          401     missing or wrong bearer token
-``not_found``             404     unknown session, candidate, view, or route
+``not_found``             404     unknown session, operation, or route
 ``session_unavailable``   404     scale-out: no live instance answers for the session
 ``instance_unavailable``  404     scale-out: no live instance has the requested id
 ``method_not_allowed``    405     the route exists but not with this method
 ``not_acceptable``        406     Accept names no type the server produces
-``conflict``              409     the session's state forbids it (id taken, view has a frame)
+``conflict``              409     the session's state forbids it (id taken, view has a frame,
+                                  the body names a candidate or view the session lacks)
 ``session_damaged``       409     the session's files on disk do not check out (see its ``damage``)
 ``empty_pool``            409     a selection on an empty candidate pool
 ``map_empty``             409     a selection on a session without Gaussians
 ``payload_too_large``     413     body over the ``max_body_bytes`` setting
-``limit_exceeded``        413     a value over a server limit (pool size, pixels, ...)
+``limit_exceeded``        422     a value over a server limit (pool size, pixels, ...)
 ``unsupported_media``     415     Content-Type is neither JSON nor msgpack
 ``invalid``               422     a value is malformed or out of range (the field says which)
-``too_many``              429     a count limit was reached (sessions, views per session)
+``too_many``              429     a count limit was reached (sessions, views per session,
+                                  candidates when extending the pool)
 ``internal``              500     a server bug (bad input never yields it)
 ``insufficient_storage``  507     the state folder is full: the change was not made
 ``bad_gateway``           502     scale-out: the owning instance's answer was unusable
@@ -83,7 +88,7 @@ ERROR_STATUS: dict[ErrorCode, int] = {
     ErrorCode.EMPTY_POOL: 409,
     ErrorCode.MAP_EMPTY: 409,
     ErrorCode.PAYLOAD_TOO_LARGE: 413,
-    ErrorCode.LIMIT_EXCEEDED: 413,
+    ErrorCode.LIMIT_EXCEEDED: 422,
     ErrorCode.UNSUPPORTED_MEDIA: 415,
     ErrorCode.INVALID: 422,
     ErrorCode.TOO_MANY: 429,
@@ -119,6 +124,12 @@ class ErrorInfo(BaseModel):
     message: str = Field(description="human-readable reason")
     field: str | None = Field(default=None, description="path of the offending input, if any")
     errors: list[ErrorItem] = Field(default_factory=list, description="every problem found")
+    supported: list[str] | None = Field(
+        default=None,
+        description="what the server takes instead: the methods of the route (405, also in "
+        "the Allow header), the media types it produces (406) or reads (415, also in the "
+        "Accept header)",
+    )
 
 
 class ErrorBody(BaseModel):

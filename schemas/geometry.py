@@ -21,12 +21,26 @@ Conventions:
 
 from __future__ import annotations
 
+import itertools
 import math
-from typing import Annotated
+from typing import Annotated, Any
 
 import numpy as np
 from annotated_types import Len
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    SerializerFunctionWrapHandler,
+    ValidatorFunctionWrapHandler,
+    WithJsonSchema,
+    WrapSerializer,
+    WrapValidator,
+    field_validator,
+    model_validator,
+)
+
+from .forms import Form, WireInt, one_of
 
 __all__ = [
     "MAX_COORD",
@@ -37,8 +51,12 @@ __all__ = [
     "Intrinsics",
     "Matrix4",
     "Pose",
+    "PoseArrayList",
+    "PoseList",
     "Vec3",
     "Vec4",
+    "check_matrices",
+    "trusted_poses",
     "matrix_to_quaternion_xyzw",
     "quaternion_xyzw_to_matrix",
     "rotation_error",
@@ -52,11 +70,39 @@ LAST_ROW_ATOL = 1e-6
 MAX_COORD = 1e6
 """Largest accepted absolute coordinate (pose translations, bounds), in scene units."""
 
+ROTATION_ENTRY_MAX = math.sqrt(1.0 + ORTHONORMAL_ATOL)
+"""Largest absolute entry of an accepted rotation block (implied by :data:`ORTHONORMAL_ATOL`:
+a column's squared norm is at most 1 + 1e-3)."""
+QUATERNION_ENTRY_MAX = 1.0 + QUATERNION_NORM_ATOL
+"""Largest absolute component of an accepted quaternion (implied by its norm)."""
+
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 Coord = Annotated[float, Field(allow_inf_nan=False, ge=-MAX_COORD, le=MAX_COORD)]
 Vec3 = Annotated[list[Coord], Len(3, 3)]
 Vec4 = Annotated[list[FiniteFloat], Len(4, 4)]
-Matrix4 = Annotated[list[Vec4], Len(4, 4)]
+
+
+def _number(lo: float, hi: float) -> dict[str, Any]:
+    return {"type": "number", "minimum": lo, "maximum": hi}
+
+
+_ROW = {"type": "array", "minItems": 4, "maxItems": 4, "prefixItems": [
+    _number(-ROTATION_ENTRY_MAX, ROTATION_ENTRY_MAX)] * 3 + [_number(-MAX_COORD, MAX_COORD)]}
+_LAST_ROW = {"type": "array", "minItems": 4, "maxItems": 4, "prefixItems": [
+    _number(-LAST_ROW_ATOL, LAST_ROW_ATOL)] * 3 + [_number(1 - LAST_ROW_ATOL, 1 + LAST_ROW_ATOL)]}
+MATRIX4_SCHEMA: dict[str, Any] = {
+    "type": "array", "minItems": 4, "maxItems": 4, "prefixItems": [_ROW, _ROW, _ROW, _LAST_ROW],
+    "description": "4x4 row-major camera-to-world matrix (OpenCV axes): rotation block "
+    "orthonormal within max |R^T R - I| <= 1e-3 with det R > 0 (so its entries lie within "
+    "+-sqrt(1.001)), translation within +-1e6, last row [0, 0, 0, 1] within 1e-6",
+}
+"""The published schema of a pose matrix: the bounds its validation implies, row by row."""
+Matrix4 = Annotated[list[Vec4], Len(4, 4), WithJsonSchema(MATRIX4_SCHEMA)]
+Quaternion = Annotated[
+    list[Annotated[float, Field(allow_inf_nan=False, ge=-QUATERNION_ENTRY_MAX,
+                                le=QUATERNION_ENTRY_MAX)]],
+    Len(4, 4),
+]
 
 
 def rotation_error(matrix: list[list[float]]) -> float:
@@ -127,14 +173,21 @@ class Pose(BaseModel):
     Poses the server sends back always use ``matrix``.
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(
+        extra="forbid", strict=True,
+        json_schema_extra=one_of(
+            [Form("PoseMatrix", ("matrix",), ("position", "orientation_xyzw")),
+             Form("PosePositionQuaternion", ("position", "orientation_xyzw"), ("matrix",))],
+            rules=("rotation", "unit-quaternion")),
+    )
 
     matrix: Matrix4 | None = Field(
         default=None, description="4x4 row-major camera-to-world matrix (OpenCV axes)"
     )
     position: Vec3 | None = Field(default=None, description="camera centre in world [x, y, z]")
-    orientation_xyzw: Vec4 | None = Field(
-        default=None, description="camera-to-world rotation, unit quaternion (x, y, z, w)"
+    orientation_xyzw: Quaternion | None = Field(
+        default=None, description="camera-to-world rotation, unit quaternion (x, y, z, w): "
+        "its norm within 1e-3 of 1"
     )
 
     @field_validator("matrix")
@@ -218,16 +271,18 @@ class Pose(BaseModel):
 
 
 class Intrinsics(BaseModel):
-    """Pinhole intrinsics in pixels (OpenCV): focal lengths, principal point, image size."""
+    """Pinhole intrinsics in pixels (OpenCV): focal lengths, principal point, image size
+    (width x height at most the server's ``max_image_pixels``)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True,
+                              json_schema_extra={"x-agilegs-rules": ["pixels"]})
 
-    fx: float = Field(gt=0, le=1e7, allow_inf_nan=False, description="focal length x (px)")
-    fy: float = Field(gt=0, le=1e7, allow_inf_nan=False, description="focal length y (px)")
+    fx: float = Field(ge=1e-3, le=1e7, allow_inf_nan=False, description="focal length x (px)")
+    fy: float = Field(ge=1e-3, le=1e7, allow_inf_nan=False, description="focal length y (px)")
     cx: float = Field(ge=-1e7, le=1e7, allow_inf_nan=False, description="principal point x (px)")
     cy: float = Field(ge=-1e7, le=1e7, allow_inf_nan=False, description="principal point y (px)")
-    width: int = Field(ge=1, le=16384, description="image width (px)")
-    height: int = Field(ge=1, le=16384, description="image height (px)")
+    width: WireInt = Field(ge=1, le=16384, description="image width (px)")
+    height: WireInt = Field(ge=1, le=16384, description="image height (px)")
 
     @classmethod
     def from_fov(cls, fov_x_deg: float, width: int, height: int) -> Intrinsics:
@@ -239,7 +294,8 @@ class Intrinsics(BaseModel):
 class Bounds(BaseModel):
     """An axis-aligned box in world coordinates: ``min`` < ``max`` on every axis."""
 
-    model_config = ConfigDict(extra="forbid", populate_by_name=True)
+    model_config = ConfigDict(extra="forbid", populate_by_name=True, strict=True,
+                              json_schema_extra={"x-agilegs-rules": ["ordered-bounds"]})
 
     min: Vec3 = Field(description="lower corner [x, y, z]")
     max: Vec3 = Field(description="upper corner [x, y, z]")
@@ -250,3 +306,120 @@ class Bounds(BaseModel):
             if not lo < hi:
                 raise ValueError(f"min must be below max on every axis (axis {axis}: {lo} >= {hi})")
         return self
+
+
+# ---------------------------------------------------------------------------- pose lists
+_POSE_KEYS = frozenset(("matrix", "position", "orientation_xyzw"))
+_NUMBER_TYPES = frozenset((float, int))
+_FAST_ATOL = ORTHONORMAL_ATOL * (1 - 1e-6)  # near the tolerance the per-pose check decides
+
+
+def check_matrices(m: np.ndarray) -> np.ndarray:
+    """Which of the camera-to-world matrices ``m`` [D, 4, 4] (float64, finite) meet every rule
+    of :attr:`Pose.matrix`, in one vectorised pass: bool [D].
+
+    Matches the per-pose validation except within 1e-9 of the orthonormality tolerance,
+    where it says False (the caller then validates those poses one by one).
+    """
+    last = m[:, 3, :]
+    ok = (np.abs(last[:, :3]) <= LAST_ROW_ATOL).all(axis=1)
+    ok &= np.abs(last[:, 3] - 1.0) <= LAST_ROW_ATOL
+    ok &= (np.abs(m[:, :3, 3]) <= MAX_COORD).all(axis=1)
+    r = m[:, :3, :3]
+    gram = np.einsum("dki,dkj->dij", r, r) - np.eye(3)
+    ok &= np.abs(gram).max(axis=(1, 2), initial=0.0) <= _FAST_ATOL
+    det = (r[:, 0, 0] * (r[:, 1, 1] * r[:, 2, 2] - r[:, 1, 2] * r[:, 2, 1])
+           - r[:, 0, 1] * (r[:, 1, 0] * r[:, 2, 2] - r[:, 1, 2] * r[:, 2, 0])
+           + r[:, 0, 2] * (r[:, 1, 0] * r[:, 2, 1] - r[:, 1, 1] * r[:, 2, 0]))
+    ok &= det > 0
+    return ok
+
+
+class PoseArrayList(list[Pose]):
+    """A list of matrix-form poses validated as one array; ``matrices`` [D, 4, 4] (float64)
+    holds them."""
+
+    matrices: np.ndarray
+
+
+def _matrix_only(value: list[Any]) -> bool:
+    """Whether every item of ``value`` is a wire pose in the matrix form only."""
+    keys = _POSE_KEYS
+    return all(type(p) is dict and p.keys() <= keys and p.get("matrix") is not None
+               and p.get("position") is None and p.get("orientation_xyzw") is None
+               for p in value)
+
+
+def _trusted_pose(matrix: list[list[float]], fields_set: set[str]) -> Pose:
+    """A :class:`Pose` of an already validated matrix, built without validating it again."""
+    pose = _new_pose(Pose)
+    _set(pose, "__dict__", {"matrix": matrix, "position": None, "orientation_xyzw": None})
+    _set(pose, "__pydantic_fields_set__", fields_set)
+    _set(pose, "__pydantic_extra__", None)
+    _set(pose, "__pydantic_private__", None)
+    return pose
+
+
+_new_pose = Pose.__new__
+_set = object.__setattr__
+
+
+def trusted_poses(matrices: np.ndarray) -> PoseArrayList:
+    """Poses of camera-to-world matrices [D, 4, 4] taken as they are, without validation
+    (poses the server made, or a client's, which the server validates on arrival)."""
+    a = np.asarray(matrices, dtype=np.float64)
+    out = PoseArrayList(_trusted_pose(m, {"matrix"}) for m in a.tolist())
+    out.matrices = a
+    return out
+
+
+def _as_matrices(value: list[Any]) -> tuple[np.ndarray, bool] | None:
+    """The poses ``value`` (wire data, all in the matrix form) as one float64 array [D, 4, 4]
+    and whether an entry is an int, or None unless every entry is a number (not a bool) and
+    every matrix passes :func:`check_matrices`."""
+    mats = [p["matrix"] for p in value]
+    if not all(type(m) is list and len(m) == 4 for m in mats):
+        return None
+    rows = [r for m in mats for r in m]
+    if not all(type(r) is list and len(r) == 4 for r in rows):
+        return None
+    flat = list(itertools.chain.from_iterable(rows))
+    types = set(map(type, flat))
+    if not types <= _NUMBER_TYPES:
+        return None
+    try:
+        a = np.array(flat, dtype=np.float64).reshape(len(value), 4, 4)
+    except OverflowError:  # an int beyond float64
+        return None
+    if not np.isfinite(a).all() or not check_matrices(a).all():
+        return None
+    return a, int in types
+
+
+def _validate_poses(value: Any, handler: ValidatorFunctionWrapHandler) -> list[Pose]:
+    """A list of poses: wire data in the matrix form is checked as one array (types, shapes,
+    finiteness and every rule in :func:`check_matrices`); anything else, or a list in which
+    any pose fails, goes through :class:`Pose` one by one, which names the field of every
+    error (``poses[3].matrix``)."""
+    if type(value) is list and value and _matrix_only(value):
+        checked = _as_matrices(value)
+        if checked is not None:
+            a, has_ints = checked
+            rows = a.tolist() if has_ints else [p["matrix"] for p in value]  # floats, as Pose
+            out = PoseArrayList(_trusted_pose(m, set(p)) for p, m in zip(value, rows,
+                                                                          strict=True))
+            out.matrices = a
+            return out
+    return handler(value)  # type: ignore[no-any-return]
+
+
+def _dump_poses(value: list[Pose], handler: SerializerFunctionWrapHandler) -> Any:
+    """A list validated as one array is written from its array (as each pose would be)."""
+    if isinstance(value, PoseArrayList):
+        return [{"matrix": p.matrix, "position": None, "orientation_xyzw": None} for p in value]
+    return handler(value)
+
+
+PoseList = Annotated[list[Pose], WrapValidator(_validate_poses), WrapSerializer(_dump_poses)]
+"""Poses validated as an array (see :func:`_validate_poses`): the same rules and error paths
+as a ``list[Pose]``."""

@@ -12,7 +12,15 @@ import math
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, StringConstraints, model_validator
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    StringConstraints,
+    model_validator,
+)
+from pydantic.json_schema import JsonDict
 
 from .arrays import B64Bytes, NDArray
 from .config import (
@@ -25,7 +33,8 @@ from .config import (
     SelectConfigPatch,
     ShortlistStrategy,
 )
-from .geometry import Bounds, Intrinsics, Pose
+from .forms import RULES_KEY, Form, WireInt, integral, one_of
+from .geometry import Bounds, Intrinsics, Pose, PoseList, trusted_poses
 
 __all__ = [
     "FIELD_NAMES",
@@ -45,6 +54,7 @@ __all__ = [
     "Health",
     "ImageData",
     "InformationConfig",
+    "InitialFrame",
     "InformationOut",
     "InformationSummary",
     "MapperOptions",
@@ -76,9 +86,19 @@ SESSION_ID_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
 SessionId = Annotated[str, StringConstraints(pattern=SESSION_ID_PATTERN)]
 """A session id: 1 to 64 characters from ``[A-Za-z0-9_-]`` (safe in URLs and Zenoh keys)."""
 
-Id = Annotated[int, Field(ge=0, le=2**53)]
+Id = Annotated[int, Field(ge=0, le=2**53), BeforeValidator(integral)]
 MAX_POOL_WIRE = 100_000  # the schema's own cap; the server's pool_size setting is lower
 MAX_OBSERVATIONS_WIRE = 256
+
+
+_UNIQUE: JsonDict = {"uniqueItems": True}
+_STRICT = ConfigDict(extra="forbid", strict=True)
+
+
+ShortlistSize = Annotated[int, Field(ge=1, le=1024), BeforeValidator(integral)]
+EmbodiedK = Annotated[int, Field(ge=1, le=100_000), BeforeValidator(integral)]
+Seed = Annotated[int, Field(ge=0, le=2**63 - 1), BeforeValidator(integral)]
+StepsPerView = Annotated[int, Field(ge=0, le=1_000_000), BeforeValidator(integral)]
 
 
 def _unique(values: list[Any] | None, what: str) -> None:
@@ -90,26 +110,39 @@ def _unique(values: list[Any] | None, what: str) -> None:
             seen.add(v)
 
 
+def _narrowed(extra: dict[str, Any]) -> Any:
+    """A field ``json_schema_extra`` that narrows the referenced model of the field (or of its
+    items) with ``extra`` (``allOf`` the reference, plus ``extra``)."""
+
+    def narrow(js: dict[str, Any]) -> None:
+        for holder in ([js.get("items", {})] + list(js.get("items", {}).get("anyOf", []))
+                       + list(js.get("anyOf", []))):
+            if "$ref" in holder:
+                ref = holder.pop("$ref")
+                holder.update({"allOf": [{"$ref": ref}], **extra})
+
+    return narrow
+
+
 # ---------------------------------------------------------------------------- sessions
 class SelectDefaults(BaseModel):
     """A session's selection defaults; every select request may override each of them."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = _STRICT
 
     method: Method = Field(default="agile", description="selection method")
-    shortlist_size: int = Field(default=10, ge=1, le=1024, description="shortlist size N")
+    shortlist_size: WireInt = Field(default=10, ge=1, le=1024, description="shortlist size N")
     shortlist: ShortlistStrategy = Field(
         default="leverage", description="shortlist strategy of agile / agile_plus"
     )
-    embodied_k: int | None = Field(
+    embodied_k: EmbodiedK | None = Field(
         default=None,
-        ge=1,
-        le=100_000,
         description="embodied mode: only the K candidates nearest the current view are eligible",
     )
-    seed: int = Field(default=0, ge=0, le=2**63 - 1, description="random seed")
+    seed: WireInt = Field(default=0, ge=0, le=2**63 - 1, description="random seed")
     fields: list[FieldName] | None = Field(
-        default=None, description="parameter blocks entering the information (None: all five)"
+        default=None, description="parameter blocks entering the information (None: all five)",
+        json_schema_extra=_UNIQUE,
     )
     config: SelectConfigPatch = Field(
         default_factory=SelectConfigPatch,
@@ -129,7 +162,8 @@ class InformationConfig(BaseModel):
     session camera), so it is on the scale of the H_v the selectors compute.
     """
 
-    model_config = ConfigDict(extra="forbid", populate_by_name=True, serialize_by_alias=True)
+    model_config = ConfigDict(extra="forbid", populate_by_name=True, serialize_by_alias=True,
+                              strict=True)
 
     lambda_: float = Field(
         default=1e-3,
@@ -167,13 +201,11 @@ class MapperOptions(BaseModel):
     only stored.
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = _STRICT
 
     enabled: bool = Field(default=True, description="train this session's map from its images")
-    steps_per_view: int | None = Field(
+    steps_per_view: StepsPerView | None = Field(
         default=None,
-        ge=0,
-        le=1_000_000,
         description="training steps per view with an image (None: the server's "
                     "AGILEGS_MAPPER_STEPS_PER_VIEW)",
     )
@@ -189,33 +221,34 @@ class SessionCreate(BaseModel):
     uploaded ``gaussians``, or from initial posed ``frames`` (RGB or RGB-D).
 
     With RGB-D frames and no Gaussians, the map is initialised by back-projecting the depth
-    (``init_gaussians`` points, coloured from the images); with RGB frames only, ``bounds``
-    is required. Frames become acquired views (and update Ĥ). ``pool`` sets the initial
-    candidate pool.
+    (``init_gaussians`` points, coloured from the images; the depth must hold a positive
+    value); with RGB frames only, from ``bounds`` when given, else the session starts without
+    Gaussians (set them with ``set_gaussians``; a selection answers ``map_empty`` until then).
+    Frames become acquired views (and update Ĥ). ``pool`` sets the initial candidate pool.
     """
 
     model_config = ConfigDict(
         extra="forbid",
-        json_schema_extra={
-            "anyOf": [
-                {"required": ["bounds"], "properties": {"bounds": {"type": "object"}}},
-                {"required": ["gaussians"], "properties": {"gaussians": {"type": "object"}}},
-                {"required": ["frames"], "properties": {"frames": {"minItems": 1}}},
-            ]
-        },
+        strict=True,
+        # bounds, gaussians or a frame: "not none of them" (an anyOf of the three would make
+        # code generators publish no model for the body)
+        json_schema_extra={"not": {"properties": {
+            "bounds": {"type": "null"}, "gaussians": {"type": "null"}, "frames": {"maxItems": 0}}}},
     )
 
     id: SessionId | None = Field(default=None, description="session id (generated if absent)")
     intrinsics: Intrinsics = Field(description="camera of the candidates and of Ĥ")
     bounds: Bounds | None = Field(default=None, description="scene bounds")
     gaussians: GaussiansIn | None = Field(default=None, description="initial Gaussians")
-    frames: list[ObservationIn] = Field(
-        default_factory=list, max_length=MAX_OBSERVATIONS_WIRE, description="initial posed frames"
+    frames: Annotated[list[InitialFrame], BeforeValidator(_frames_in)] = Field(
+        default_factory=list, max_length=MAX_OBSERVATIONS_WIRE,
+        description="initial posed frames (each with a pose; no candidate_id or view_id)",
     )
-    init_gaussians: int = Field(
+    init_gaussians: WireInt = Field(
         default=1000, ge=0, le=1_000_000, description="Gaussians created from bounds or depth"
     )
-    seed: int = Field(default=0, ge=0, le=2**63 - 1, description="seed of the initialisation")
+    seed: WireInt = Field(default=0, ge=0, le=2**63 - 1,
+                          description="seed of the initialisation")
     pool: PoolIn | None = Field(default=None, description="initial candidate pool")
     defaults: SelectDefaults = Field(default_factory=SelectDefaults)
     information: InformationConfig = Field(default_factory=InformationConfig)
@@ -225,9 +258,6 @@ class SessionCreate(BaseModel):
     def _has_scene(self) -> SessionCreate:
         if self.bounds is None and self.gaussians is None and not self.frames:
             raise ValueError("give bounds, gaussians, or frames")
-        for frame in self.frames:
-            if frame.candidate_id is not None or frame.view_id is not None:
-                raise ValueError("initial frames take a pose, not candidate_id or view_id")
         return self
 
 
@@ -269,8 +299,10 @@ class MapperStatus(BaseModel):
 
 
 class FieldSummary(BaseModel):
+    """One block of Ĥ in brief (None where a value is not finite, or the block is empty)."""
+
     shape: list[int]
-    sum: float
+    sum: float | None
     min: float | None
     max: float | None
 
@@ -388,7 +420,8 @@ class GaussianArrays(BaseModel):
     (log standard deviations), quats [N,4] (w, x, y, z), opacity_logits [N] (pre-sigmoid),
     sh [N,(d+1)^2,3] (DC first, d <= 3)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True,
+                              json_schema_extra={RULES_KEY: ["gaussian-arrays"]})
 
     means: NDArray
     log_scales: NDArray
@@ -401,7 +434,12 @@ class GaussiansIn(BaseModel):
     """Gaussians as a file (``ply``: Inria 3DGS PLY; ``splat``: antimatter15 32-byte
     records) in ``data``, or as ``arrays``."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True, json_schema_extra=one_of([
+        Form("GaussiansFile", ("format", "data"), ("arrays",),
+             {"format": {"type": "string", "enum": ["ply", "splat"]}}),
+        Form("GaussiansArrays", ("format", "arrays"), ("data",),
+             {"format": {"type": "string", "const": "arrays"}}),
+    ], rules=("gaussians-file",)))
 
     format: Literal["ply", "splat", "arrays"]
     data: B64Bytes | None = Field(default=None, description="file bytes (ply / splat)")
@@ -435,14 +473,24 @@ class GaussiansOut(BaseModel):
 # ---------------------------------------------------------------------------- observations
 class ImageData(BaseModel):
     """An RGB image: ``png`` or ``jpeg`` file bytes, or ``raw`` pixels with ``dtype``
-    (uint8 0-255, or float32 0-1) and ``shape`` [H, W, 3], C order, little-endian."""
+    (uint8 0-255, or float32 0-1) and ``shape`` [H, W, 3], C order, little-endian; its
+    size must match the observation's intrinsics."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True, json_schema_extra=one_of([
+        Form("ImageFile", ("encoding", "data"), ("dtype", "shape"),
+             {"encoding": {"type": "string", "enum": ["png", "jpeg"]}}),
+        Form("ImageRaw", ("encoding", "data", "dtype", "shape"), (), {
+            "encoding": {"type": "string", "const": "raw"},
+            "shape": {"type": "array", "minItems": 3, "maxItems": 3, "prefixItems": [
+                {"type": "integer", "minimum": 1, "maximum": 16384},
+                {"type": "integer", "minimum": 1, "maximum": 16384},
+                {"type": "integer", "const": 3}], "description": "[H, W, 3]"}}),
+    ], rules=("array-size", "image-size")))
 
     encoding: Literal["png", "jpeg", "raw"]
     data: B64Bytes
     dtype: Literal["uint8", "float32"] | None = Field(default=None, description="raw only")
-    shape: list[Annotated[int, Field(ge=1, le=16384)]] | None = Field(
+    shape: list[Annotated[int, Field(ge=1, le=16384), BeforeValidator(integral)]] | None = Field(
         default=None, description="raw only: [H, W, 3]"
     )
 
@@ -510,15 +558,26 @@ class ObservationIn(BaseModel):
     uint16 multiplied by ``depth_scale``; 0 marks a missing value.
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True, json_schema_extra=one_of([
+        Form("ObservationAtPose", ("pose",), ("candidate_id", "view_id"),
+             description="a new acquired view at pose"),
+        Form("ObservationOfCandidate", ("candidate_id",), ("view_id",),
+             description="acquires the candidate (at pose, if given)"),
+        Form("ObservationOfView", ("view_id",), ("pose", "candidate_id"),
+             description="the frame of a view already committed"),
+    ], rules=("image-size",)))
 
     pose: Pose | None = None
     candidate_id: Id | None = None
     view_id: Id | None = None
     intrinsics: Intrinsics | None = None
     image: ImageData | None = None
-    depth: NDArray | None = None
-    depth_scale: float = Field(default=1.0, gt=0, le=1e6, allow_inf_nan=False)
+    depth: NDArray | None = Field(default=None, json_schema_extra=_narrowed({
+        "properties": {"dtype": {"enum": ["float32", "uint16"]},
+                       "shape": {"minItems": 2, "maxItems": 2}},
+        "description": "[H, W] float32 (scene units) or uint16 (times depth_scale)"}))
+    depth_scale: float = Field(default=1.0, ge=1e-6, le=1e6, allow_inf_nan=False,
+                               description="scene units per uint16 depth step (1e-6 to 1e6)")
 
     @classmethod
     def from_numpy(
@@ -563,7 +622,32 @@ class ObservationIn(BaseModel):
         return self
 
 
+class InitialFrame(ObservationIn):
+    """A frame a session starts with: an :class:`ObservationIn` at a ``pose`` (no
+    ``candidate_id`` or ``view_id``: there are no candidates or views yet)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, json_schema_extra=one_of([
+        Form("InitialFrame", ("pose",), ("candidate_id", "view_id"))], rules=("image-size",)))
+
+    @model_validator(mode="after")
+    def _at_pose(self) -> InitialFrame:
+        if self.candidate_id is not None or self.view_id is not None:
+            raise ValueError("initial frames take a pose, not candidate_id or view_id")
+        return self
+
+
+def _frames_in(value: Any) -> Any:
+    """Initial frames given as :class:`ObservationIn` objects, as the fields they set."""
+    if isinstance(value, list | tuple):
+        return [{k: getattr(o, k) for k in o.model_fields_set}
+                if isinstance(o, ObservationIn) and not isinstance(o, InitialFrame) else o
+                for o in value]
+    return value
+
+
 class ObservationsIn(BaseModel):
+    model_config = _STRICT
+
     observations: list[ObservationIn] = Field(min_length=1, max_length=MAX_OBSERVATIONS_WIRE)
 
 
@@ -587,12 +671,15 @@ class ViewsOut(BaseModel):
 # ---------------------------------------------------------------------------- pool
 class PoolIn(BaseModel):
     """Candidate poses (camera-to-world), optionally with client-chosen ``ids``; without
-    ids the server numbers them on from the session's counter."""
+    ids the server numbers them on from the session's counter. The poses are validated as
+    one array (:data:`~agilegs.schemas.geometry.PoseList`)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True,
+                              json_schema_extra={RULES_KEY: ["same-length"]})
 
-    poses: list[Pose] = Field(max_length=MAX_POOL_WIRE)
-    ids: list[Id] | None = Field(default=None, description="one id per pose, unique")
+    poses: PoseList = Field(max_length=MAX_POOL_WIRE)
+    ids: list[Id] | None = Field(default=None, description="one id per pose, unique",
+                                 json_schema_extra=_UNIQUE)
 
     @model_validator(mode="after")
     def _ids(self) -> PoolIn:
@@ -608,11 +695,9 @@ class PoolIn(BaseModel):
         m = np.asarray(poses, dtype=np.float64)
         if m.ndim != 3 or m.shape[1:] != (4, 4):
             raise ValueError(f"poses must have shape [D, 4, 4], got {list(m.shape)}")
-        rows = m.tolist()
-        if validate:
-            return cls(poses=[Pose(matrix=r) for r in rows], ids=ids)
-        plist = [Pose.from_matrix(r, validate=False) for r in rows]
-        return cls.model_construct(poses=plist, ids=ids)
+        if validate:  # checked as one array (PoseList)
+            return cls.model_validate({"poses": [{"matrix": r} for r in m.tolist()], "ids": ids})
+        return cls.model_construct(poses=trusted_poses(m), ids=ids)
 
 
 class Candidate(BaseModel):
@@ -640,19 +725,23 @@ class SelectRequest(BaseModel):
 
     Embodied mode (``embodied_k``) restricts the choice to the K candidates nearest the
     current view: ``current_id`` (a candidate), ``current_pose``, or else the last acquired
-    view. ``pool`` replaces the pool first (as set_pool does, persisted). ``commit``
+    view. ``pool`` replaces the pool first (as set_pool does, persisted); a pool that is the
+    session's pool as it is (the same poses in the same order, the same ids or none) leaves
+    it, its ids and the version unchanged. ``commit``
     acquires the chosen candidate (as a commit does) in the same step. A selection without
     commit changes nothing.
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True, json_schema_extra={
+        "not": {"required": ["current_id", "current_pose"], "properties": {
+            "current_id": {"type": "integer"}, "current_pose": {"type": "object"}}}})
 
     method: Method | None = None
-    shortlist_size: int | None = Field(default=None, ge=1, le=1024)
+    shortlist_size: ShortlistSize | None = None
     shortlist: ShortlistStrategy | None = None
-    embodied_k: int | None = Field(default=None, ge=1, le=100_000)
-    seed: int | None = Field(default=None, ge=0, le=2**63 - 1)
-    fields: list[FieldName] | None = None
+    embodied_k: EmbodiedK | None = None
+    seed: Seed | None = None
+    fields: list[FieldName] | None = Field(default=None, json_schema_extra=_UNIQUE)
     config: SelectConfigPatch | None = Field(
         default=None, description="SelectConfig fields, merged over the session's config"
     )
@@ -703,7 +792,10 @@ class CommitRequest(BaseModel):
     """Acquire a view: a candidate of the pool (removed from the pool unless
     ``keep_in_pool``), or any ``pose``. Updates Ĥ."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True, json_schema_extra=one_of([
+        Form("CommitCandidate", ("candidate_id",), ("pose",)),
+        Form("CommitPose", ("pose",), ("candidate_id",)),
+    ]))
 
     candidate_id: Id | None = None
     pose: Pose | None = None

@@ -476,7 +476,8 @@ class ClusterNode:
         except (codec.DecodeError, ValidationError):
             raise ServiceError(502, "bad_gateway", f"{spec.name}: the owner's error "
                                f"reply on {key} is malformed") from None
-        raise ServiceError(info.status, info.code, info.message, info.field, list(info.errors))
+        raise ServiceError(info.status, info.code, info.message, info.field, list(info.errors),
+                           info.supported)
 
     # ------------------------------------------------------------------ @service queries
     def _on_service_query(self, query: Any, op: str) -> None:

@@ -9,8 +9,10 @@ here is persisted: a restarted server starts a new ``epoch`` and numbers from 1 
 
 A session's log is opened when the session is created (or on first use, for sessions loaded
 at start) and closed when it is deleted: waiting readers are woken and told ``closed``, and
-the closed log is kept (the last :data:`CLOSED_KEPT` of them): a reader still gets the
-decisions it had not read, with ``closed`` (the session itself answers 404).
+the closed log is kept (the last :data:`CLOSED_KEPT` of them) for the readers it woke, which
+answer from it with ``closed`` (:meth:`DecisionLog.read_closed` for a reader woken outside
+:meth:`DecisionLog.read`); a new read of a deleted session is refused (404) by the registry,
+as the session is.
 
 Waiting: :meth:`DecisionLog.read` blocks its thread (a Zenoh query, a forwarded request), at
 most ``max_waiters`` at once (a read beyond that answers at once); the HTTP transport waits

@@ -31,7 +31,8 @@ __all__ = [
 
 
 class ServiceError(Exception):
-    """A request the service refuses: HTTP status, stable code, message, and the field."""
+    """A request the service refuses: HTTP status, stable code, message, the field, and (405,
+    406, 415) what the server supports instead."""
 
     def __init__(
         self,
@@ -40,6 +41,7 @@ class ServiceError(Exception):
         message: str,
         field: str | None = None,
         errors: list[ErrorItem] | None = None,
+        supported: list[str] | None = None,
     ) -> None:
         super().__init__(message)
         self.status = status
@@ -47,6 +49,7 @@ class ServiceError(Exception):
         self.message = message
         self.field = field
         self.errors = errors if errors is not None else [ErrorItem(field=field, message=message)]
+        self.supported = supported
 
     @classmethod
     def of(cls, code: ErrorCode, message: str, field: str | None = None) -> ServiceError:
@@ -61,6 +64,7 @@ class ServiceError(Exception):
                 message=self.message,
                 field=self.field,
                 errors=self.errors,
+                supported=self.supported,
             )
         )
 

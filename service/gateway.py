@@ -43,12 +43,18 @@ from .metrics import Metrics
 from .sessions.registry import QueryParams, SessionRegistry, parse_request
 from .settings import Settings
 
-__all__ = ["RAW_TYPES", "Gateway", "Reply", "Request", "Router"]
+__all__ = ["RAW_TYPES", "Gateway", "Reply", "Request", "Router", "request_media_types"]
 
 log = logging.getLogger(__name__)
 
 RAW_TYPES = ("application/octet-stream", "application/x-ply", "application/x-splat")
 """Content types of a raw .ply / .splat upload to ``set_gaussians``."""
+
+
+def request_media_types(op: str) -> list[str]:
+    """The body media types operation ``op`` reads (JSON, msgpack; raw files for
+    ``set_gaussians``)."""
+    return [codec.JSON, codec.MSGPACK] + (list(RAW_TYPES) if op == "set_gaussians" else [])
 
 
 @dataclass
@@ -152,7 +158,7 @@ class Gateway:
         if kind is None:
             raise ServiceError(406, ErrorCode.NOT_ACCEPTABLE,
                                f"Accept names neither {codec.JSON} nor {codec.MSGPACK}",
-                               "header.accept")
+                               "header.accept", supported=[codec.JSON, codec.MSGPACK])
         return kind
 
     def check_size(self, size: int) -> None:
@@ -172,6 +178,8 @@ class Gateway:
         if spec.query and not body:  # HTTP: the fields are query parameters
             return QueryParams(params)
         base = (content_type or "").split(";", 1)[0].strip().lower()
+        if op == "set_gaussians" and params.get("format") not in (None, "ply", "splat"):
+            raise invalid("query.format", "query.format: must be 'ply' or 'splat'")
         if op == "set_gaussians" and base in RAW_TYPES and body:
             fmt = params.get("format") or ("ply" if body[:4] == b"ply\n" else "splat")
             return {"format": fmt, "data": body}
@@ -179,7 +187,8 @@ class Gateway:
         if kind is None:
             raise ServiceError(415, ErrorCode.UNSUPPORTED_MEDIA,
                                f"Content-Type {content_type!r} is neither {codec.JSON} nor "
-                               f"{codec.MSGPACK}", "header.content-type")
+                               f"{codec.MSGPACK}", "header.content-type",
+                               supported=request_media_types(op))
         if not body:
             raise invalid("body", "body: a request body is required")
         try:
@@ -192,9 +201,12 @@ class Gateway:
         """Run ``req`` through every step; never raises."""
         kind = codec.negotiate(req.accept) or codec.JSON
         try:
-            if req.op not in OPERATIONS:
-                raise ServiceError(404, ErrorCode.NOT_FOUND, f"unknown operation {req.op!r}",
-                                   "key")
+            spec = OPERATIONS.get(req.op)
+            if spec is None or (spec.scope == "session") != (req.session is not None):
+                where = "a session operation" if req.session is not None else "a service operation"
+                raise ServiceError(404, ErrorCode.NOT_FOUND,
+                                   f"{req.op!r} is not {where}" if spec is not None
+                                   else f"unknown operation {req.op!r}", "key")
             if not req.authenticated:
                 self.authenticate(req.credentials, req.credentials_field)
             kind = self.negotiate(req.accept)

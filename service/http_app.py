@@ -17,6 +17,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import Response
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from agilegs.schemas import codec
@@ -30,7 +31,7 @@ from .metrics import CONTENT_TYPE_LATEST
 from .server import Server
 from .settings import Settings
 
-__all__ = ["create_app"]
+__all__ = ["create_app", "route_methods"]
 
 log = logging.getLogger(__name__)
 
@@ -113,6 +114,11 @@ def create_app(settings: Settings, server: Server | None = None) -> FastAPI:
     async def on_http(request: Request, exc: Exception) -> Response:
         assert isinstance(exc, StarletteHTTPException)
         code = _STATUS_CODES.get(exc.status_code, ErrorCode.INTERNAL)
+        if exc.status_code == 405:
+            allowed = route_methods(app, request.url.path)
+            return error(request, ServiceError(
+                405, code, f"{request.method} is not allowed on {request.url.path}; it "
+                f"takes {', '.join(allowed)}", "method", supported=allowed))
         return error(request, ServiceError(exc.status_code, code, str(exc.detail), None))
 
     async def on_crash(request: Request, exc: Exception) -> Response:
@@ -131,11 +137,23 @@ def create_app(settings: Settings, server: Server | None = None) -> FastAPI:
     async def get_metrics() -> Response:
         return Response(server.metrics.render(), media_type=CONTENT_TYPE_LATEST)
 
-    bearer = settings.token_value() is not None
-    app.openapi = lambda: build_openapi(app, bearer=bearer)  # type: ignore[method-assign]
-    if bearer:
+    app.openapi = lambda: build_openapi(app, settings)  # type: ignore[method-assign]
+    if settings.token_value() is not None:
         app.add_middleware(BearerAuth, gateway=gateway)
     return app
+
+
+_METHODS = ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS")
+
+
+def route_methods(app: FastAPI, path: str) -> list[str]:
+    """The HTTP methods that some route of ``app`` serves on ``path`` (sorted)."""
+    allowed = []
+    for method in _METHODS:
+        scope = {"type": "http", "path": path, "root_path": "", "method": method}
+        if any(route.matches(scope)[0] == Match.FULL for route in app.routes):
+            allowed.append(method)
+    return sorted(allowed)
 
 
 def _op_name(request: Request) -> str:

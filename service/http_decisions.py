@@ -122,7 +122,14 @@ def decisions_endpoint(gateway: Gateway, op: Operation, *, handle: Handle, run: 
                 or codec.negotiate(accept) is None):
             return await handle(op, req, session)
         await feed.wait_async(session, want.after, min(want.wait, max_wait))
-        return respond(await run(gateway, request(session, {**params, "wait": "0"}, accept)))
+        reply = await run(gateway, request(session, {**params, "wait": "0"}, accept))
+        if not reply.ok and reply.error is not None and reply.error.code == ErrorCode.NOT_FOUND:
+            # deleted while this poll waited: it answers what the closed log holds
+            rest = feed.read_closed(session, want.after, want.limit)
+            if rest is not None:
+                kind = reply.media_type
+                return respond(Reply(200, codec.dump(rest, kind), kind, model=rest))
+        return respond(reply)
 
     async def stream(req: Request, session: str) -> Response:
         params = dict(req.query_params)

@@ -38,10 +38,18 @@ SessionPath = Annotated[
 
 
 def response(reply: Reply) -> Response:
-    """The HTTP response of a gateway reply."""
-    headers = {"WWW-Authenticate": "Bearer"} if reply.status == 401 else None
+    """The HTTP response of a gateway reply, with the headers its status calls for
+    (RFC 9110): ``WWW-Authenticate`` on 401, ``Allow`` on 405, ``Accept`` on 415."""
+    headers = {}
+    if reply.status == 401:
+        headers["WWW-Authenticate"] = "Bearer"
+    supported = reply.error.supported if reply.error is not None else None
+    if supported is not None and reply.status == 405:
+        headers["Allow"] = ", ".join(supported)
+    elif supported is not None and reply.status == 415:
+        headers["Accept"] = ", ".join(supported)
     return Response(reply.body, status_code=reply.status, media_type=reply.media_type,
-                    headers=headers)
+                    headers=headers or None)
 
 
 async def read_body(request: Request, gateway: Gateway) -> bytes:

@@ -116,7 +116,7 @@ def build_settings(args: argparse.Namespace) -> Any:
 def run(args: argparse.Namespace) -> int:
     settings = build_settings(args)
     settings.warn_if_unsafe()
-    server = Server(settings)
+    server = Server(settings, freeze_gc=True)
     try:
         server.claim_state()
     except StateDirError as exc:  # read-only, cannot be created, or held by another server

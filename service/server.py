@@ -12,6 +12,7 @@ The command ``agilegs serve`` that runs one is :mod:`agilegs.service.serve`.
 
 from __future__ import annotations
 
+import gc
 import logging
 
 from .cluster import ClusterNode
@@ -35,10 +36,14 @@ class Server:
 
     Args:
         settings: the server's settings.
+        freeze_gc: after starting, move every object alive to the collector's permanent
+            generation (``gc.freeze``), so that the full collections that requests trigger do not
+            walk the libraries' objects (for a process that only serves: ``agilegs serve``).
     """
 
-    def __init__(self, settings: Settings) -> None:
+    def __init__(self, settings: Settings, *, freeze_gc: bool = False) -> None:
         self.settings = settings
+        self.freeze_gc = freeze_gc
         self.registry = SessionRegistry(settings)
         self.metrics = Metrics(sessions=lambda: len(self.registry.sessions),
                                damaged=lambda: len(self.registry.damaged))
@@ -66,6 +71,9 @@ class Server:
         if self.settings.zenoh:
             self.zenoh = ZenohAdapter(self.gateway, self.cluster, self.settings)
             self.zenoh.start()
+        if self.freeze_gc:
+            gc.collect()
+            gc.freeze()
 
     def close(self) -> None:
         """Leave Zenoh, stop the mapper and the worker threads."""

@@ -3,7 +3,8 @@ the gateway.
 
 Key expressions come from :mod:`agilegs.schemas.keys`. A query becomes a gateway
 :class:`~agilegs.service.gateway.Request` (its payload msgpack, or JSON when the query's
-encoding says so; its attachment the credentials) run in a worker thread, and is answered with
+encoding says so, refused with 415 like over HTTP when it names another type; its attachment
+the credentials) run in a worker thread, and is answered with
 the reply or an error reply carrying the same :class:`~agilegs.schemas.errors.ErrorBody` as
 over HTTP. Frames and pools published by a robot are applied in arrival order by one thread; a
 refused one is published on ``agilegs/<session>/errors``. Every decision made on this
@@ -31,17 +32,26 @@ from .errors import ServiceError
 from .gateway import Gateway, Request
 from .settings import Settings
 
-__all__ = ["ZenohAdapter"]
+__all__ = ["ZenohAdapter", "content_type", "reply_kind"]
 
 log = logging.getLogger(__name__)
 
 _STOP = object()
 
 
-def _kind(encoding: Any) -> str:
-    """JSON when a Zenoh encoding says so, msgpack otherwise."""
+_DEFAULT_ENCODINGS = ("", "zenoh/bytes")
+
+
+def content_type(encoding: Any) -> str:
+    """The media type of a query's or sample's payload: its Zenoh encoding, msgpack when it
+    names none (the gateway answers 415 to one it does not read, as over HTTP)."""
     text = str(encoding) if encoding is not None else ""
-    return codec.JSON if text.split(";", 1)[0] == codec.JSON else codec.MSGPACK
+    return codec.MSGPACK if text.split(";", 1)[0].strip() in _DEFAULT_ENCODINGS else text
+
+
+def reply_kind(encoding: Any) -> str:
+    """The media type of the answer: JSON for a JSON payload, msgpack otherwise."""
+    return codec.JSON if codec.media_type(content_type(encoding)) == codec.JSON else codec.MSGPACK
 
 
 class ZenohAdapter:
@@ -129,14 +139,14 @@ class ZenohAdapter:
     def _answer(self, query: Any, op: str, session: str | None, t0: float, local: bool = False,
                 reply_key: str | None = None) -> None:
         try:
-            kind = _kind(query.encoding)
+            kind = reply_kind(query.encoding)
             params = {}
             if op == "create_session" and query.parameters.get("instance") is not None:
                 params["instance"] = query.parameters.get("instance")
             reply = self.gateway.handle(Request(
                 op=op, session=session,
                 body=query.payload.to_bytes() if query.payload is not None else b"",
-                content_type=kind, accept=kind,
+                content_type=content_type(query.encoding), accept=kind,
                 credentials=query.attachment.to_bytes() if query.attachment is not None
                 else None,
                 credentials_field="attachment", params=params, transport="zenoh", t0=t0,
@@ -160,7 +170,7 @@ class ZenohAdapter:
     def _on_sample(self, sample: Any) -> None:
         if not self._closing:
             self._inbox.put((str(sample.key_expr), sample.payload.to_bytes(),
-                             _kind(sample.encoding),
+                             content_type(sample.encoding),
                              sample.attachment.to_bytes() if sample.attachment is not None
                              else None))
 

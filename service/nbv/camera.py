@@ -12,6 +12,8 @@ from dataclasses import dataclass, replace
 import torch
 from torch import Tensor
 
+from agilegs.schemas.geometry import ORTHONORMAL_ATOL
+
 from .errors import InputError
 
 
@@ -54,9 +56,16 @@ class Intrinsics:
         return Intrinsics(self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, width, height)
 
 
+ORTHONORMAL_TOL = ORTHONORMAL_ATOL + 1e-5
+"""Largest ``max |R^T R - I|`` :func:`check_pose` accepts: the wire's tolerance
+(:data:`agilegs.schemas.geometry.ORTHONORMAL_ATOL`) plus the rounding of such a pose to float32,
+so that a pose the wire accepted is never refused here."""
+
+
 def check_pose(c2w: Tensor, name: str = "c2w", atol: float = 1e-4) -> None:
     """Raise :class:`InputError` (a ValueError naming ``name``) unless ``c2w`` [..., 4, 4] is
-    a finite rigid transform."""
+    a finite rigid transform: last row [0, 0, 0, 1] within ``atol``, rotation orthonormal
+    within :data:`ORTHONORMAL_TOL` (or ``atol`` if larger), ``det R > 0``."""
     if c2w.shape[-2:] != (4, 4):
         raise InputError(name, f"{name} must have shape [..., 4, 4], got {list(c2w.shape)}")
     c = c2w.detach()
@@ -68,7 +77,7 @@ def check_pose(c2w: Tensor, name: str = "c2w", atol: float = 1e-4) -> None:
     r = c[..., :3, :3]
     eye = torch.eye(3, dtype=c.dtype, device=c.device)
     err = (r.transpose(-1, -2) @ r - eye).abs().amax() if r.numel() else torch.tensor(0.0)
-    tol = max(atol, 1e-3 if c.dtype == torch.float32 else atol)
+    tol = max(atol, ORTHONORMAL_TOL)
     if float(err) > tol:
         raise InputError(name, f"{name} rotation is not orthonormal (max |R^T R - I| = "
                                f"{float(err):.3g})")

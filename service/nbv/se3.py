@@ -38,6 +38,7 @@ __all__ = [
     "se3_inverse",
     "rotation_angle",
     "pose_distance",
+    "project_to_se3",
 ]
 
 # Below this squared angle (rad^2) the Taylor branches are used. With terms up to t^8 the
@@ -267,6 +268,19 @@ def se3_inverse(t_mat: Tensor) -> Tensor:
     rt = t_mat[..., :3, :3].transpose(-1, -2)
     t = -(rt @ t_mat[..., :3, 3:4]).squeeze(-1)
     return _compose(rt, t)
+
+
+def project_to_se3(t_mat: Tensor) -> Tensor:
+    """The nearest rigid transforms [..., 4, 4] to near-rigid ones: each rotation block
+    replaced by its nearest rotation in the Frobenius norm (``U V^T`` of its SVD, with the
+    sign that makes the determinant +1), the translation kept, the last row ``[0, 0, 0, 1]``.
+    Not differentiable through the SVD's degenerate cases; meant for inputs, not iterates."""
+    _check_last(t_mat, (4, 4), "T")
+    m = t_mat[..., :3, :3]
+    u, _, vh = torch.linalg.svd(m.double())
+    d = torch.linalg.det(u @ vh)
+    u = torch.cat([u[..., :, :2], u[..., :, 2:] * d[..., None, None]], dim=-1)
+    return _compose((u @ vh).to(t_mat.dtype), t_mat[..., :3, 3])
 
 
 def pose_distance(t1: Tensor, t2: Tensor, rot_weight: float = 1.0) -> Tensor:

@@ -21,7 +21,7 @@ from torch import Tensor
 
 from agilegs.schemas import models as m
 from agilegs.schemas.geometry import Intrinsics as WireIntrinsics
-from agilegs.schemas.geometry import Pose
+from agilegs.schemas.geometry import Pose, PoseArrayList
 
 from ..errors import ServiceError, invalid, too_large
 from ..mapper import backproject_depth, nearest_neighbour_scales
@@ -65,6 +65,8 @@ def poses_array(poses: list[Pose]) -> np.ndarray:
     """Camera-to-world matrices [D, 4, 4] (float64) of validated wire poses."""
     if not poses:
         return np.zeros((0, 4, 4))
+    if isinstance(poses, PoseArrayList):  # validated as one array: it is there already
+        return poses.matrices
     if all(p.matrix is not None for p in poses):  # the common case, in one conversion
         return np.asarray([p.matrix for p in poses], dtype=np.float64)
     return np.stack([p.to_matrix() for p in poses])
@@ -85,9 +87,9 @@ def information_summary(h: Mapping[str, Tensor]) -> m.InformationSummary:
         digest.update(t.numpy().astype("<f4").tobytes())
         fields[name] = m.FieldSummary(
             shape=list(t.shape),
-            sum=float(t.sum(dtype=torch.float64)),
-            min=float(t.min()) if t.numel() else None,
-            max=float(t.max()) if t.numel() else None,
+            sum=finite_float(float(t.sum(dtype=torch.float64))),
+            min=finite_float(float(t.min())) if t.numel() else None,
+            max=finite_float(float(t.max())) if t.numel() else None,
         )
     return m.InformationSummary(fields=fields, digest=digest.hexdigest())
 
@@ -184,6 +186,9 @@ def parse_frame(o: m.ObservationIn, index: int, field: str,
     h, w = int(intr["height"]), int(intr["width"])
     fr = Frame(index=index, obs=o, intrinsics=intr)
     limit = max_image_pixels
+    if o.intrinsics is not None and h * w > limit:
+        raise too_large(f"{where}.intrinsics", f"{w}x{h} pixels exceed max_image_pixels "
+                                               f"({limit})")
     if o.image is not None:
         if h * w > limit:
             raise too_large(f"{where}.image", f"{w}x{h} pixels exceed max_image_pixels "

@@ -25,12 +25,12 @@ import torch
 from pydantic import BaseModel, ValidationError
 
 from agilegs.schemas import models as m
+from agilegs.schemas.config import patch_dict
 from agilegs.schemas.decisions import DecisionsOut, DecisionsRequest
 from agilegs.schemas.ops import OPERATIONS
 
 from ..decisions import DecisionLog
 from ..errors import (
-    ServiceError,
     conflict,
     invalid,
     is_disk_full,
@@ -45,9 +45,16 @@ from ..nbv.information import init_information
 from ..settings import Settings
 from ..store import SessionRecord, SessionStore, StoreError
 from ..trainer import Trainer
-from .convert import gaussians_from_depth, parse_frame, parse_gaussians, random_gaussians
+from .convert import (
+    empty_map,
+    gaussians_from_depth,
+    parse_frame,
+    parse_gaussians,
+    random_gaussians,
+)
 from .listing import damaged_error, damaged_summary
 from .mapper_state import initial_mapper_state, mapper_config
+from .selection import check_render_widths
 from .session import Session, SessionEnv
 
 __all__ = ["HANDLERS", "Handler", "QueryParams", "SessionRegistry", "parse_request"]
@@ -305,17 +312,10 @@ class SessionRegistry:
 
     def get_decisions(self, sid: str | None, req: DecisionsRequest) -> DecisionsOut:
         """The decisions feed of a session (:mod:`agilegs.service.decisions`): after
-        ``req.after``, waiting up to ``req.wait`` (at most ``max_poll_wait``) s for one; for a
-        deleted session, what its closed log holds, with ``closed`` (404 once it is no
-        longer kept)."""
-        try:
-            self.session(sid)
-        except ServiceError as err:
-            if err.status == 404 and sid is not None:
-                rest = self.decisions.read_closed(sid, req.after, req.limit)
-                if rest is not None:
-                    return rest
-            raise
+        ``req.after``, waiting up to ``req.wait`` (at most ``max_poll_wait``) s for one. A
+        poll waiting when the session is deleted answers ``closed``; a deleted session's feed
+        is gone (404), as the session is."""
+        self.session(sid)
         assert sid is not None
         wait = min(req.wait, self.settings.max_poll_wait)
         return self.decisions.read(sid, req.after, req.limit, wait)
@@ -326,11 +326,22 @@ class SessionRegistry:
         with self.lock:
             self._check_new_id(sid)
         intr = req.intrinsics.model_dump()
+        defaults = req.defaults
+        if defaults.shortlist_size > settings.max_shortlist:
+            if "shortlist_size" in defaults.model_fields_set:
+                raise invalid("body.defaults.shortlist_size",
+                              f"must be <= {settings.max_shortlist} (max_shortlist)")
+            defaults = defaults.model_copy(update={"shortlist_size": settings.max_shortlist})
+        check_render_widths(patch_dict(req.defaults.config), "body.defaults.config",
+                            settings.max_image_pixels)
         pixels = req.intrinsics.width * req.intrinsics.height
         if pixels > settings.max_image_pixels:
             raise too_large("body.intrinsics", f"{pixels} pixels exceed max_image_pixels "
                                                f"({settings.max_image_pixels})")
-        if req.gaussians is None and req.init_gaussians > settings.max_gaussians:
+        count = req.init_gaussians  # the default is lowered to the limit; a value given is not
+        if "init_gaussians" not in req.model_fields_set:
+            count = min(count, settings.max_gaussians)
+        if req.gaussians is None and count > settings.max_gaussians:
             raise too_large("body.init_gaussians", f"exceeds max_gaussians "
                                                    f"({settings.max_gaussians})")
         frames = [parse_frame(f, i, "body.frames", intr, max_image_pixels=settings.max_image_pixels)
@@ -342,12 +353,11 @@ class SessionRegistry:
             gmap = parse_gaussians(req.gaussians, "body.gaussians",
                                    max_gaussians=settings.max_gaussians, tmp_dir=self.env.tmp_dir)
         elif any(f.depth is not None for f in frames):
-            gmap = gaussians_from_depth(frames, req.init_gaussians, req.seed)
+            gmap = gaussians_from_depth(frames, count, req.seed)
         elif req.bounds is not None:
-            gmap = random_gaussians(req.bounds, req.init_gaussians, req.seed)
-        else:
-            raise invalid("body.bounds", "bounds are required when neither Gaussians nor depth "
-                                         "are given")
+            gmap = random_gaussians(req.bounds, count, req.seed)
+        else:  # RGB frames only: no Gaussians until some are set (a selection says map_empty)
+            gmap = empty_map()
         if len(gmap) > settings.max_gaussians:
             raise too_large("body", f"{len(gmap)} Gaussians exceed max_gaussians "
                                     f"({settings.max_gaussians})")
@@ -360,7 +370,7 @@ class SessionRegistry:
             id=sid, created_at=now, updated_at=now, version=1,
             intrinsics=intr,
             bounds=req.bounds.model_dump() if req.bounds else None,
-            defaults=req.defaults.model_dump(),
+            defaults=defaults.model_dump(),
             information_config=req.information.model_dump(by_alias=True),
             gmap=gmap,
             h_acc=init_information(gmap, req.information.lambda_),

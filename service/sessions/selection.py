@@ -15,16 +15,17 @@ from agilegs.schemas import models as m
 from agilegs.schemas.config import SelectConfig, deep_merge, patch_dict, validate_config
 from agilegs.schemas.errors import ErrorCode
 
-from ..errors import conflict, invalid, validation_error
+from ..errors import conflict, invalid, too_large, validation_error
 from ..nbv.errors import InputError
 from ..nbv.selectors import select
-from ..store import ViewRecord
-from .convert import finite_float, pose_out, storable_state, view_out
+from ..store import SessionRecord, ViewRecord
+from .convert import finite_float, pose_out, poses_array, storable_state, view_out
 
 if TYPE_CHECKING:
     from .session import Session
 
-__all__ = ["TOP_LEVEL", "resolve_config", "run_select"]
+__all__ = ["RENDER_WIDTHS", "TOP_LEVEL", "check_render_widths", "resolve_config", "run_select",
+           "same_pool"]
 
 TOP_LEVEL = ("shortlist_size", "shortlist", "embodied_k", "seed", "fields")
 """SelectConfig fields a select request carries at its top level."""
@@ -38,6 +39,33 @@ _ARGUMENT_FIELDS = {
     "gmap": "gaussians",
     "acquired": "views",
 }
+
+
+RENDER_WIDTHS = (("anchor", "resolution"), ("cover_resolution",))
+"""Paths of the SelectConfig fields that set a render's width; its square must stay within the
+server's ``max_image_pixels``."""
+
+
+def check_render_widths(patch: dict[str, Any], field: str, max_pixels: int) -> None:
+    """422 naming the field if a render width in the SelectConfig patch ``patch`` (plain data)
+    squared exceeds ``max_pixels``."""
+    for path in RENDER_WIDTHS:
+        value: Any = patch
+        for key in path:
+            value = value.get(key) if isinstance(value, dict) else None
+        if isinstance(value, int) and value * value > max_pixels:
+            raise too_large(".".join((field, *path)), f"{value} x {value} pixels exceed "
+                            f"max_image_pixels ({max_pixels})")
+
+
+def same_pool(rec: SessionRecord, pool: m.PoolIn) -> bool:
+    """Whether ``pool`` is the session's pool as it is: the same poses in the same order, and
+    the same ids or none (a robot that sends its candidates with every selection)."""
+    if len(pool.poses) != len(rec.pool_ids):
+        return False
+    if pool.ids is not None and not np.array_equal(np.asarray(pool.ids), rec.pool_ids):
+        return False
+    return bool(np.array_equal(poses_array(pool.poses), rec.pool_poses))
 
 
 def resolve_config(defaults: dict[str, Any], req: m.SelectRequest, top: dict[str, Any]
@@ -60,7 +88,7 @@ def run_select(s: Session, req: m.SelectRequest) -> m.SelectResponse:
         t_core = time.perf_counter()
         rec = s.record
         dirty: list[str] = []
-        if req.pool is not None:
+        if req.pool is not None and not same_pool(rec, req.pool):
             rec = s.pool_changed(rec, req.pool, "body.pool", replace_pool=True)
             dirty.append("pool")
         d = rec.defaults
@@ -76,6 +104,7 @@ def run_select(s: Session, req: m.SelectRequest) -> m.SelectResponse:
                            ErrorCode.EMPTY_POOL)
         if len(rec.gmap) == 0:
             raise conflict("gaussians", "the session has no Gaussians yet", ErrorCode.MAP_EMPTY)
+        check_render_widths(patch_dict(req.config), "body.config", s.settings.max_image_pixels)
         config = resolve_config(d, req, {
             "shortlist_size": size,
             "shortlist": req.shortlist or d["shortlist"],
@@ -92,8 +121,8 @@ def run_select(s: Session, req: m.SelectRequest) -> m.SelectResponse:
             current_pose = torch.from_numpy(req.current_pose.to_matrix()).to(dt)
         elif embodied_k is not None:
             if not rec.views:
-                raise invalid("body.embodied_k", "embodied mode needs the current view: "
-                              "give current_id or current_pose, or acquire a view first")
+                raise conflict("body.embodied_k", "embodied mode needs the current view: "
+                               "give current_id or current_pose, or acquire a view first")
             current_pose = torch.from_numpy(rec.views[-1].pose).to(dt)
         acquired = (torch.from_numpy(np.stack([v.pose for v in rec.views])).to(dt)
                     if rec.views else None)

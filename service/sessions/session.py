@@ -155,7 +155,7 @@ class Session:
     def pool_index(self, rec: SessionRecord, cid: int, field: str) -> int:
         hits = np.nonzero(rec.pool_ids == cid)[0]
         if hits.size == 0:
-            raise not_found(field, f"candidate {cid} is not in the pool")
+            raise conflict(field, f"candidate {cid} is not in the pool")
         return int(hits[0])
 
     def without(self, rec: SessionRecord, index: int) -> dict[str, Any]:
@@ -349,9 +349,12 @@ class Session:
                       replace_pool: bool) -> SessionRecord:
         d = len(req.poses)
         base = 0 if replace_pool else len(rec.pool_ids)
-        if base + d > self.settings.max_pool_size:
-            raise too_large(f"{field}.poses", f"the pool would hold {base + d} candidates; "
-                                              f"max_pool_size is {self.settings.max_pool_size}")
+        limit = self.settings.max_pool_size
+        if d > limit:
+            raise too_large(f"{field}.poses", f"{d} candidates exceed max_pool_size ({limit})")
+        if base + d > limit:
+            raise too_many(f"{field}.poses", f"the pool would hold {base + d} candidates; "
+                                             f"max_pool_size is {limit}")
         poses = poses_array(req.poses)
         if req.ids is not None:
             ids = np.asarray(req.ids, dtype=np.int64)
@@ -428,7 +431,7 @@ class Session:
             if o.view_id is not None:
                 pos = next((k for k, v in enumerate(views) if v.id == o.view_id), None)
                 if pos is None:
-                    raise not_found(f"{where}.view_id", f"view {o.view_id} does not exist")
+                    raise conflict(f"{where}.view_id", f"view {o.view_id} does not exist")
                 if views[pos].image_file is not None or views[pos].depth_file is not None:
                     raise conflict(f"{where}.view_id", f"view {o.view_id} already has a frame")
                 view = views[pos]
@@ -437,7 +440,7 @@ class Session:
                 if o.candidate_id is not None:
                     hits = np.nonzero(pool_ids == o.candidate_id)[0]
                     if hits.size == 0:
-                        raise not_found(f"{where}.candidate_id",
+                        raise conflict(f"{where}.candidate_id",
                                         f"candidate {o.candidate_id} is not in the pool")
                     i = int(hits[0])
                     candidate = o.candidate_id

@@ -72,7 +72,13 @@ class _PollFeed:
         return [e.decision for e in out.decisions]
 
     def take(self, wait: float) -> list[m.SelectResponse]:
-        out = self.client.get_decisions(self.session, after=self.after, wait=wait)
+        try:
+            out = self.client.get_decisions(self.session, after=self.after, wait=wait)
+        except NotFoundError:
+            if self.epoch is None:
+                raise
+            self.epoch = None  # the feed it followed is gone: the session was deleted
+            raise _Closed() from None
         if out.epoch != self.epoch:
             raise _Reload("the session's decisions start again (server restarted, or the "
                           "session was created again)")

@@ -153,8 +153,8 @@ def test_sessions_created_on_each_are_found_and_selected_through_either(pair: Pa
         with pytest.raises(ValidationError) as bad:
             ca.select(s2, shortlist_size=0)
         assert bad.value.field == "body.shortlist_size"
-        with pytest.raises(NotFoundError) as missing:
-            ca.commit(s2, 999)
+        with pytest.raises(ConflictError) as missing:
+            ca.commit(s2, 999)  # no such candidate in the owner's pool
         assert "999" in missing.value.message
         with pytest.raises(ConflictError):
             _new(ca, s2)               # the id is taken on b

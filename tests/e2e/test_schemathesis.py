@@ -1,112 +1,122 @@
-"""Schemathesis against a live server's OpenAPI schema: no 5xx, no schema violation.
+"""Schemathesis, as an outside tool runs it, against a live server's OpenAPI schema.
 
-Each operation is fuzzed with positive (schema-valid) and negative (schema-violating) data,
-once with random session ids and once against an existing session, so that valid bodies
-reach the selection core.
+``schemathesis run --checks all`` runs every phase (examples, coverage, fuzzing, and the
+stateful phase, which follows the schema's links from a created session to the operations
+that use its id), positive and negative data, over JSON and msgpack (the hooks in
+``schemathesis_hooks.py`` pack msgpack bodies, unpack msgpack answers, and make positive data
+meet the rules JSON Schema cannot state). The test fails on any failure of any check, on
+any 5xx, and unless select, commit, observations, the pool and Ĥ answered 200 on live
+sessions. ``docs/benchmarks.md`` has the command of the long run (5,000+ cases).
 """
 
 from __future__ import annotations
 
+import json
+import os
+import shutil
+import subprocess
+import sys
 from collections import Counter
-from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
-import msgpack
 import pytest
-import schemathesis
-from conftest import SMALL_INTRINSICS, ServerProcess, ring_poses
-from hypothesis import HealthCheck, given, settings
-from hypothesis.errors import Unsatisfiable
-from schemathesis.checks import not_a_server_error
-from schemathesis.specs.openapi.checks import (
-    content_type_conformance,
-    response_schema_conformance,
-    status_code_conformance,
-)
+from conftest import ServerProcess
 
-from agilegs.client import Client
+HERE = Path(__file__).resolve().parent
 
-CHECKS = [not_a_server_error, response_schema_conformance, status_code_conformance,
-          content_type_conformance]
+#: tight limits keep whatever the fuzzer creates small (and exercise the limits)
+FUZZ_ENV = {
+    "AGILEGS_MAX_GAUSSIANS": "300", "AGILEGS_MAX_IMAGE_PIXELS": "1024",
+    "AGILEGS_MAX_POOL_SIZE": "16", "AGILEGS_MAX_SESSIONS": "100000", "AGILEGS_MAX_VIEWS": "8",
+    "AGILEGS_MAX_SHORTLIST": "8", "AGILEGS_MAX_BODY_BYTES": str(2**20),
+    "AGILEGS_MAX_POLL_WAIT": "0.2",  # decisions polls and streams end quickly
+}
 
+#: the stateful phase runs more and longer scenarios than the others run cases per operation
+#: (a scenario must create a session, set its pool and then select)
+STATEFUL_CONFIG = """
+[phases.stateful]
+max-steps = 12
 
-def _packable(value: Any) -> Any:
-    # msgpack carries 64-bit integers; the fuzzer's bigger ones travel as strings
-    if isinstance(value, int) and not isinstance(value, bool) and not -2**63 <= value < 2**64:
-        return str(value)
-    if isinstance(value, list):
-        return [_packable(v) for v in value]
-    if isinstance(value, dict):
-        return {k: _packable(v) for k, v in value.items()}
-    return value
+[phases.stateful.generation]
+max-examples = 80
+"""
 
-
-@schemathesis.serializer("application/msgpack")
-def _msgpack(ctx: object, value: object) -> bytes:
-    return msgpack.packb(_packable(value), use_bin_type=True)
-
-
-@pytest.fixture(scope="module")
-def fuzz_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerProcess]:
-    root: Path = tmp_path_factory.mktemp("fuzz")
-    # tight limits keep whatever the fuzzer creates small (and exercise the limits)
-    srv = ServerProcess(root / "state", zenoh=False, env={
-        "AGILEGS_MAX_GAUSSIANS": "300", "AGILEGS_MAX_IMAGE_PIXELS": "1024",
-        "AGILEGS_MAX_POOL_SIZE": "16", "AGILEGS_MAX_SESSIONS": "50",
-        "AGILEGS_MAX_BODY_BYTES": str(2**20), "AGILEGS_MAX_VIEWS": "8",
-        "AGILEGS_MAX_POLL_WAIT": "0.2",  # decisions polls and streams end quickly
-    }).start()
-    with Client(srv.url) as c:
-        c.create_session(SMALL_INTRINSICS, id="fuzz", init_gaussians=200, pool=ring_poses(12),
-                         bounds={"min": [-0.5] * 3, "max": [0.5] * 3})
-        c.commit("fuzz", 0)
-    yield srv
-    srv.stop()
+#: operations that must have answered 200 (on a live session, as only those do)
+REACHED = {
+    ("POST", "/v1/sessions/{session}/select"),
+    ("POST", "/v1/sessions/{session}/views"),
+    ("POST", "/v1/sessions/{session}/observations"),
+    ("PUT", "/v1/sessions/{session}/pool"),
+    ("GET", "/v1/sessions/{session}/information"),
+}
 
 
-@pytest.fixture(scope="module")
-def api_schema(fuzz_server: ServerProcess) -> schemathesis.BaseSchema:
-    return schemathesis.openapi.from_url(fuzz_server.url + "/openapi.json")
+def _route(url: str) -> str:
+    path = "/" + url.split("/", 3)[3].split("?", 1)[0]
+    parts = path.split("/")
+    if len(parts) > 3 and parts[1:3] == ["v1", "sessions"]:
+        parts[3] = "{session}"
+    return "/".join(parts)
 
 
-@pytest.mark.parametrize("mode", [schemathesis.GenerationMode.POSITIVE,
-                                  schemathesis.GenerationMode.NEGATIVE])
-@pytest.mark.parametrize("session", [None, "fuzz"])
-def test_api_never_fails_and_matches_its_schema(api_schema: schemathesis.BaseSchema,
-                                                fuzz_server: ServerProcess,
-                                                mode: schemathesis.GenerationMode,
-                                                session: str | None) -> None:
-    # one Hypothesis run per operation (schemathesis' pytest plugin does not run on pytest 9)
-    statuses: Counter[tuple[str, int]] = Counter()
-    for result in api_schema.get_all_operations():
-        operation = result.ok()
-        kwargs: dict[str, Any] = {"generation_mode": mode}
-        if session is not None:
-            if "{session}" not in operation.path or operation.method.upper() == "DELETE":
-                continue
-            kwargs["path_parameters"] = {"session": session}
+def test_schemathesis_finds_nothing_in_any_phase(tmp_path: Path) -> None:
+    exe = shutil.which("schemathesis") or str(Path(sys.executable).parent / "schemathesis")
+    srv = ServerProcess(tmp_path / "state", zenoh=False, env=FUZZ_ENV).start()
+    report = tmp_path / "report"
+    config = tmp_path / "schemathesis.toml"
+    config.write_text(STATEFUL_CONFIG)
+    try:
+        env = {**os.environ, "PYTHONPATH": str(HERE), "SCHEMATHESIS_HOOKS": "schemathesis_hooks"}
+        cmd = [exe, "--config-file", str(config), "run", f"{srv.url}/openapi.json",
+               "--checks", "all",
+               "--phases", "examples,coverage,fuzzing,stateful", "--max-examples", "30",
+               "--seed", "7", "--request-timeout", "60", "--workers", "1",
+               "--report", "json,har", "--report-dir", str(report)]
+        proc = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True,
+                              timeout=1500)
+    finally:
+        srv.stop()
+    out = proc.stdout[-6000:] + proc.stderr[-2000:]
+    summary = json.loads(next(report.glob("json-*.json")).read_text())
+    assert summary["failures"] == [] and summary["errors"] == [], out
+    assert proc.returncode == 0, out
+    phases = summary["phases"]
+    assert all(phases[p]["status"] == "success"
+               for p in ("coverage", "fuzzing", "stateful")), phases
+    entries = json.loads(next(report.glob("har-*.json")).read_text())["log"]["entries"]
+    statuses = Counter((e["request"]["method"], _route(e["request"]["url"]),
+                        e["response"]["status"]) for e in entries)
+    assert not [k for k in statuses if k[2] >= 500], statuses
+    reached = {(m, r) for m, r, status in statuses if status == 200}
+    assert REACHED <= reached, sorted(REACHED - reached)
+    assert summary["test_cases"]["generated"] >= 1000, summary["test_cases"]
 
-        label = operation.label
 
-        @settings(max_examples=12, deadline=None, derandomize=True, database=None,
-                  suppress_health_check=list(HealthCheck))
-        @given(case=operation.as_strategy(**kwargs))
-        def run(case: schemathesis.Case) -> None:
-            response = case.call_and_validate(checks=CHECKS, timeout=60)
-            statuses[(label, response.status_code)] += 1  # noqa: B023 (run before the next loop)
+def test_the_hooks_repair_exactly_what_json_schema_cannot_state() -> None:
+    """Data that the schema allows but the server's unstated rules refuse is repaired into
+    data the request models accept (the fuzz test relies on it for positive cases)."""
+    sys.path.insert(0, str(HERE))
+    try:
+        import schemathesis_hooks as hooks
+    finally:
+        sys.path.remove(str(HERE))
+    from pydantic import ValidationError
 
-        if session is not None:  # earlier operations may have emptied the pool
-            with Client(fuzz_server.url) as c:
-                c.set_pool(session, ring_poses(12))
-        try:
-            run()
-        except Unsatisfiable:  # nothing to make negative (no parameters, no body)
-            assert mode == schemathesis.GenerationMode.NEGATIVE
-    # every operation ran (negative data needs a parameter or a body to break)
-    positive = mode == schemathesis.GenerationMode.POSITIVE
-    want = (15 if positive else 12) if session is None else (10 if positive else 6)
-    assert len({label for label, _ in statuses}) >= want, statuses
-    if session is not None and mode == schemathesis.GenerationMode.POSITIVE:
-        # valid bodies reached the core: some selections succeeded
-        assert statuses[("POST /v1/sessions/{session}/select", 200)] > 0, statuses
+    from agilegs.schemas import models as m
+
+    body = {
+        "intrinsics": {"fx": 5.0, "fy": 5.0, "cx": 1.0, "cy": 1.0, "width": 900, "height": 700},
+        "bounds": {"min": [0.0, 2.0, 1.0], "max": [0.0, 1.0, 3.0]},
+        "gaussians": {"format": "splat", "data": "AAAA"},
+        "frames": [{"pose": {"position": [0, 0, 0], "orientation_xyzw": [0.0, 0.0, 0.0, 0.5]},
+                    "depth": {"dtype": "uint16", "shape": [3, 4], "data": ""},
+                    "image": {"encoding": "png", "data": "AAAA"}}],
+        "pool": {"poses": [{"matrix": [[1.0, 0.3, 0, 0], [0, 1.0, 0, 0], [0, 0, -1.0, 0],
+                                       [0.0, 0.0, 0.0, 1.0]]}] * 2, "ids": [4]},
+    }
+    with pytest.raises(ValidationError):
+        m.SessionCreate.model_validate(body)
+    hooks.repair(body)
+    m.SessionCreate.model_validate(body)  # every rule met
+    assert body["intrinsics"]["width"] <= hooks.SIDE and body["pool"]["ids"][0] == 4

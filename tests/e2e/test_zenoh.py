@@ -16,6 +16,7 @@ from conftest import SMALL_INTRINSICS, ServerProcess, ring_poses
 
 from agilegs.client import (
     Client,
+    ConflictError,
     NotFoundError,
     ObservationIn,
     TransportError,
@@ -85,8 +86,8 @@ def test_error_replies_map_like_http(server: ServerProcess, zc: ZenohClient) -> 
         zc.select(sid, shortlist_size=0)
     assert via_zenoh.value.field == via_http.value.field == "body.shortlist_size"
     assert via_zenoh.value.message == via_http.value.message
-    with pytest.raises(NotFoundError):
-        zc.commit(sid, 999)
+    with pytest.raises(ConflictError):
+        zc.commit(sid, 999)  # no such candidate: the session's state refuses it
     with pytest.raises(NotFoundError):
         zc.get_session("no-such-session")
     with pytest.raises(ValidationError):
@@ -146,3 +147,98 @@ def test_zenoh_queries_need_the_token(server_factory: object) -> None:
         ZenohClient([srv.zenoh_endpoint], token="wrong")
     with ZenohClient([srv.zenoh_endpoint], token=token) as z:
         assert z.list_sessions().sessions == []
+
+
+def _refusal(ans: object) -> dict:
+    from agilegs.client.zenoh_rpc import Answer
+
+    assert isinstance(ans, Answer) and not ans.ok, ans
+    return ErrorBody.model_validate(ans.load()).model_dump()["error"]
+
+
+def _http_refusal(r: object) -> dict:
+    import httpx
+    import msgpack
+
+    assert isinstance(r, httpx.Response) and r.status_code >= 400, r
+    return ErrorBody.model_validate(msgpack.unpackb(r.content)).model_dump()["error"]
+
+
+def test_zenoh_refusals_match_http_and_change_nothing(server_factory: object) -> None:
+    """Every queryable answers a malformed, oversized, unauthenticated, wrongly encoded or
+    unknown-operation query with the error body HTTP gives, and nothing refused changes a
+    session."""
+    import httpx
+
+    from agilegs.client.zenoh_rpc import first_answer, open_session
+    from agilegs.schemas import OPERATIONS, keys
+
+    token = "audit-token"
+    srv = server_factory(env={"AGILEGS_TOKEN": token, "AGILEGS_MAX_BODY_BYTES": "4096"}
+                         ).start()  # type: ignore[operator]
+    auth = f"Bearer {token}".encode()
+    c = Client(srv.url, token=token)
+    sid = _session(c, 4)
+    c.commit(sid, 1)
+
+    def state() -> tuple:
+        info = c.get_session(sid)
+        return (info.version, info.information.digest, c.get_pool(sid).ids(),
+                [v.id for v in c.list_views(sid).views], len(c.list_sessions().sessions))
+
+    before = state()
+    http = httpx.Client(base_url=srv.url, headers={"accept": "application/msgpack"})
+    z = open_session(connect=[srv.zenoh_endpoint])
+    try:
+        def ask(key: str, payload: bytes | None = None, attachment: bytes | None = auth,
+                encoding: str = "application/msgpack") -> dict:
+            ans, _ = first_answer(z, key, timeout=20, payload=payload, attachment=attachment,
+                                  encoding=encoding)
+            return _refusal(ans)
+
+        def http_call(op: object, content: bytes | None = None, token_ok: bool = True,
+                      content_type: str = "application/msgpack") -> dict:
+            path = op.http_path.replace("{session}", sid)  # type: ignore[attr-defined]
+            headers = {"content-type": content_type}
+            if token_ok:
+                headers["authorization"] = f"Bearer {token}"
+            return _http_refusal(http.request(op.http_method, path,  # type: ignore[attr-defined]
+                                              content=content, headers=headers))
+
+        checked = 0
+        for op in OPERATIONS.values():
+            key = (keys.session_key(sid, op.name) if op.scope == "session"
+                   else keys.service_key(op.name))
+            # no token: 401 on every queryable, the same body as HTTP but for where it travels
+            z401, h401 = ask(key, attachment=None), http_call(op, token_ok=False)
+            assert (z401["status"], z401["code"]) == (h401["status"], h401["code"]) == (
+                401, "unauthorized")
+            assert z401["field"] == "attachment" and h401["field"] == "header.authorization"
+            if op.request is None:
+                continue
+            # malformed, oversized and wrongly encoded bodies: the very same body as HTTP
+            for payload, encoding, status in ((b"\xc1\x00", "application/msgpack", 400),
+                                              (b"\x90" * 5000, "application/msgpack", 413),
+                                              (b"{}", "text/plain", 415)):
+                zr = ask(key, payload, encoding=encoding)
+                assert zr["status"] == status, (op.name, zr)
+                if not op.query:  # over HTTP a query operation's request is its query string
+                    hr = http_call(op, payload, content_type=encoding)
+                    assert zr == hr, (op.name, zr, hr)
+                checked += 1
+            # valid msgpack, schema-invalid body: the same 422 naming the field
+            zr = ask(key, b"\x81\xa5bogus\x01")
+            assert zr["status"] == 422, (op.name, zr)
+            if not op.query:
+                hr = http_call(op, b"\x81\xa5bogus\x01")
+                assert zr == hr, (op.name, zr, hr)
+        assert checked == 3 * sum(op.request is not None for op in OPERATIONS.values())
+        # an unknown operation, or a service operation under a session's key: 404
+        for name in ("no_such_op", "create_session", "health", keys.FRAMES):
+            zr = ask(f"{keys.PREFIX}/{sid}/{name}", b"\x80")
+            assert (zr["status"], zr["code"], zr["field"]) == (404, "not_found", "key"), zr
+        assert state() == before  # nothing refused changed anything
+    finally:
+        z.close()
+        http.close()
+        c.close()

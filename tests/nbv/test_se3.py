@@ -10,6 +10,7 @@ import torch
 from agilegs.service.nbv.se3 import (
     hat,
     pose_distance,
+    project_to_se3,
     rotation_angle,
     se3_exp,
     se3_inverse,
@@ -259,3 +260,29 @@ def test_cuda_matches_cpu() -> None:
     assert t_gpu.is_cuda
     torch.testing.assert_close(t_gpu.cpu(), t_cpu, atol=1e-5, rtol=0)
     torch.testing.assert_close(se3_log(t_gpu).cpu(), se3_log(t_cpu), atol=1e-5, rtol=0)
+
+
+def test_project_to_se3_is_the_nearest_rotation_and_keeps_rigid_poses() -> None:
+    g = torch.Generator().manual_seed(3)
+    xi = torch.randn(16, 6, generator=g, dtype=torch.float64)
+    rigid = se3_exp(xi)
+    assert torch.allclose(project_to_se3(rigid), rigid, atol=1e-12)
+    noisy = rigid.clone()
+    noisy[:, :3, :3] += 1e-3 * torch.randn(16, 3, 3, generator=g, dtype=torch.float64)
+    out = project_to_se3(noisy)
+    r = out[:, :3, :3]
+    eye = torch.eye(3, dtype=torch.float64)
+    assert torch.allclose(r.transpose(-1, -2) @ r, eye.expand(16, 3, 3), atol=1e-12)
+    assert torch.allclose(torch.linalg.det(r), torch.ones(16, dtype=torch.float64))
+    assert torch.equal(out[:, :3, 3], noisy[:, :3, 3])
+    assert torch.equal(out[:, 3], torch.tensor([0.0, 0, 0, 1], dtype=torch.float64).expand(16, 4))
+    # nearest in the Frobenius norm: no random rotation near it is nearer
+    for _ in range(20):
+        other = r @ so3_exp(1e-3 * torch.randn(16, 3, generator=g, dtype=torch.float64))
+        assert bool(((noisy[:, :3, :3] - r).square().sum((-1, -2))
+                     <= (noisy[:, :3, :3] - other).square().sum((-1, -2)) + 1e-15).all())
+    # a reflection is turned into a proper rotation
+    refl = rigid.clone()
+    refl[:, :3, 2] *= -1
+    assert torch.allclose(torch.linalg.det(project_to_se3(refl)[:, :3, :3]),
+                          torch.ones(16, dtype=torch.float64))

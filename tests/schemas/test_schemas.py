@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from typing import Any
 
 import msgpack
 import numpy as np
@@ -24,7 +25,11 @@ from agilegs.schemas import (
     codec,
     keys,
 )
-from agilegs.schemas.geometry import matrix_to_quaternion_xyzw, quaternion_xyzw_to_matrix
+from agilegs.schemas.geometry import (
+    PoseArrayList,
+    matrix_to_quaternion_xyzw,
+    quaternion_xyzw_to_matrix,
+)
 
 
 def _rot(axis: str, deg: float) -> np.ndarray:
@@ -99,8 +104,11 @@ def test_pose_forms_are_exclusive_and_quaternion_unit() -> None:
     with pytest.raises(ValidationError, match="give matrix"):
         Pose(position=[0, 0, 0])
     with pytest.raises(ValidationError) as exc:
-        Pose(position=[0, 0, 0], orientation_xyzw=[0, 0, 0, 2])
+        Pose(position=[0, 0, 0], orientation_xyzw=[0, 0, 0.3, 1])  # |q| = 1.044
     assert _loc(exc.value)[0] == ("orientation_xyzw",)
+    with pytest.raises(ValidationError) as exc:  # a component over the published bound
+        Pose(position=[0, 0, 0], orientation_xyzw=[0, 0, 0, 2])
+    assert _loc(exc.value)[0] == ("orientation_xyzw", 3)
 
 
 def test_ndarray_round_trips_through_json_and_msgpack() -> None:
@@ -207,3 +215,61 @@ def test_keys_are_defined_once_and_match_operations() -> None:
         keys.SERVICE_OPS)
     routes = {(op.http_method, op.http_path) for op in OPERATIONS.values()}
     assert len(routes) == len(OPERATIONS)  # every operation has its own route
+
+
+def _near_tolerance_rotations(rng: np.random.Generator, n: int) -> list[list[list[float]]]:
+    """Rotations perturbed so that max |R^T R - I| lands on both sides of the tolerance."""
+    out = []
+    for i in range(n):
+        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        q *= np.sign(np.linalg.det(q))
+        m = np.eye(4)
+        m[:3, :3] = q
+        m[:3, 3] = rng.normal(size=3)
+        scale = 1 + (i % 7 - 3) * 1.666e-4  # err = |s^2 - 1| around 1e-3
+        m[:3, 0] *= scale
+        out.append(m.tolist())
+    return out
+
+
+def test_pose_lists_are_validated_as_an_array_with_the_per_pose_rules() -> None:
+    """A pool's poses are checked as one array; the outcome, the poses and every error (its
+    path and message) are those of validating each pose on its own."""
+    from pydantic import TypeAdapter
+
+    per_pose = TypeAdapter(list[Pose])
+    rng = np.random.default_rng(0)
+    eye = np.eye(4).tolist()
+    lists: list[list[Any]] = [
+        [{"matrix": m} for m in _near_tolerance_rotations(rng, 40)],
+        [{"matrix": [[int(v) for v in row] for row in eye]}] * 3,  # ints
+        [{"matrix": eye}, {"matrix": [[True, 0, 0, 0]] + eye[1:]}],  # a bool
+        [{"matrix": eye}, {"matrix": [["1", 0, 0, 0]] + eye[1:]}],  # a string
+        [{"matrix": eye}, {"matrix": [[float("nan"), 0, 0, 0]] + eye[1:]}],
+        [{"matrix": eye}, {"matrix": eye[:3]}],  # 3 rows
+        [{"matrix": eye}, {"matrix": [row[:3] for row in eye]}],  # 3 columns
+        [{"matrix": eye}, {"matrix": np.diag([1.0, 1.0, -1.0, 1.0]).tolist()}],  # reflection
+        [{"matrix": eye}, {"matrix": [[1, 0, 0, 2e6]] + eye[1:]}],  # far away
+        [{"matrix": eye}, {"matrix": eye[:3] + [[0, 0, 1e-5, 1]]}],  # last row
+        [{"matrix": eye}, {"matrix": eye, "position": [0, 0, 0]}],  # two forms
+        [{"matrix": eye}, {"position": [0, 0, 1], "orientation_xyzw": [0, 0, 0, 1]}],
+        [{"matrix": eye, "position": None, "orientation_xyzw": None}],
+        [{"matrix": eye, "extra": 1}],
+        [{"matrix": 10 ** 400}], [], "not a list",
+    ]
+    for poses in lists:
+        try:
+            want = per_pose.validate_python(poses)
+        except ValidationError as exc:
+            with pytest.raises(ValidationError) as got:
+                PoolIn.model_validate({"poses": poses})
+            assert [(("poses", *e["loc"]), e["msg"]) for e in exc.errors()] == [
+                (e["loc"], e["msg"]) for e in got.value.errors()]
+            continue
+        pool = PoolIn.model_validate({"poses": poses})
+        assert pool.poses == want
+        assert [p.model_fields_set for p in pool.poses] == [p.model_fields_set for p in want]
+    # the common case went through the array check, and holds the array
+    pool = PoolIn.model_validate({"poses": [{"matrix": m}
+                                            for m in _near_tolerance_rotations(rng, 40)[3::7]]})
+    assert isinstance(pool.poses, PoseArrayList) and pool.poses.matrices.shape == (6, 4, 4)

@@ -135,9 +135,6 @@ def test_closing_wakes_the_readers_and_keeps_what_they_had_not_read() -> None:
     log.close("a")
     t.join(5)
     assert got[1].closed and got[1].decisions == [] and time.monotonic() - t0 < 2
-    rest = log.read_closed("a", 2)
-    assert rest is not None and [e.seq for e in rest.decisions] == [3] and rest.closed
-    assert log.read_closed("a", 3).closed and log.read_closed("b") is None  # type: ignore[union-attr]
     log.open("a")  # created again: a new epoch from 1
     out = log.read("a")
     assert out.epoch != got[1].epoch and out.last_seq == 0 and not out.closed
@@ -277,18 +274,14 @@ def test_deleting_the_session_closes_waiting_polls_and_streams(api: InProcess) -
         evs = events(got["stream"].text)
         assert [e["event"] for e in evs] == ["feed", "decision", "closed"]
         assert evs[1]["data"]["seq"] == 1
-        again = c.get_decisions("s", after=1)  # the feed says closed; the session is gone
-        assert again.closed and again.decisions == []
+        with pytest.raises(NotFoundError):  # the feed is gone with the session
+            c.get_decisions("s", after=1)
         with pytest.raises(NotFoundError):
             c.get_session("s")
-        # a reader that had not read every decision still gets them, then closed
         make(api, "t")
         c.select("t")
-        c.select("t", seed=1)
         first = c.get_decisions("t").epoch
         c.delete_session("t")
-        rest = c.get_decisions("t", after=1)
-        assert [e.seq for e in rest.decisions] == [2] and rest.closed
         make(api, "t")  # created again: another epoch, numbered from 1
         c.select("t")
         again = c.get_decisions("t")

@@ -110,7 +110,7 @@ def test_bad_http_input_gets_4xx_naming_the_field(api: InProcess) -> None:
         (_raw(api, "POST", base + "/select", json={}), 409, "pool"),
         (_raw(api, "POST", base + "/select", json={"shortlist_size": -1}), 422,
          "body.shortlist_size"),
-        (_raw(api, "POST", base + "/views", json={"candidate_id": 4}), 404, "body.candidate_id"),
+        (_raw(api, "POST", base + "/views", json={"candidate_id": 4}), 409, "body.candidate_id"),
         (_raw(api, "GET", base, headers={"accept": "text/html"}), 406, "header.accept"),
         (_raw(api, "GET", "/v1/sessions/no-such"), 404, "session"),
         (_raw(api, "GET", "/v1/sessions/bad%20id"), 422, "path.session"),

@@ -75,14 +75,14 @@ def _bad_cases() -> list[tuple[str, Any, int, str]]:
         ("set_pool", {"poses": "nope"}, 422, "body.poses"),
         ("set_pool", {"poses": [{"matrix": eye}] * 3, "ids": [1, 1, 2]}, 422, "body"),
         ("extend_pool", {"poses": [{"matrix": eye}], "ids": [0]}, 409, "body.ids[0]"),
-        ("commit", {"candidate_id": 999}, 404, "body.candidate_id"),
+        ("commit", {"candidate_id": 999}, 409, "body.candidate_id"),
         ("commit", {}, 422, "body"),
         ("select", {"shortlist_size": 0}, 422, "body.shortlist_size"),
         ("select", {"shortlist_size": 2000}, 422, "body.shortlist_size"),
         ("select", {"shortlist_size": 300}, 422, "body.shortlist_size"),  # > max_shortlist
         ("select", {"method": "oracle"}, 422, "body.method"),
-        ("select", {"current_id": 12345}, 404, "body.current_id"),
-        ("select", {"embodied_k": 3}, 422, "body.embodied_k"),  # no current view yet
+        ("select", {"current_id": 12345}, 409, "body.current_id"),
+        ("select", {"embodied_k": 3}, 409, "body.embodied_k"),  # no current view yet: the state
         ("select", {"config": {"warp": 9}}, 422, "body.config.warp"),
         ("select", {"config": {"anchor": {"iterations": "many"}}}, 422,
          "body.config.anchor.iterations"),
@@ -91,7 +91,7 @@ def _bad_cases() -> list[tuple[str, Any, int, str]]:
          "body.pool.poses[0].matrix"),
         ("select", {"commit": True, "config": {"bogus": 1}, "pool": {"poses": [{"matrix": eye}]}},
          422, "body.config.bogus"),
-        ("add_observations", {"observations": [{"view_id": 77}]}, 404,
+        ("add_observations", {"observations": [{"view_id": 77}]}, 409,
          "body.observations[0].view_id"),
         ("add_observations", {"observations": [{"pose": {"matrix": eye}, "depth": img.model_dump()}]},
          422, "body.observations[0].depth"),
@@ -250,22 +250,27 @@ def test_splat_upload_and_rgbd_creation(core: SessionRegistry, tmp_path: Path) -
     info = core.call("create_session", None, {"id": "rgbd", "intrinsics": SMALL_INTRINSICS,
                                                "frames": frames, "init_gaussians": 150})
     assert info.gaussians.count == 150 and info.num_views == 2
-    with pytest.raises(ServiceError) as exc:  # RGB only: bounds are needed
-        core.call("create_session", None, {"id": "rgb", "intrinsics": SMALL_INTRINSICS,
-                                            "frames": [{"pose": {"matrix": POOL[0].tolist()}}]})
-    assert exc.value.field == "body.bounds"
+    # RGB only and no bounds: no Gaussians until some are set
+    info = core.call("create_session", None, {"id": "rgb", "intrinsics": SMALL_INTRINSICS,
+                                               "frames": [{"pose": {"matrix": POOL[0].tolist()}}]})
+    assert info.gaussians.count == 0 and info.num_views == 1
 
 
 def test_limits_are_settings(tmp_path: Path) -> None:
     c = make_core(tmp_path / "st", max_sessions=1, max_pool_size=5, max_image_pixels=100)
     with pytest.raises(ServiceError) as exc:
         create(c, "a")  # the 32x32 session camera exceeds max_image_pixels
-    assert exc.value.status == 413 and exc.value.field == "body.intrinsics"
+    assert exc.value.status == 422 and exc.value.field == "body.intrinsics"
+    assert exc.value.code == "limit_exceeded"
     c.settings.max_image_pixels = 4096
     with pytest.raises(ServiceError) as exc:
         create(c, "a")  # the 24-candidate pool exceeds max_pool_size
-    assert exc.value.status == 413 and exc.value.field == "body.pool.poses"
+    assert exc.value.status == 422 and exc.value.field == "body.pool.poses"
     create(c, "a", pool=None)
+    c.call("set_pool", "a", {"poses": [{"matrix": np.eye(4).tolist()}] * 4})
+    with pytest.raises(ServiceError) as exc:  # extending past the limit: a count reached
+        c.call("extend_pool", "a", {"poses": [{"matrix": np.eye(4).tolist()}] * 2})
+    assert exc.value.status == 429 and exc.value.field == "body.poses"
     with pytest.raises(ServiceError) as exc:
         create(c, "b", pool=None)
     assert exc.value.status == 429

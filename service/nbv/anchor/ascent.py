@@ -28,7 +28,7 @@ from ..camera import Camera, Intrinsics
 from ..candidates import pool_radius, scene_center_radius
 from ..gaussians import FIELD_NAMES, GaussianMap
 from ..information import fisher_diag, trace_surrogate
-from ..se3 import se3_exp
+from ..se3 import project_to_se3, se3_exp
 from .envelope import PoolEnvelope
 from .fitting import (
     information_weights,
@@ -266,6 +266,9 @@ def optimize_anchor(
     starts = pool[best]
     if config.warm_start and warm_c2w is not None:
         starts = torch.cat([starts, warm_c2w.detach().to(dt).reshape(1, 4, 4)])
+    # the ascent moves on SE(3): poses within the wire's tolerance start from the nearest
+    # rigid transform
+    starts = project_to_se3(starts)
     timings["starts"] = time.perf_counter() - t0 - timings["proxy_build"]
     if config.psi == "proxy":
         poses, vals, traces, evals = ascend(

@@ -171,6 +171,7 @@ def shortlist(ctx: SelectionContext, anchor_c2w: Tensor, lat: dict[str, float],
     with timed(lat, "leverage"):
         bmax = float((b.to(torch.float64) ** 2).sum(1).max())
         ridge = sc.ridge if sc.ridge_absolute else sc.ridge * max(bmax, 1e-30)
+        ridge = max(ridge, 1e-300)  # a relative ridge on tiny rows must not underflow to 0
         if cfg.shortlist == "leverage":
             loc, gains = greedy_ridge_leverage_gains(b, n_short, ridge, prior)
         elif cfg.shortlist == "topnorm":
