@@ -96,6 +96,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     parser.add_argument("--estimate-only", action="store_true",
                         help="print the wall-time estimate and stop")
+    parser.add_argument("--report-only", action="store_true",
+                        help="run nothing: write the tables and plots from the runs already "
+                        "in --out (a run not there yet is left out and listed as missing)")
 
 
 def _run_path(out: Path, scene: str, variant: str, seed: int) -> Path:
@@ -179,7 +182,7 @@ def run(args: argparse.Namespace) -> int:
                              f"{profile.initial_views} initial views")
         scenes[sc.name] = sc
     estimates = {}
-    for name, sc in scenes.items():
+    for name, sc in scenes.items() if not args.report_only else ():
         est = estimate_seconds(sc, variants, seeds, profile, device=device,
                                embodied_k=args.embodied)
         estimates[name] = est
@@ -195,6 +198,7 @@ def run(args: argparse.Namespace) -> int:
     jobs = [(name, v, s) for name in scenes for s in seeds for v in variants]
     executed: list[dict[str, Any]] = []
     skipped: list[dict[str, Any]] = []
+    missing: list[dict[str, Any]] = []
     records: dict[tuple[str, str, int], dict[str, Any]] = {}
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
                TimeElapsedColumn(), TimeRemainingColumn())
@@ -210,6 +214,10 @@ def run(args: argparse.Namespace) -> int:
                 log.info("skip %s / %s / seed %d: done (%s)", name, v.key, s, path)
                 skipped.append(tag)
                 records[(name, v.key, s)] = done
+                bar.advance(overall)
+                continue
+            if args.report_only:
+                missing.append(tag)
                 bar.advance(overall)
                 continue
             task = bar.add_task(f"{name} {v.key} s{s}", total=profile.total_steps)
@@ -240,7 +248,7 @@ def run(args: argparse.Namespace) -> int:
                   "threads": torch.get_num_threads(), "estimate_s": estimates,
                   "args": {k: v for k, v in vars(args).items() if not k.startswith("_")}},
         environment=environment(),
-        invocation={"executed": executed, "skipped": skipped,
+        invocation={"executed": executed, "skipped": skipped, "missing": missing,
                     "wall_s": time.perf_counter() - t_start},
     )
     _write_json(out / "results.json", results)
@@ -251,5 +259,6 @@ def run(args: argparse.Namespace) -> int:
         log.info("plots: %s", ", ".join(str(p.name) for p in written))
     sys.stdout.write(table)
     sys.stdout.flush()
-    console.print(f"{len(executed)} runs done, {len(skipped)} skipped; wrote {out}")
+    console.print(f"{len(executed)} runs done, {len(skipped)} skipped"
+                  + (f", {len(missing)} missing" if missing else "") + f"; wrote {out}")
     return 0

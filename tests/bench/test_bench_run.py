@@ -124,6 +124,16 @@ def test_tiny_run_writes_outputs_and_rerun_skips(tmp_path: Path) -> None:
     # the skipped runs' results are still reported
     assert res2["scenes"]["spot_10k"]["runs"]["random"]["0"]["psnr"] == pytest.approx(
         res["scenes"]["spot_10k"]["runs"]["random"]["0"]["psnr"])
+    # report only: the finished runs are reported, a run not there yet is listed as missing
+    argv3 = [a if a != "random,agile_plus" else "random,agile_plus,agile" for a in argv]
+    assert main([*argv3, "--seeds", "0,1", "--report-only", "--no-plots"]) == 0
+    res3 = json.loads((out / "results.json").read_text())
+    assert res3["invocation"]["executed"] == []
+    assert {(s["variant"], s["seed"]) for s in res3["invocation"]["missing"]} == {
+        ("agile", 0), ("random", 1), ("agile_plus", 1), ("agile", 1), ("agile_plus@n2", 1)}
+    assert set(res3["scenes"]["spot_10k"]["runs"]) == {"random", "agile_plus", "agile_plus@n2"}
+    assert res3["paired_psnr"]["agile_plus"]["random"]["mean"] == pytest.approx(pair["mean"])
+    assert sorted((out / "runs").rglob("seed*.json")) == runs
 
 
 def test_paired_differences() -> None:

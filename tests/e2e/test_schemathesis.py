@@ -71,7 +71,8 @@ def test_schemathesis_finds_nothing_in_any_phase(tmp_path: Path) -> None:
         cmd = [exe, "--config-file", str(config), "run", f"{srv.url}/openapi.json",
                "--checks", "all",
                "--phases", "examples,coverage,fuzzing,stateful", "--max-examples", "30",
-               "--seed", "7", "--request-timeout", "60", "--workers", "1",
+               "--seed", "7", "--request-timeout", "60", "--max-response-time", "60",
+               "--workers", "1",
                "--report", "json,har", "--report-dir", str(report)]
         proc = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True,
                               timeout=1500)
