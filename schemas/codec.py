@@ -21,6 +21,7 @@ __all__ = [
     "DecodeError",
     "dump",
     "load",
+    "media_ranges",
     "media_type",
     "negotiate",
 ]
@@ -48,14 +49,12 @@ def media_type(content_type: str | None) -> str | None:
     return None
 
 
-def negotiate(accept: str | None, default: str = JSON) -> str | None:
-    """The response type for an Accept header: JSON or MSGPACK by quality, else None."""
-    if not accept:
-        return default
-    best: tuple[float, int, str] | None = None
-    for order, part in enumerate(accept.split(",")):
+def media_ranges(accept: str | None) -> list[tuple[str, float]]:
+    """The media ranges of an Accept header in order, lower-cased, each with its quality
+    (1.0 when unstated, 0.0 when unreadable)."""
+    out: list[tuple[str, float]] = []
+    for part in (accept or "").split(","):
         fields = part.strip().split(";")
-        kind = fields[0].strip().lower()
         q = 1.0
         for param in fields[1:]:
             name, _, value = param.strip().partition("=")
@@ -64,6 +63,16 @@ def negotiate(accept: str | None, default: str = JSON) -> str | None:
                     q = float(value)
                 except ValueError:
                     q = 0.0
+        out.append((fields[0].strip().lower(), q))
+    return out
+
+
+def negotiate(accept: str | None, default: str = JSON) -> str | None:
+    """The response type for an Accept header: JSON or MSGPACK by quality, else None."""
+    if not accept:
+        return default
+    best: tuple[float, int, str] | None = None
+    for order, (kind, q) in enumerate(media_ranges(accept)):
         if q <= 0:
             continue
         if kind in MSGPACK_TYPES:

@@ -55,21 +55,7 @@ Endpoint = Callable[[Request, str], Awaitable[Response]]
 
 def wants_events(accept: str | None) -> bool:
     """Whether an Accept header names ``text/event-stream`` (with a quality above 0)."""
-    for part in (accept or "").split(","):
-        fields = part.strip().split(";")
-        if fields[0].strip().lower() != EVENT_STREAM:
-            continue
-        q = 1.0
-        for param in fields[1:]:
-            name, _, value = param.strip().partition("=")
-            if name.strip() == "q":
-                try:
-                    q = float(value)
-                except ValueError:
-                    q = 0.0
-        if q > 0:
-            return True
-    return False
+    return any(kind == EVENT_STREAM and q > 0 for kind, q in codec.media_ranges(accept))
 
 
 def _parse(params: dict[str, str]) -> DecisionsRequest | None:

@@ -45,7 +45,12 @@ from agilegs.schemas.config import FISHERRF_FIELDS
 
 from ..camera import Camera
 from ..gaussians import GaussianMap
-from ..information import jacobian_sandwich, projection_jacobians, screen_second_moments
+from ..information import (
+    _check_fields,
+    jacobian_sandwich,
+    projection_jacobians,
+    screen_second_moments,
+)
 from ..rasterize import render
 from .base import MethodResult, SelectionContext, register, timed
 from .common import argmax_first
@@ -54,11 +59,7 @@ __all__ = ["FisherRFMethod", "fisherrf_hessian", "fisherrf_hessian_bruteforce"]
 
 
 def _fields(fields: Iterable[str] | None) -> tuple[str, ...]:
-    want = tuple(FISHERRF_FIELDS if fields is None else fields)
-    for f in want:
-        if f not in FISHERRF_FIELDS:
-            raise ValueError(f"fields: FisherRF's Hessian covers {FISHERRF_FIELDS}, got {f!r}")
-    return want
+    return _check_fields(fields, FISHERRF_FIELDS)
 
 
 def fisherrf_hessian(
