@@ -38,7 +38,7 @@ from agilegs.schemas import models as m
 
 from .canvas import SceneCanvas
 from .extra import quiet, require_viser
-from .panel import Chart, add_display_controls, latency_markdown
+from .panel import Chart, add_display_controls, latency_markdown, page_url
 
 __all__ = ["SessionViewer"]
 
@@ -178,8 +178,7 @@ class SessionViewer:
 
     @property
     def url(self) -> str:
-        host = "127.0.0.1" if self.host in ("0.0.0.0", "::") else self.host
-        return f"http://{host}:{self.port}"
+        return page_url(self.host, self.port)
 
     # ------------------------------------------------------------------ the panel
     def _build_panel(self) -> None:

@@ -12,12 +12,18 @@ import numpy as np
 
 from .canvas import MAP_MODES, SceneCanvas
 
-__all__ = ["STAGES", "Chart", "add_display_controls", "latency_markdown"]
+__all__ = ["STAGES", "Chart", "add_display_controls", "latency_markdown", "page_url"]
 
 STAGES = ("anchor", "scoring", "leverage", "rerank", "total")
 """The selection core's stages, in the order the panel lists them."""
 
 _COLORS = ("#d62728", "#1f77b4", "#2ca02c", "#9467bd", "#ff7f0e")
+
+
+def page_url(host: str, port: int) -> str:
+    """The address a browser on this machine opens for a page served on ``host:port`` (a
+    wildcard address is reached on the loopback)."""
+    return f"http://{'127.0.0.1' if host in ('0.0.0.0', '::') else host}:{port}"
 
 
 def _ms(value: float | None) -> str:

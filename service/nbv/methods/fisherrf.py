@@ -58,10 +58,6 @@ from .common import argmax_first
 __all__ = ["FisherRFMethod", "fisherrf_hessian", "fisherrf_hessian_bruteforce"]
 
 
-def _fields(fields: Iterable[str] | None) -> tuple[str, ...]:
-    return _check_fields(fields, FISHERRF_FIELDS)
-
-
 def fisherrf_hessian(
     gmap: GaussianMap,
     camera: Camera,
@@ -86,7 +82,7 @@ def fisherrf_hessian(
     Returns:
         {field: H, the field's shape}.
     """
-    want = _fields(fields)
+    want = _check_fields(fields, FISHERRF_FIELDS)
     g = gmap.detach()
     with torch.no_grad():
         m = screen_second_moments(g, camera, background=background, tile_size=tile_size,
