@@ -34,10 +34,10 @@ class ServerProcess(_Launcher):
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Every test under ``tests/e2e`` (subprocesses, clusters, the demo, deploy files) is
-    ``slow``: ``pytest -m "not slow"`` is the fast lane."""
+    """Every test under ``tests/e2e`` (subprocesses, clusters, the demo, deploy files) and
+    every ``heavy`` one is ``slow``: ``pytest -m "not slow"`` is the fast lane."""
     for item in items:
-        if "e2e" in Path(str(item.fspath)).parts:
+        if "e2e" in Path(str(item.fspath)).parts or item.get_closest_marker("heavy"):
             item.add_marker(pytest.mark.slow)
 
 
