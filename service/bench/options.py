@@ -105,13 +105,20 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
            "there yet is left out and listed as missing)")
 
 
-def add_value_arguments(parser: argparse.ArgumentParser) -> None:
+def _add_protocol_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options that ``bench value`` and ``bench proxy`` share: the scenes, the protocol
+    profile and seed, the method that drives the acquisitions."""
     a = parser.add_argument
     a("--scene", action="append", required=True, metavar="PATH",
       help="a scene as for bench run; repeat for several")
     a("--profile", default="cpu", choices=PROFILE_NAMES, help=_PROFILE_HELP["other"])
     a("--seed", type=int, default=0, help="seed of the protocol (default 0)")
     a("--driver", default="random", help="the method that acquires the views")
+
+
+def add_value_arguments(parser: argparse.ArgumentParser) -> None:
+    _add_protocol_arguments(parser)
+    a = parser.add_argument
     a("--events", default="1,4,7",
       help="comma-separated events to measure (those past the schedule are skipped)")
     a("--candidates", type=int, default=24,
@@ -123,12 +130,8 @@ def add_value_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def add_proxy_arguments(parser: argparse.ArgumentParser) -> None:
+    _add_protocol_arguments(parser)
     a = parser.add_argument
-    a("--scene", action="append", required=True, metavar="PATH",
-      help="a scene as for bench run; repeat for several")
-    a("--profile", default="cpu", choices=PROFILE_NAMES, help=_PROFILE_HELP["other"])
-    a("--seed", type=int, default=0, help="seed of the protocol (default 0)")
-    a("--driver", default="random", help="the method that acquires the views")
     a("--configs", default=",".join(DEFAULT_CONFIGS),
       help="comma-separated configurations: default, or agile variant options joined by + "
            "(e.g. typical+unconditioned)")

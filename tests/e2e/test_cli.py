@@ -28,7 +28,7 @@ try:
     code = main(sys.argv[1:])
 except SystemExit as exc:
     code = exc.code
-print(json.dumps({"code": code, "heavy": [m for m in %r if m in sys.modules]}))
+print(json.dumps({"code": code, "loaded": [m for m in %r if m in sys.modules]}))
 """
 
 
@@ -41,14 +41,14 @@ def _probe(argv: list[str]) -> tuple[dict[str, object], subprocess.CompletedProc
 @pytest.mark.parametrize("argv", HELP, ids=" ".join)
 def test_help_answers_without_torch_fastapi_or_matplotlib(argv: list[str]) -> None:
     got, proc = _probe(argv)
-    assert got == {"code": 0, "heavy": []}, (got, proc.stderr[-2000:])
+    assert got == {"code": 0, "loaded": []}, (got, proc.stderr[-2000:])
     assert "usage: agilegs" in proc.stdout
 
 
 @pytest.mark.parametrize("argv", TYPOS, ids=" ".join)
 def test_a_typo_is_one_usage_error_without_torch(argv: list[str]) -> None:
     got, proc = _probe(argv)
-    assert got == {"code": 2, "heavy": []}, (got, proc.stderr[-2000:])
+    assert got == {"code": 2, "loaded": []}, (got, proc.stderr[-2000:])
     assert "error:" in proc.stderr and "Traceback" not in proc.stderr
 
 
@@ -98,6 +98,7 @@ def test_the_light_options_are_the_commands_own() -> None:
     assert METHODS == method_names()  # bench run's default --methods, in registry order
 
 
+@pytest.mark.heavy  # five child processes, each importing torch (a benchmark's own check)
 def test_bench_render_runs_small() -> None:
     proc = subprocess.run(
         [sys.executable, "-m", "agilegs.service.cli", "bench", "render", "--sizes", "32",

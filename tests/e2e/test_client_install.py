@@ -3,7 +3,8 @@ wheel ``python -m build --wheel`` makes holds the package and the demo's two sce
 the benchmark's; installed with its ``zenoh`` extra into a fresh virtual environment it brings
 no torch, its CLI answers ``--help`` and says what a server command needs, and it runs a
 robot's calls against a server; installing from the repository's git URL gives the same
-package (the heavy lane)."""
+package. The builds and installs are in the heavy lane (``pytest -m heavy``, run by
+``.ci/run``)."""
 
 from __future__ import annotations
 
@@ -72,6 +73,7 @@ def _check_client_only(py: Path, tmp_path: Path) -> None:
     assert out[0] == "chosen" and out[2:] == ["False", "ZenohClient"], out
 
 
+@pytest.mark.heavy  # a build and an install from the package index: tens of seconds
 @pytest.mark.timeout(600)
 def test_the_wheel_installs_the_client_without_torch(tmp_path: Path) -> None:
     src = tmp_path / "src"

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import pytest
 from conftest import SMALL_INTRINSICS, ring_poses
+from inprocess import serve_in_process
 from readonly import read_only_folder, small_tmpfs
 
 from agilegs.client import (
@@ -218,18 +219,17 @@ def test_store_check_and_repair_from_the_command_line(server_factory: Any,
     assert done.returncode == 1, done.stdout + done.stderr
     assert "2 session(s), 1 damaged" in done.stdout and "manifest.json" in done.stdout
 
-    srv = server_factory(state, zenoh=False).start()  # served: listed damaged, not absent
-    with Client(srv.url) as c:
+    # served (a server in this process: the tools' processes are what is under test here):
+    # listed damaged, not absent
+    with serve_in_process(state) as inproc, inproc.client() as c:
         listed = {s.id: s for s in c.list_sessions().sessions}
         assert listed["a"].state == "damaged" and listed["b"].state == "ok"
         with pytest.raises(SessionDamagedError, match="manifest.json"):
             c.get_session("a")
-    srv.stop()
 
     done = agilegs("store", "repair", str(state))
     assert done.returncode == 0, done.stdout + done.stderr
     assert "a: repaired" in done.stdout and "every session checks out" in done.stdout
     assert agilegs("store", "check", str(state)).returncode == 0
-    srv = server_factory(state, zenoh=False).start()
-    with Client(srv.url) as c:
+    with serve_in_process(state) as inproc, inproc.client() as c:
         assert c.get_session("a").information.digest == intact

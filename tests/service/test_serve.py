@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import errno
+from pathlib import Path
 from types import SimpleNamespace
 
 from agilegs.service.serve import http_bind_error, zenoh_start_error
@@ -17,9 +18,12 @@ def test_a_taken_zenoh_endpoint_names_it_its_cause_and_the_flag() -> None:
     exc = ZError("Can not create a new TCP listener bound to tcp/127.0.0.1:7447: "
                  "[127.0.0.1:7447: Address already in use (os error 98) at /src/tcp.rs:61.] "
                  "at /src/unicast.rs:338.")
-    assert zenoh_start_error(exc, SETTINGS) == (
+    line = zenoh_start_error(exc, SETTINGS)
+    assert line == (
         "cannot listen on the Zenoh endpoint tcp/127.0.0.1:7447: address already in use; give "
         "another with --zenoh-listen (AGILEGS_ZENOH_LISTEN), or serve HTTP only with --no-zenoh")
+    server_md = (Path(__file__).resolve().parents[2] / "docs" / "server.md").read_text()
+    assert f"agilegs serve: {line}\n" in server_md  # the page shows it as it is
     zenoh_only = SimpleNamespace(**{**vars(SETTINGS), "http": False})
     line = zenoh_start_error(exc, zenoh_only)
     assert line is not None and line.endswith("(AGILEGS_ZENOH_LISTEN)")
