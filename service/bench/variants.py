@@ -99,6 +99,11 @@ OPTIONS: dict[str, tuple[str, Callable[[SelectConfig], SelectConfig]]] = {
                       _anchor(visibility="zbuffer", occluders=2000, occlusion_tests=COVER_ZBUFFER)),
     "mixed_zbuffer": ("z-buffer visibility: the mean of the point and the 3x3 tests",
                       _anchor(visibility="zbuffer", occluders=2000, occlusion_tests=MIXED_ZBUFFER)),
+    "directional": ("the proxy's directional model: per parameter slot, with a mean's world "
+                    "axes and a scale's local axes seen across the rays",
+                    _anchor(model="directional")),
+    "unexplored": ("the proxy also counts the unexplored part of the map's extent as "
+                   "never-observed Gaussians", _anchor(unexplored=True)),
     "quarter_unseen": ("the fitted model counts unseen Gaussians as seen by a quarter of a "
                        "typical view", _anchor(unseen="quarter_view")),
     "unconditioned": ("the leverage greedy starts from lambda_G I (not the acquired rows)",

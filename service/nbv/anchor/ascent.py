@@ -31,11 +31,13 @@ from ..information import fisher_diag, trace_surrogate
 from ..se3 import project_to_se3, se3_exp
 from .envelope import PoolEnvelope
 from .fitting import (
+    directional_rates,
     information_weights,
     observation_rates,
     typical_fisher_from_h_acc,
 )
 from .proxy import ProxyPsi, pick_occluders
+from .unexplored import unexplored_space
 from .visibility import OpacityMaps
 
 __all__ = ["AnchorResult", "ascend", "exact_psi_fn", "optimize_anchor"]
@@ -232,11 +234,25 @@ def optimize_anchor(
     timings["visibility"] = time.perf_counter() - t0
     fitted = (
         typical is None
-        and config.model == "fitted"
+        and config.model in ("fitted", "directional")
         and acquired is not None
         and acquired.shape[0] > 0
     )
-    if fitted:
+    if fitted and config.model == "directional":
+        assert acquired is not None
+        drate = directional_rates(gmap, h_acc, acquired, prox_intr, fields, lam=lam,
+                                  near=common["near"], edge=common["edge"],
+                                  grid=common.get("grid"), generator=generator)
+        c = torch.log1p(drate.rate * drate.typical).sum(1)
+        proxy = ProxyPsi.build(
+            gmap, c, prox_intr, num_samples=config.num_gaussians, rate=drate.rate,
+            slot_kinds=drate.kinds, **common,
+        )
+        extra["model"] = "directional"
+        extra["typical_term"] = drate.typical
+        prior_rate: Tensor = drate.prior_rate
+        per_gaussian = 1.0
+    elif fitted:
         assert acquired is not None
         fit = observation_rates(gmap, h_acc, acquired, prox_intr, fields, lam=lam,
                                 unseen=config.unseen, **common)
@@ -247,6 +263,8 @@ def optimize_anchor(
         )
         extra["model"] = "fitted"
         extra["typical_term"] = fit.typical
+        prior_rate = torch.tensor(fit.prior_rate, dtype=dt)
+        per_gaussian = float(fit.slots)
     else:
         if typical is not None:
             extra["typical_source"] = "given"
@@ -256,6 +274,15 @@ def optimize_anchor(
         c = information_weights(h_acc, typical, fields)
         proxy = ProxyPsi.build(gmap, c, prox_intr, num_samples=config.num_gaussians, **common)
         extra["model"] = "typical"
+    if fitted and config.unexplored:
+        assert acquired is not None
+        space = unexplored_space(gmap, acquired, proxy, cells=config.unexplored_cells,
+                                 generator=generator)
+        if space.means.shape[0]:
+            rates = prior_rate.to(dt).expand(space.means.shape[0], *prior_rate.shape)
+            proxy = proxy.extended(space.means, space.cov, per_gaussian * space.weight, rates)
+        extra["unexplored_fraction"] = space.unexplored_fraction
+        extra["unexplored_points"] = int(space.means.shape[0])
     timings["proxy_build"] = time.perf_counter() - t0
     # starts: best pool candidates under the proxy (+ the previous anchor)
     with torch.no_grad():

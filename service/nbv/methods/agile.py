@@ -82,7 +82,17 @@ def _anchor(ctx: SelectionContext, lat: dict[str, float], out: dict[str, Any]) -
         )
         out["state"]["anchor_c2w"] = res.c2w.clone()
     out["psi_trace"] = list(res.psi_trace)
+    # psi at the anchor against psi at the best candidate, both of the function ascended:
+    # the proxy's over every eligible candidate, the exact one's over the pool starts
+    n_pool_starts = len(res.extra.get("start_indices", []))
+    if cfg.anchor.psi == "proxy" and res.pool_psi is not None and res.pool_psi.numel():
+        best_psi: float | None = float(res.pool_psi.max())
+    else:
+        firsts = [tr[0] for tr in res.traces[:n_pool_starts] if tr]
+        best_psi = max(firsts) if firsts else None
     out["details"].update(
+        anchor_psi=float(res.psi),
+        best_candidate_psi=best_psi,
         psi_evaluations=res.evaluations,
         anchor_starts=[ctx.eligible[i] for i in res.extra.get("start_indices", [])],
         proxy_samples=res.extra.get("proxy_samples"),
