@@ -185,6 +185,16 @@ class AnchorConfig:
     unexplored_cells: Annotated[int, Strict(), Field(ge=2, le=64),
                                 BeforeValidator(integral)] = Field(
         default=16, description="grid points per axis of the unexplored space")
+    anchors: Annotated[int, Strict(), Field(ge=1, le=8), BeforeValidator(integral)] = Field(
+        default=1,
+        description="anchors kept from distinct modes of psi (the ascents' end points, best "
+        "first, each at least mode_separation from the better ones); with more than one, the "
+        "starts are spread the same way and the shortlist is drawn across every anchor's "
+        "support samples")
+    mode_separation: Softness = Field(
+        default=0.5,
+        description="least SE(3) distance between two modes, in pool radii (a radian of "
+        "rotation counts as one radius)")
     iterations: Steps = Field(default=3, description="most accepted ascent steps per start")
     step_size: Softness = Field(default=0.15,
         description="initial step length in the twist metric (0.15: ~9 degrees or 0.15 pool "

@@ -104,6 +104,8 @@ OPTIONS: dict[str, tuple[str, Callable[[SelectConfig], SelectConfig]]] = {
                     _anchor(model="directional")),
     "unexplored": ("the proxy also counts the unexplored part of the map's extent as "
                    "never-observed Gaussians", _anchor(unexplored=True)),
+    "modes": ("three anchors from distinct modes of psi (starts spread alike), the shortlist "
+              "drawn across their support samples", _anchor(anchors=3)),
     "quarter_unseen": ("the fitted model counts unseen Gaussians as seen by a quarter of a "
                        "typical view", _anchor(unseen="quarter_view")),
     "unconditioned": ("the leverage greedy starts from lambda_G I (not the acquired rows)",

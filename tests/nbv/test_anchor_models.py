@@ -175,3 +175,57 @@ def test_the_unexplored_term_draws_the_anchor_to_the_unseen_side() -> None:
         gains[flag] = float(res.pool_psi[behind].mean() / res.pool_psi[~behind].mean())
         assert ("unexplored_points" in res.extra) == flag
     assert gains[True] > gains[False]
+
+
+def test_distinct_best_keeps_the_best_and_spreads_the_rest() -> None:
+    from agilegs.service.nbv.anchor.ascent import distinct_best
+    from agilegs.service.nbv.se3 import pose_distance
+
+    pool = capture_pool([0.0, 0.0, 0.0], 2.0, 24, seed=3, dtype=F64)
+    g = torch.Generator().manual_seed(0)
+    scores = torch.rand(24, generator=g, dtype=F64)
+    radius = 2.0
+    picked = distinct_best(pool, scores, 4, 0.8 * radius, radius).tolist()
+    assert picked[0] == int(scores.argmax())
+    assert 2 <= len(picked) <= 4
+    for a in range(len(picked)):
+        for b in range(a):
+            assert float(pose_distance(pool[picked[a]], pool[picked[b]], radius)) >= 0.8 * radius
+    # each pick is the best of those far enough from the picks before it
+    for k in range(1, len(picked)):
+        far = [i for i in range(24) if all(
+            float(pose_distance(pool[i], pool[j], radius)) >= 0.8 * radius for j in picked[:k])]
+        assert picked[k] == max(far, key=lambda i: float(scores[i]))
+    # no separation: the plain top-k
+    assert distinct_best(pool, scores, 3, 0.0, radius).tolist() == (
+        torch.topk(scores, 3).indices.tolist())
+
+
+def test_several_anchors_come_from_distinct_modes_and_span_the_shortlist() -> None:
+    from agilegs.service.nbv.se3 import pose_distance
+    from agilegs.service.nbv.selectors import SelectConfig, select
+
+    gmap = _blob(300)
+    lam = 1e-3
+    pool = capture_pool([0.0, 0.0, 0.0], 2.0, 30, seed=0, dtype=F64)
+    acq = pool[[0, 10]]
+    cands = pool[[i for i in range(30) if i not in (0, 10)]]
+    h = _h_acc(gmap, acq, lam)
+    one = SelectConfig(anchor=AnchorConfig(anchors=1, num_starts=4))
+    three = SelectConfig(anchor=AnchorConfig(anchors=3, num_starts=4))
+    res = optimize_anchor(gmap, h, cands, INTR, config=three.anchor, acquired=acq, lam=lam,
+                          generator=torch.Generator().manual_seed(0))
+    assert res.modes is not None and 2 <= res.modes.shape[0] <= 3
+    torch.testing.assert_close(res.modes[0], res.c2w)
+    assert res.mode_psi == sorted(res.mode_psi, reverse=True)
+    assert res.mode_psi[0] == res.psi
+    radius = float((cands[:, :3, 3]).norm(dim=1).median())
+    for a in range(1, res.modes.shape[0]):
+        d = pose_distance(res.modes[:a], res.modes[a].expand(a, 4, 4), radius)
+        assert float(d.min()) >= 0.5 * radius * (1 - 1e-6)
+    s1 = select("agile", gmap, h, cands, INTR, config=one, acquired=acq, lam=lam)
+    s3 = select("agile", gmap, h, cands, INTR, config=three, acquired=acq, lam=lam)
+    assert s3.details["anchor_modes"] >= 2 and "anchor_modes" not in s1.details
+    # the coverage matrix spans every anchor's support samples
+    assert s3.details["support_samples"] > s1.details["support_samples"]
+    assert len(s3.shortlist) == len(s1.shortlist) == 10

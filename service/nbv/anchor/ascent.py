@@ -28,7 +28,7 @@ from ..camera import Camera, Intrinsics
 from ..candidates import pool_radius, scene_center_radius
 from ..gaussians import FIELD_NAMES, GaussianMap
 from ..information import fisher_diag, trace_surrogate
-from ..se3 import project_to_se3, se3_exp
+from ..se3 import pose_distance, project_to_se3, se3_exp
 from .envelope import PoolEnvelope
 from .fitting import (
     directional_rates,
@@ -40,7 +40,7 @@ from .proxy import ProxyPsi, pick_occluders
 from .unexplored import unexplored_space
 from .visibility import OpacityMaps
 
-__all__ = ["AnchorResult", "ascend", "exact_psi_fn", "optimize_anchor"]
+__all__ = ["AnchorResult", "ascend", "distinct_best", "exact_psi_fn", "optimize_anchor"]
 
 
 @dataclass
@@ -56,6 +56,9 @@ class AnchorResult:
         evaluations: psi evaluations (batched proxy calls count once per pose).
         pool_psi: the proxy psi of every pool candidate scored for the starts [D] (None for
             the exact psi without a proxy).
+        modes: the anchors of distinct modes [M, 4, 4], best first (``c2w`` first; only it
+            unless ``config.anchors`` > 1).
+        mode_psi: psi at each of ``modes``.
         extra: diagnostics (typical Fisher used, timings).
     """
 
@@ -66,6 +69,8 @@ class AnchorResult:
     starts: Tensor
     evaluations: int
     pool_psi: Tensor | None = None
+    modes: Tensor | None = None
+    mode_psi: list[float] = field(default_factory=list)
     extra: dict[str, Any] = field(default_factory=dict)
 
 
@@ -289,7 +294,11 @@ def optimize_anchor(
         pool = candidates.detach().to(dt)
         pool_psi = proxy(envelope.project(pool) if envelope is not None else pool)
     k = min(config.num_starts, pool.shape[0])
-    best = torch.topk(pool_psi, k).indices
+    separation = config.mode_separation * radius
+    if config.anchors > 1:
+        best = distinct_best(pool, pool_psi, k, separation, radius)
+    else:
+        best = torch.topk(pool_psi, k).indices
     starts = pool[best]
     if config.warm_start and warm_c2w is not None:
         starts = torch.cat([starts, warm_c2w.detach().to(dt).reshape(1, 4, 4)])
@@ -307,6 +316,7 @@ def optimize_anchor(
             exact, starts, config=config, envelope=envelope, radius=radius, batched=False
         )
     win = int(torch.argmax(vals))
+    modes = distinct_best(poses, vals, config.anchors, separation, radius)
     timings["ascent"] = time.perf_counter() - t0 - timings["proxy_build"] - timings["starts"]
     extra["timings_s"] = timings
     extra["start_indices"] = [int(i) for i in best]
@@ -319,8 +329,29 @@ def optimize_anchor(
         starts=starts,
         evaluations=evals,
         pool_psi=pool_psi.detach(),
+        modes=poses[modes].detach(),
+        mode_psi=[float(vals[i]) for i in modes],
         extra=extra,
     )
+
+
+def distinct_best(poses: Tensor, scores: Tensor, k: int, separation: float,
+                  radius: float) -> Tensor:
+    """Up to ``k`` indices of poses [P, 4, 4], best ``scores`` [P] first, each at least
+    ``separation`` (world units) from those before it under the SE(3) distance with
+    ``radius`` world units per radian (greedy non-maximum suppression; the best is always
+    first)."""
+    order = torch.sort(scores.detach(), descending=True, stable=True).indices
+    chosen: list[int] = []
+    for i in order.tolist():
+        if len(chosen) >= k:
+            break
+        if chosen:
+            d = pose_distance(poses[chosen], poses[i].expand(len(chosen), 4, 4), radius)
+            if float(d.min()) < separation:
+                continue
+        chosen.append(i)
+    return torch.tensor(chosen, dtype=torch.long, device=poses.device)
 
 
 def exact_psi_fn(
