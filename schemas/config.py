@@ -164,7 +164,7 @@ class AnchorConfig:
         "the view's information, fitted to Hhat) or 'exact' (the trace surrogate through the "
         "exact Fisher of a render at T)")
     model: Literal["fitted", "directional", "typical"] = Field(
-        default="fitted",
+        default="directional",
         description="the proxy's observation model: 'fitted' (a Gaussian's gain from a view "
         "is log(1 + a_i w_i(T)), a_i fitted to Hhat over the acquired views), 'directional' "
         "(per parameter slot, log(1 + a_iq w_i(T) f_q(T)) with f_q the slot's direction "
@@ -178,7 +178,7 @@ class AnchorConfig:
         "if a quarter of a typical view had seen them) or 'prior' (the seen Gaussians' "
         "median information per unit of footprint against their own Hhat, as the exact EIG)")
     unexplored: Bool = Field(
-        default=False,
+        default=True,
         description="the fitted and directional models also count the unexplored part of "
         "the map's extent (grid points no acquired view saw in front of the map's surfaces) "
         "as never-observed Gaussians, at the map's density")
@@ -186,7 +186,7 @@ class AnchorConfig:
                                 BeforeValidator(integral)] = Field(
         default=16, description="grid points per axis of the unexplored space")
     anchors: Annotated[int, Strict(), Field(ge=1, le=8), BeforeValidator(integral)] = Field(
-        default=1,
+        default=3,
         description="anchors kept from distinct modes of psi (the ascents' end points, best "
         "first, each at least mode_separation from the better ones); with more than one, the "
         "starts are spread the same way and the shortlist is drawn across every anchor's "
@@ -349,13 +349,14 @@ class SelectConfig:
 
 PRESETS: dict[str, dict[str, Any]] = {
     "paper": {
-        "anchor": {"psi": "exact"},
+        "anchor": {"psi": "exact", "anchors": 1, "model": "fitted", "unexplored": False},
         "scoring": {"condition_on_acquired": False},
     },
 }
-"""Named SelectConfig patches. ``paper``: AGILE-GS as the paper states it: the anchor
-ascends the trace surrogate of the exact Fisher rendered at T (through the rasterizer), and
-the leverage greedy starts from lambda_G I."""
+"""Named SelectConfig patches. ``paper``: AGILE-GS as the paper states it: one anchor, which
+ascends the trace surrogate of the exact Fisher rendered at T (through the rasterizer; its
+starts are the pool's best under the isotropic fitted proxy), and the leverage greedy starts
+from lambda_G I."""
 
 
 def preset_config(name: str, **overrides: Any) -> SelectConfig:

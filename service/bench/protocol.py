@@ -157,6 +157,8 @@ def fingerprint(scene: BenchScene, variant: Variant, seed: int, profile: Profile
         {
             "scene": scene.source,
             "variant": asdict(variant),
+            # the settings it selects with: a changed default is another run
+            "config": asdict(variant.config()),
             "seed": seed,
             "profile": profile.describe(),
             "embodied_k": embodied_k,

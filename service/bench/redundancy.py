@@ -24,7 +24,13 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["angles_to_nearest", "pool_directions", "run_redundancy", "summarise_redundancy"]
+__all__ = [
+    "angles_to_nearest",
+    "pool_directions",
+    "redundancy_table",
+    "run_redundancy",
+    "summarise_redundancy",
+]
 
 
 def pool_directions(centres: np.ndarray, origin: np.ndarray) -> np.ndarray:
@@ -101,3 +107,30 @@ def summarise_redundancy(records: Sequence[Mapping[str, Any]]) -> dict[str, floa
     per = [p for p in per if p is not None]
     keys = ("pick_angle_mean_deg", "anchor_angle_mean_deg", "psi_ratio_mean", "final_gap_deg")
     return {k: _mean([p.get(k) for p in per]) for k in keys}
+
+
+def redundancy_table(rows: Sequence[tuple[str, Mapping[str, float | None]]]) -> list[str]:
+    """The markdown section of ``table.md``: one row per (method name, its
+    :func:`summarise_redundancy` figures)."""
+
+    def num(v: float | None, digits: int) -> str:
+        return "–" if v is None else f"{v:.{digits}f}"
+
+    out = [
+        "## Redundancy with the acquired views",
+        "",
+        "Angles seen from the centre of the pool, in degrees, means over events, runs and "
+        "scenes: from each pick (and each anchor) to the nearest view acquired before it, and "
+        "at the end from every view left in the pool to the nearest acquired one (the gap "
+        "the run leaves); ψ(anchor) / ψ(best candidate): the anchor's ψ over the best "
+        "eligible candidate's, of the function the anchor ascends.",
+        "",
+        "| Method | pick → nearest acquired (°) | anchor → nearest acquired (°) | "
+        "final pool gap (°) | ψ(anchor) / ψ(best candidate) |",
+        "|---|---|---|---|---|",
+    ]
+    for name, r in rows:
+        out.append(f"| {name} | {num(r.get('pick_angle_mean_deg'), 1)} | "
+                   f"{num(r.get('anchor_angle_mean_deg'), 1)} | "
+                   f"{num(r.get('final_gap_deg'), 1)} | {num(r.get('psi_ratio_mean'), 2)} |")
+    return out + [""]

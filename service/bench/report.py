@@ -43,7 +43,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
 from agilegs.service.bench.profiles import RESULTS_FORMAT
-from agilegs.service.bench.redundancy import summarise_redundancy
+from agilegs.service.bench.redundancy import redundancy_table, summarise_redundancy
 from agilegs.service.bench.scenes import BenchScene
 from agilegs.service.bench.variants import SHORTLIST_DISPLAY, display_name
 
@@ -315,7 +315,8 @@ def render_table(results: Mapping[str, Any]) -> str:
         lines += _main_table(results, scenes, keys)
         lines += _latency_table(results, keys)
         lines += _trajectory_table(results, keys, emb)
-        lines += _redundancy_table(results, keys)
+        lines += redundancy_table(
+            [(_display(k), results["summary"][k].get("redundancy") or {}) for k in keys])
         lines += _paired_table(results, keys)
         lines += _paired_by_table(results, keys)
     # the ablations' reference rows (the paper's settings) are the main agile / agile_plus runs
@@ -506,28 +507,6 @@ def _trajectory_table(results: Mapping[str, Any], keys: list[str], emb: int | No
         a = results["summary"][k]
         rows.append(f"| {_display(k)} | {_num(a['path_length_mean'], 3)} | "
                     f"{_num(a['mean_index_jump_mean'], 2)} |")
-    return rows + [""]
-
-
-def _redundancy_table(results: Mapping[str, Any], keys: list[str]) -> list[str]:
-    rows = [
-        "## Redundancy with the acquired views",
-        "",
-        "Angles seen from the centre of the pool, in degrees, means over events, runs and "
-        "scenes: from each pick (and each anchor) to the nearest view acquired before it, and "
-        "at the end from every view left in the pool to the nearest acquired one (the gap "
-        "the run leaves); ψ(anchor) / ψ(best candidate): the anchor's ψ over the best "
-        "eligible candidate's, of the function the anchor ascends.",
-        "",
-        "| Method | pick → nearest acquired (°) | anchor → nearest acquired (°) | "
-        "final pool gap (°) | ψ(anchor) / ψ(best candidate) |",
-        "|---|---|---|---|---|",
-    ]
-    for k in keys:
-        r = results["summary"][k].get("redundancy") or {}
-        rows.append(f"| {_display(k)} | {_num(r.get('pick_angle_mean_deg'), 1)} | "
-                    f"{_num(r.get('anchor_angle_mean_deg'), 1)} | "
-                    f"{_num(r.get('final_gap_deg'), 1)} | {_num(r.get('psi_ratio_mean'), 2)} |")
     return rows + [""]
 
 
