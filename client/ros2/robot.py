@@ -20,6 +20,7 @@ from __future__ import annotations
 import itertools
 import json
 import os
+import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -58,15 +59,18 @@ class Ros2Robot:
         world_frame: the ``header.frame_id`` of the poses published.
         camera_frame: the frame the camera poses are of (its name sets its axes).
         timeout: seconds a service call may take.
+        wait: seconds the first message on a topic (or call of a service) waits for agilegs
+            to be reachable on its key, as a ROS 2 publisher waits for its subscriber.
     """
 
     def __init__(self, namespace: str, connect: Sequence[str] = (), *, session: Any = None,
                  world_frame: str = "map", camera_frame: str = "camera_optical_frame",
-                 timeout: float = 120.0) -> None:
+                 timeout: float = 120.0, wait: float = 10.0) -> None:
         self.ns = Namespace(namespace)
         self.world_frame = world_frame
         self.camera_frame = camera_frame
         self.timeout = timeout
+        self.wait = wait
         self._own = session is None
         if session is None:
             from agilegs.client.zenoh_rpc import open_session
@@ -75,12 +79,14 @@ class Ros2Robot:
         self.session = session
         self._seq = itertools.count(1)
         self._subs: list[Any] = []
+        self._declared: dict[str, Any] = {}
         self.token = ""
 
     def close(self) -> None:
-        for sub in self._subs:
-            sub.undeclare()
+        for entity in [*self._subs, *self._declared.values()]:
+            entity.undeclare()
         self._subs.clear()
+        self._declared.clear()
         if self._own:
             self.session.close()
 
@@ -96,7 +102,7 @@ class Ros2Robot:
         publication: the CDR bytes alone)."""
         if leaf not in INPUT_TOPICS:
             raise ValueError(f"{leaf!r} is no topic agilegs subscribes to")
-        self.session.put(self.ns.key(leaf), payload)
+        self._entity(leaf).put(payload)
 
     def publish(self, leaf: str, message: Any) -> None:
         """Publish ``message`` (of the topic's type) on ``leaf`` as CDR."""
@@ -108,12 +114,30 @@ class Ros2Robot:
         if leaf not in SERVICES:
             raise ValueError(f"{leaf!r} is no agilegs service")
         attachment = request_header_attachment(_CLIENT_GUID, next(self._seq))
-        for reply in self.session.get(self.ns.key(leaf), payload=payload,
-                                      attachment=attachment, timeout=self.timeout):
+        for reply in self._entity(leaf).get(payload=payload, attachment=attachment):
             if reply.ok is not None:
                 return bytes(reply.ok.payload.to_bytes())
             raise RuntimeError(f"{leaf}: error reply {reply.err.payload.to_bytes()!r}")
         raise TimeoutError(f"{leaf}: no reply within {self.timeout} s")
+
+    def _entity(self, leaf: str) -> Any:
+        """The publisher (topic) or querier (service) of ``leaf``, declared on first use and
+        given up to ``wait`` seconds to match agilegs' subscriber or queryable."""
+        import zenoh
+
+        entity = self._declared.get(leaf)
+        if entity is None:
+            key = self.ns.key(leaf)
+            if leaf in SERVICES:
+                entity = self.session.declare_querier(key, timeout=self.timeout)
+            else:
+                entity = self.session.declare_publisher(
+                    key, congestion_control=zenoh.CongestionControl.BLOCK)
+            self._declared[leaf] = entity
+            deadline = time.monotonic() + self.wait
+            while not entity.matching_status.matching and time.monotonic() < deadline:
+                time.sleep(0.01)
+        return entity
 
     def call(self, leaf: str, **fields: Any) -> Any:
         """Call the service ``leaf`` with ``fields`` (the rest take their zero values) and

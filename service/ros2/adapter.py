@@ -205,13 +205,13 @@ class Ros2Adapter:
             part = (image_to_rgb(message, "image") if leaf == "image" else
                     depth_to_array(message, "depth") if leaf == "depth" else
                     pose_part(message, binding))
-            frame, dropped = space.frames.add(leaf, m.stamp_ns(stamp), part)
+            frames, dropped = space.frames.add(leaf, m.stamp_ns(stamp), part)
             for d in dropped:
                 self._refuse(space, ServiceError(
                     422, ErrorCode.INVALID, f"the frame stamped {d.stamp_ns} ns was dropped "
-                    f"incomplete: no {' and no '.join(d.missing)} arrived with its stamp",
+                    f"incomplete: no {' and no '.join(d.missing)} arrived for it",
                     d.missing[0]), "add_observations", leaf, m.stamp_msg(d.stamp_ns, ns=True))
-            if frame is not None:
+            for frame in frames:
                 stamp = m.stamp_msg(frame.stamp_ns, ns=True)
                 body = frame_body(frame.image, frame.camera_pose, frame.depth,
                                   space.intrinsics)

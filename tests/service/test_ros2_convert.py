@@ -30,7 +30,7 @@ from agilegs.schemas.models import (
     SelectResponse,
     SessionCreate,
 )
-from agilegs.service.ros2.assembler import FrameAssembler
+from agilegs.service.ros2.assembler import DEPTH_SYNC_NS, FrameAssembler
 from agilegs.service.ros2.convert import (
     Binding,
     create_body,
@@ -173,21 +173,31 @@ def test_a_decision_as_messages() -> None:
 
 def test_frames_pair_by_stamp_in_any_order() -> None:
     fa = FrameAssembler(expect_depth=True)
-    assert fa.add("camera_pose", 2, "p2") == (None, [])
-    assert fa.add("image", 1, "i1") == (None, [])
-    assert fa.add("depth", 2, "d2") == (None, [])
-    done, dropped = fa.add("image", 2, "i2")
-    assert done is not None and (done.image, done.depth, done.camera_pose) == ("i2", "d2", "p2")
-    assert fa.add("depth", 2, "late") == (None, [])  # its frame is complete: ignored
-    assert 2 not in fa.pending and 1 in fa.pending
+    assert fa.add("camera_pose", 2_000, "p2") == ([], [])
+    assert fa.add("image", 1_000, "i1") == ([], [])
+    assert fa.add("depth", 2_000, "d2") == ([], [])
+    (done,), dropped = fa.add("image", 2_000, "i2")
+    assert (done.image, done.depth, done.camera_pose) == ("i2", "d2", "p2") and not dropped
+    assert fa.add("image", 2_000, "again") == ([], [])  # its frame is complete: ignored
+    assert 2_000 not in fa.pending and 1_000 in fa.pending
+    # a depth image pairs with the image nearest in time, within DEPTH_SYNC_NS
+    fa.add("camera_pose", 1_000, "p1")
+    assert fa.add("depth", 1_000 + DEPTH_SYNC_NS + 1, "too late") == ([], [])
+    (done,), _ = fa.add("depth", 1_000 + DEPTH_SYNC_NS // 2, "d1")
+    assert (done.image, done.depth) == ("i1", "d1")
     no_depth = FrameAssembler(expect_depth=False)
-    no_depth.add("image", 5, "i")
-    done, _ = no_depth.add("camera_pose", 5, "p")
-    assert done is not None and done.depth is None
+    no_depth.add("depth", 5_000_001, "d")
+    no_depth.add("image", 5_000_000, "i")
+    (done,), _ = no_depth.add("camera_pose", 5_000_000, "p")
+    assert done.depth == "d"  # a depth that arrived in time joins the frame
+    no_depth.add("image", 9 * 10**9, "i")
+    (done,), _ = no_depth.add("camera_pose", 9 * 10**9, "p")
+    assert done.depth is None  # none came: the frame does not wait for one
     small = FrameAssembler(expect_depth=False, max_pending=2)
     small.add("image", 10, "a")
     small.add("image", 11, "b")
-    done, dropped = small.add("camera_pose", 12, "c")
-    assert done is None and [(d.stamp_ns, d.missing) for d in dropped] == [(10, ("camera_pose",))]
+    done_list, dropped = small.add("camera_pose", 12, "c")
+    assert not done_list and [(d.stamp_ns, d.missing) for d in dropped] == [
+        (10, ("camera_pose",))]
     with pytest.raises(ValueError):
         small.add("cmd_vel", 1, "x")
