@@ -1,9 +1,9 @@
 """The ROS 2 transport: agilegs' topics and services as zenoh-bridge-ros2dds carries them
 (CDR payloads on the keys of :mod:`agilegs.client.ros2.keys`), as glue over the gateway.
 
-Every namespace it serves has one worker thread that handles, in arrival order, the
-namespace's topic messages and service requests, so that a frame published before a
-``select`` request is applied before the selection. A message becomes a gateway
+Every namespace it serves has one worker thread that handles, in arrival order (the order
+Zenoh received them), the namespace's topic messages and service requests, so that a frame
+published before a ``select`` request is applied before the selection. A message becomes a gateway
 :class:`~agilegs.service.gateway.Request` (transport ``ros2``) with a body built by
 :mod:`.convert`: authentication, validation, errors, persistence, metrics and decision hooks
 are the ones of HTTP and Zenoh.
@@ -119,10 +119,11 @@ class Ros2Adapter:
             for space in self.spaces.values():
                 for leaf in INPUT_TOPICS:
                     self._declared.append(zsession.declare_subscriber(
-                        space.ns.key(leaf), self._on_sample(space, leaf)))
+                        space.ns.key(leaf), _direct(self._on_sample(space, leaf))))
                 for leaf in SERVICES:
                     self._declared.append(zsession.declare_queryable(
-                        space.ns.key(leaf), self._on_query(space, leaf), complete=True))
+                        space.ns.key(leaf), _direct(self._on_query(space, leaf)),
+                        complete=True))
         except Exception:
             self._undeclare()
             raise
@@ -392,6 +393,18 @@ _TOPIC_OPS = {"camera_info": "camera_info", "candidates": "set_pool",
 """The operation a refused topic message is counted under."""
 _SERVICE_OPS = {"create_session": "create_session", "open_session": "get_session",
                 "select": "select"}
+
+
+def _direct(callback: Callable[[Any], None]) -> Any:
+    """``callback`` run on Zenoh's receiving thread, in the order the messages came (a plain
+    Python callback gets a thread of its own per subscriber or queryable, and the order
+    across them is lost); it only queues the message."""
+    import zenoh
+
+    try:
+        return zenoh.handlers.Callback(callback, indirect=False)
+    except TypeError:  # a zenoh without the option
+        return callback
 
 
 def _cdr() -> Any:
