@@ -21,6 +21,7 @@ from agilegs.client.ros2.bag import (
 )
 from agilegs.client.ros2.frames import matrix_to_pose_msg
 from agilegs.schemas import ObservationIn
+from agilegs.schemas.geometry import quaternion_xyzw_to_matrix
 
 K = {"fx": 20.0, "fy": 21.0, "cx": 8.0, "cy": 6.5, "width": 16, "height": 12}
 
@@ -163,3 +164,46 @@ def test_topics_parse_and_name_what_is_wrong(tmp_path: Path) -> None:
     assert read_bag(bag, BagTopics(depth="none"))[0].depth is None
     with pytest.raises(FileNotFoundError):
         read_bag(tmp_path)
+
+
+def test_a_tf_chain_is_composed_and_interpolated_at_the_image_stamp(tmp_path: Path) -> None:
+    """world -> base (dynamic: yaw 0 at t0, 90 deg at t1, moving along x) -> camera_link
+    (static offset) -> camera_color_optical_frame (static optical rotation); an image halfway
+    between t0 and t1 has the pose of yaw 45 deg, halfway along x, through the chain."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from agilegs.client.ros2.bag import _tf_msg
+    from agilegs.client.ros2.frames import R_BODY_OPTICAL, camera_info_msg, rgb_image_msg
+
+    def yaw(deg: float) -> np.ndarray:
+        a = math.radians(deg) / 2
+        return np.array([0.0, 0.0, math.sin(a), math.cos(a)])
+
+    t0, t1 = 10**9, 10**9 + 400_000_000  # closer than max_gap_s
+    mid = (t0 + t1) // 2
+    cam = "camera_color_optical_frame"
+    store = m.typestore()
+    bag = tmp_path / "chain"
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        tf = w.add_connection("/tf", m.TF_MESSAGE, typestore=store)
+        static = w.add_connection("/tf_static", m.TF_MESSAGE, typestore=store)
+        img = w.add_connection("/cam/color/image_raw", m.IMAGE, typestore=store)
+        info = w.add_connection("/cam/color/camera_info", m.CAMERA_INFO, typestore=store)
+        w.write(static, 0, m.serialize(_tf_msg([
+            ("base", "camera_link", np.array([0.0, 0.5, 0.0]), yaw(0), 0),
+            ("camera_link", cam, np.zeros(3), np.array([-0.5, 0.5, -0.5, 0.5]), 0)])))
+        for t, x, deg in ((t0, 0.0, 0.0), (t1, 2.0, 90.0)):
+            w.write(tf, t, m.serialize(_tf_msg([("world", "base", np.array([x, 0.0, 0.0]),
+                                                 yaw(deg), t)])))
+        stamp = m.stamp_msg(mid, ns=True)
+        w.write(info, mid, m.serialize(camera_info_msg(K, frame_id=cam, stamp=stamp)))
+        w.write(img, mid, m.serialize(rgb_image_msg(np.zeros((12, 16, 3), np.uint8),
+                                                    frame_id=cam, stamp=stamp)))
+    (frame,) = read_bag(bag)
+    r45 = quaternion_xyzw_to_matrix(yaw(45))
+    want = np.eye(4)
+    want[:3, :3] = r45 @ R_BODY_OPTICAL
+    want[:3, 3] = np.array([1.0, 0.0, 0.0]) + r45 @ [0.0, 0.5, 0.0]
+    np.testing.assert_allclose(frame.c2w, want, atol=1e-12)
+    assert read_bag(bag, BagTopics(world_frame="base"))[0].c2w[0, 3] == pytest.approx(0.0)
+    assert read_bag(bag, BagTopics(world_frame="odom")) == []  # a frame it never reaches
