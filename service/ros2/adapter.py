@@ -272,15 +272,13 @@ class Ros2Adapter:
             query.drop()
 
     def _create(self, space: _Space, req: Any, t0: float) -> Any:
-        binding = Binding.of(req, "")  # checks nothing yet: the frames are names
         body = create_body(req, space.camera)
         reply = self._handle("create_session", None, body, t0, authenticated=True)
         if not reply.ok:
             return self._refusal(space, "create_session", reply)
         assert isinstance(reply.model, SessionInfo)
         sid = reply.model.id
-        space.bind(Binding(sid, binding.world_frame, binding.camera_frame,
-                           binding.expect_depth))
+        space.bind(Binding.of(req, sid))
         return m.msg(m.response_type(m.CREATE_SESSION), status=self._status(reply, sid),
                      session=sid)
 
