@@ -96,33 +96,28 @@ def test_a_body_frame_pose_topic_is_rotated(tmp_path: Path) -> None:
     _check(read_bag(bag), frames)
 
 
-def test_tf_is_interpolated_between_poses(tmp_path: Path) -> None:
+def test_a_pose_track_interpolates_between_samples() -> None:
     frames = _frames(3, None)
-    bag = write_bag(tmp_path / "bag", frames, poses="tf")
-    # a second bag whose image sits halfway between two TF stamps
-    mid = BagFrame(stamp_ns=(frames[0].stamp_ns + frames[1].stamp_ns) // 2, rgb=frames[0].rgb,
-                   intrinsics=dict(K), c2w=np.eye(4))
-    got = read_bag(bag)
-    assert len(got) == 3
     from agilegs.client.ros2.bag import _Track
 
     track = _Track()
     for f in frames:
-        body = matrix_to_pose_msg(f.c2w, "optical")
-        track.add(f.stamp_ns, np.array([body.position.x, body.position.y, body.position.z]),
-                  np.array([body.orientation.x, body.orientation.y, body.orientation.z,
-                            body.orientation.w]))
-    p, q = track.at(mid.stamp_ns, 10**9)  # type: ignore[misc]
+        pose = matrix_to_pose_msg(f.c2w, "optical")
+        track.add(f.stamp_ns, np.array([pose.position.x, pose.position.y, pose.position.z]),
+                  np.array([pose.orientation.x, pose.orientation.y, pose.orientation.z,
+                            pose.orientation.w]))
+    mid = (frames[0].stamp_ns + frames[1].stamp_ns) // 2
+    p, q = track.at(mid, 10**9)  # type: ignore[misc]
     np.testing.assert_allclose(p, (frames[0].c2w[:3, 3] + frames[1].c2w[:3, 3]) / 2,
                                atol=1e-12)
     # halfway in rotation: the angle to either end is the same
-    q0 = track.samples[0][1]
-    q1 = track.samples[1][1]
+    q0, q1 = track.samples[0][1], track.samples[1][1]
     a0 = 2 * math.acos(min(1.0, abs(float(np.dot(q, q0)))))
     a1 = 2 * math.acos(min(1.0, abs(float(np.dot(q, q1)))))
     assert a0 == pytest.approx(a1, abs=1e-9) and a0 > 0
+    assert track.at(frames[1].stamp_ns, 10) is track.samples[1]  # a sample: exactly it
     assert track.at(frames[0].stamp_ns - 1, 10**9) is None  # before the first pose
-    assert track.at(mid.stamp_ns, 10) is None  # a gap over max_gap
+    assert track.at(mid, 10) is None  # a gap over max_gap
 
 
 def test_frames_without_a_pose_are_left_out(tmp_path: Path) -> None:
