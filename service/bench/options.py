@@ -21,7 +21,7 @@ __all__ = [
     "add_value_arguments",
 ]
 
-PROFILE_NAMES = ("cpu", "paper", "tiny")
+PROFILE_NAMES = ("cpu", "cpu_long", "paper", "tiny")
 """The profiles of :data:`agilegs.service.bench.profiles.PROFILES`."""
 
 DEFAULT_CONFIGS = ("default", "typical", "unconditioned", "point_zbuffer", "mixed_zbuffer")
@@ -29,7 +29,8 @@ DEFAULT_CONFIGS = ("default", "typical", "unconditioned", "point_zbuffer", "mixe
 
 _PROFILE_HELP = {
     "run": "paper: 10 initial views, +1 per 200 steps, 30K steps (GPU); cpu: 64x64, pool 180, "
-           "4 initial, +1 per 50 steps to 12 views, 500 steps; tiny: for tests",
+           "4 initial, +1 per 50 steps to 12 views, 500 steps; cpu_long: 96x96, the whole "
+           "ground truth, 10 initial, +1 per 50 steps to 40 views, 1800 steps; tiny: for tests",
     "other": "the protocol profile, as for bench run (default cpu)",
 }
 
@@ -69,8 +70,12 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     methods = ",".join(_methods())
     a = parser.add_argument
     a("--scene", action="append", required=True, metavar="PATH",
-      help="a ground-truth splat (.splat/.ply or its folder), a transforms.json image set or "
-           "a COLMAP model folder; repeat for several scenes")
+      help="a ground-truth splat (.splat/.ply or its folder), a transforms.json image set, a "
+           "COLMAP model folder or a rosbag2 (a folder with metadata.yaml, or an .mcap file); "
+           "repeat for several scenes")
+    a("--bag-topics", default="", metavar="SPEC",
+      help="the topics of rosbag2 scenes, e.g. image=/cam/color/image_raw,depth=none,pose=tf,"
+           "world=map (default: found by type; see docs/ros2.md)")
     a("--methods", default=methods,
       help=f"comma-separated methods ({methods}) or variants (method@option, see "
            "agilegs.service.bench.variants)")

@@ -32,6 +32,8 @@ from rich.progress import (
 )
 from torch import Tensor
 
+from agilegs.client.ros2.bag import BagTopics
+
 from . import plots, report
 from .options import add_run_arguments as add_arguments
 from .profiles import resolve_profile
@@ -124,9 +126,13 @@ def run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
     scenes: dict[str, BenchScene] = {}
+    try:
+        bag_topics = BagTopics.parse(args.bag_topics) if args.bag_topics else None
+    except ValueError as exc:
+        raise SystemExit(f"--bag-topics: {exc}") from None
     for path in args.scene:
         try:
-            sc = load_bench_scene(path, profile.scene)
+            sc = load_bench_scene(path, profile.scene, bag_topics=bag_topics)
         except (FileNotFoundError, ValueError) as exc:
             raise SystemExit(f"--scene {path}: {exc}") from None
         if sc.name in scenes:

@@ -104,6 +104,18 @@ HOW: dict[tuple[str, str], How] = {
     ("docs/deploy.md", "AGILEGS_TOKEN=$(openssl rand -hex 32) docker compose -f "
      "deploy/compose.yaml up -d --build"):
         How("skip", "needs a Docker daemon (the compose file: tests/e2e/test_deploy_files.py)"),
+    ("docs/ros2.md", "agilegs serve --ros2 /bot1/agilegs --zenoh-connect tcp/robot:7447   # "
+     "the server; robot: its address"):
+        How("parse", "a server and the bridge on a robot, each running until stopped",
+            stand_ins=("zenoh-bridge-ros2dds",)),
+    ("docs/ros2.md", "from agilegs.client.ros2.robot import Ros2Robot"):
+        How("skip", "lines of a robot's own code (its poses, images, depth); the whole robot, "
+                    "deploy/ros2/play_robot.py, runs in tests/e2e/test_ros2.py"),
+    ("docs/ros2.md", "from agilegs.client import Client"):
+        How("skip", "reads the robot's own recording (capture.mcap); bags are written and read "
+                    "in tests/client/test_ros2_bag.py"),
+    ("docs/ros2.md", "agilegs bench service --pool 300"):
+        How("parse", "a benchmark of minutes (its small run: tests/e2e/test_bench_service.py)"),
     ("docs/benchmarks.md", "S=scenes"): BENCH,
     ("docs/benchmarks.md", "agilegs bench run --scene $S/plant --scene $S/boot --scene "
      "$S/koala --scene $S/floor \\"): BENCH,
