@@ -51,7 +51,7 @@ class Fuzz:
     timeout: float
 
 
-CI = Fuzz("examples,fuzzing,stateful", max_examples=15, scenarios=40, steps=12, min_cases=400,
+CI = Fuzz("examples,fuzzing,stateful", max_examples=15, scenarios=60, steps=12, min_cases=400,
           timeout=240)
 FULL = Fuzz("examples,coverage,fuzzing,stateful", max_examples=30, scenarios=80, steps=12,
             min_cases=1000, timeout=1500)
