@@ -84,6 +84,7 @@ def _functions(gm: Any, cam: Any) -> dict[str, Callable[[], Any]]:
     import torch
 
     from agilegs.service.bench.render_reference import baseline_fisher_diag, baseline_render
+    from agilegs.service.nbv.backend import Backend
     from agilegs.service.nbv.information import fisher_diag
     from agilegs.service.nbv.rasterize import render
 
@@ -91,7 +92,7 @@ def _functions(gm: Any, cam: Any) -> dict[str, Callable[[], Any]]:
         with torch.no_grad():
             render(gm, cam, backend="numba")
 
-    def fwd_bwd(backend: str) -> Callable[[], None]:
+    def fwd_bwd(backend: Backend) -> Callable[[], None]:
         def run() -> None:
             g = gm.clone().requires_grad_()
             render(g, cam, backend=backend).rgb.sum().backward()
