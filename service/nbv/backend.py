@@ -24,9 +24,13 @@ The choice: the ``backend=`` argument of :func:`~agilegs.service.nbv.rasterize.r
 ``numba`` or ``torch``); else ``"auto"``. Asking for ``"numba"`` where the kernels cannot run
 raises :class:`ValueError` saying why.
 
-Threads: each kernel runs in ``torch.get_num_threads()`` parts on as many Python threads
-(the kernels release the GIL), one kernel call at a time per process (a lock: the calls share
-scratch buffers).
+Threads: each kernel runs in parts on as many Python threads (the kernels release the GIL):
+:func:`set_kernel_threads`, else ``AGILEGS_KERNEL_THREADS``, else ``torch.get_num_threads()``
+parts. One kernel call at a time per process (a lock: the calls share scratch buffers).
+torch's own OpenMP threads busy-wait for a while after each parallel torch operation, and on
+a machine with few cores they then compete with the kernels' threads: with torch on one
+thread (``torch.set_num_threads(1)``) and the kernels on the cores, or with
+``OMP_WAIT_POLICY=PASSIVE`` in the environment, they do not.
 """
 
 from __future__ import annotations
@@ -72,6 +76,7 @@ __all__ = [
     "release_workspace",
     "resolve",
     "set_default_backend",
+    "set_kernel_threads",
 ]
 
 
@@ -156,8 +161,33 @@ def _np(t: Tensor) -> np.ndarray:
 _POOL: ThreadPoolExecutor | None = None
 
 
+THREADS_ENV_VAR = "AGILEGS_KERNEL_THREADS"
+_threads_default: int | None = None
+
+
+def set_kernel_threads(n: int | None) -> None:
+    """Run the kernels on ``n`` threads (None: back to ``AGILEGS_KERNEL_THREADS``, else
+    torch's thread count)."""
+    global _threads_default
+    if n is not None and (not isinstance(n, int) or isinstance(n, bool) or n < 1):
+        raise ValueError(f"threads must be an integer >= 1, got {n!r}")
+    _threads_default = n
+
+
 def _threads() -> int:
-    """The number of parts (threads) a kernel runs in: torch's thread count."""
+    """The number of parts (threads) a kernel runs in: :func:`set_kernel_threads`, else
+    ``AGILEGS_KERNEL_THREADS``, else torch's thread count."""
+    if _threads_default is not None:
+        return _threads_default
+    env = os.environ.get(THREADS_ENV_VAR, "").strip()
+    if env:
+        try:
+            n = int(env)
+        except ValueError:
+            n = 0
+        if n < 1:
+            raise ValueError(f"{THREADS_ENV_VAR} must be an integer >= 1, got {env!r}")
+        return n
     return max(1, torch.get_num_threads())
 
 
@@ -399,9 +429,10 @@ class _Tiles:
         [N, K] (the other rows are left as they are), or with ``compact`` row v of out
         [V, K] in depth order."""
         if self.num_visible:
-            target = np.arange(self.num_visible) if compact else self.order
-            _parallel(lambda part: k.reduce_entries(target, self.ent_off, self.ent, per_entry,
-                                                    part, nth, out), nth)
+            visit = np.arange(self.num_visible)
+            target = visit if compact else self.order
+            _parallel(lambda part: k.reduce_entries(visit, target, self.ent_off, self.ent,
+                                                    per_entry, part, nth, out), nth)
         return out
 
 

@@ -659,20 +659,23 @@ def bin_fill(order: np.ndarray, own: np.ndarray, offsets: np.ndarray, width: int
 
 
 @_jit
-def reduce_entries(target: np.ndarray, ent_off: np.ndarray, ent: np.ndarray,
-                   per_entry: np.ndarray, part: int, nchunks: int, out: np.ndarray) -> None:
+def reduce_entries(visit: np.ndarray, target: np.ndarray, ent_off: np.ndarray,
+                   ent: np.ndarray, per_entry: np.ndarray, part: int, nchunks: int,
+                   out: np.ndarray) -> None:
     """out[target[v]] = the sum of compact Gaussian v's entries' rows of per_entry [M, K]
-    (float64 sums); out [*, K] (rows not targeted are left as they are)."""
-    nv = ent_off.shape[0] - 1
+    (float64 sums), for v = visit[j] with j in this part's range; rows not targeted are left
+    as they are."""
+    nv = visit.shape[0]
     kk = per_entry.shape[1]
     acc = np.empty(kk)
     lo = part * nv // nchunks
     hi = (part + 1) * nv // nchunks
-    for v in range(lo, hi):
+    for j in range(lo, hi):
+        v = visit[j]
         for q in range(kk):
             acc[q] = 0.0
-        for j in range(ent_off[v], ent_off[v + 1]):
-            e = ent[j]
+        for jj in range(ent_off[v], ent_off[v + 1]):
+            e = ent[jj]
             for q in range(kk):
                 acc[q] += per_entry[e, q]
         g = target[v]
