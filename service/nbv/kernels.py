@@ -10,17 +10,19 @@ and :mod:`agilegs.service.nbv.information` exactly:
   colour max(0, 0.5 + Σ_k Y_k sh_k), opacity sigmoid(logit). Per-Gaussian arithmetic is float64;
   the outputs take the input dtype.
 - binning (:func:`bin_count`, :func:`visible_order`, :func:`bin_fill`): the visible
-  Gaussians sorted front to back (stable), each
-  listed in every tile of the clamped tile range its square [u - r, u + r] overlaps that also
-  meets the bounding box of its α ≥ 1/255 ellipse (pixels outside that box cannot pass the
-  1/255 test, so leaving those tiles out changes nothing). Lists hold *compact* indices into
-  the depth-sorted visible Gaussians.
+  Gaussians sorted front to back (stable), each listed in every tile of the clamped tile
+  range its square [u - r, u + r] overlaps that also meets the bounding box of its
+  α ≥ 1/255 ellipse (pixels outside that box cannot pass the 1/255 test, so leaving those
+  tiles out changes nothing). A list entry is a record of its Gaussian's screen attributes
+  and its box within the tile; entries refer to the depth-sorted visible ("compact")
+  Gaussians.
 - compositing (:func:`composite_forward`, :func:`composite_backward`, :func:`fisher_tiles`):
   per tile, per pixel front to back: σ = ½(a dx² + c dy²) + b dx dy and α = o·exp(-σ) in the
   input dtype (the torch path's per-pair arithmetic, so the same pairs pass), σ < 0 and
   α < 1/255 skipped, α clamped at 0.99, the transmittance T (float64) stops before the
-  Gaussian that would take it below 1e-4. The backward walks each pixel back to front from
-  its last composited Gaussian, recovering T_i = T_{i+1} / (1 - α_i) and the colour behind.
+  Gaussian that would take it below 1e-4. The forward can record each tile's composited
+  pairs; the backward walks them back to front, recovering T_i = T_{i+1} / (1 - α_i) and the
+  colour behind.
 - the Fisher's chain (:func:`fisher_chain`) and the projection's vector-Jacobian product
   (:func:`project_backward`) share one analytic per-Gaussian Jacobian (:func:`_gaussian`) of
   the screen attributes (mean2d, conic, opacity, colour) and depth w.r.t. the Gaussian's own
@@ -47,19 +49,19 @@ from numba import njit
 __all__ = [
     "CAM",
     "MOMENTS",
+    "PHI_INDEX",
     "REC",
     "bin_count",
     "bin_fill",
-    "PHI_INDEX",
-    "visible_order",
     "composite_backward",
     "composite_forward",
-    "reduce_entries",
     "fisher_chain",
     "fisher_tiles",
     "jacobians",
     "project",
     "project_backward",
+    "reduce_entries",
+    "visible_order",
 ]
 
 T_MIN = 1e-4

@@ -1,4 +1,8 @@
-"""A differentiable Gaussian rasterizer in pure torch (CPU and CUDA alike).
+"""A differentiable Gaussian rasterizer in pure torch (CPU and CUDA alike), and ``render``.
+
+On the CPU, :func:`render` hands the projection and the compositing to the compiled kernels
+(:mod:`agilegs.service.nbv.backend`, :mod:`agilegs.service.nbv.kernels`) wherever they apply;
+the pure-torch code below is their reference, and serves everything else.
 
 It follows the reference 3D Gaussian Splatting rasterizer (Kerbl et al. 2023). The
 Gaussians are projected by :mod:`agilegs.service.nbv.projection` (EWA, low-pass, culling, SH
