@@ -13,7 +13,9 @@ in interleaved rounds (the median of ``--repeats``):
   (``backend="torch"``), the kernels' reference and fallback.
 
 Times are process CPU time (what a shared machine inflates least) for the ratios, and wall
-time for the speed-up of more threads. ``first call`` is the kernels' first forward and
+time for the speed-up of more threads. The kernels run on ``n`` threads with torch itself on
+one (``set_kernel_threads``: torch's OpenMP threads would busy-wait on the cores the kernels
+need), the baselines on ``n`` torch threads. ``first call`` is the kernels' first forward and
 backward in a fresh process (the compiled code loaded from numba's cache, or compiled when
 the cache is cold). With ``--memory``, each computation's peak memory is measured in a fresh
 child of its own (peak RSS above the RSS after building the scene). The scene is ``--scene``
@@ -118,7 +120,14 @@ def _timings(scene: str | None, n: int, res: int, repeats: int, threads: list[in
     """Interleaved rounds of every (kind, thread count): median CPU and wall ms."""
     import torch
 
-    torch.set_num_threads(threads[0])
+    from agilegs.service.nbv.backend import set_kernel_threads
+
+    def use(kind: str, th: int) -> None:
+        kernels = kind in KERNEL_KINDS
+        torch.set_num_threads(1 if kernels else th)
+        set_kernel_threads(th if kernels else None)
+
+    use("fwd_bwd", threads[0])
     gm, cam = _build(scene, n, res)
     fns = _functions(gm, cam)
     t0 = time.perf_counter()
@@ -126,13 +135,13 @@ def _timings(scene: str | None, n: int, res: int, repeats: int, threads: list[in
     first_ms = (time.perf_counter() - t0) * 1e3
     plan = [(k, th) for k in kinds for th in (threads if k in KERNEL_KINDS else threads[:1])]
     for kind, th in plan:  # warm-up
-        torch.set_num_threads(th)
+        use(kind, th)
         fns[kind]()
     cpu: dict[tuple[str, int], list[float]] = {p: [] for p in plan}
     wall: dict[tuple[str, int], list[float]] = {p: [] for p in plan}
     for _ in range(repeats):
         for kind, th in plan:
-            torch.set_num_threads(th)
+            use(kind, th)
             c0, w0 = time.process_time(), time.perf_counter()
             fns[kind]()
             cpu[(kind, th)].append((time.process_time() - c0) * 1e3)
@@ -147,7 +156,10 @@ def _timings(scene: str | None, n: int, res: int, repeats: int, threads: list[in
 def _peak(scene: str | None, n: int, res: int, kind: str, threads: int) -> dict[str, float]:
     import torch
 
-    torch.set_num_threads(threads)
+    from agilegs.service.nbv.backend import set_kernel_threads
+
+    torch.set_num_threads(1 if kind in KERNEL_KINDS else threads)
+    set_kernel_threads(threads)
     gm, cam = _build(scene, n, res)
     base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     _functions(gm, cam)[kind]()
