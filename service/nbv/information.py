@@ -34,15 +34,10 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from agilegs.service.nbv.backend import (
-    Backend,
-    kernel_fisher,
-    kernel_jacobians,
-    kernel_moments,
-    resolve,
-)
+from agilegs.service.nbv.backend import Backend, resolve
 from agilegs.service.nbv.camera import Camera, Intrinsics
 from agilegs.service.nbv.gaussians import FIELD_NAMES, GaussianMap
+from agilegs.service.nbv.kernel_ops import kernel_fisher, kernel_jacobians, kernel_moments
 from agilegs.service.nbv.projection import Projected, project_map
 from agilegs.service.nbv.rasterize import (
     composite_pairs,

@@ -41,9 +41,10 @@ from typing import Any, Literal
 import torch
 from torch import Tensor
 
-from agilegs.service.nbv.backend import Backend, kernel_composite, kernel_project, resolve
+from agilegs.service.nbv.backend import Backend, resolve
 from agilegs.service.nbv.camera import Camera
 from agilegs.service.nbv.gaussians import GaussianMap
+from agilegs.service.nbv.kernel_ops import kernel_composite, kernel_project
 from agilegs.service.nbv.projection import Projected, project_map
 
 ALPHA_MIN = 1.0 / 255.0

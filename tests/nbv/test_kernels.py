@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -279,6 +280,16 @@ def test_reference_paths_stay_torch() -> None:
     assert torch.isfinite(g).all() and float(g.abs().max()) > 0
     with pytest.raises(ValueError, match="pose"):
         fisher_diag(gm, cam.with_pose(c2w), backend="numba")
+
+
+def test_workspace_reuses_and_aligns_its_buffers() -> None:
+    ws = backend._Workspace()
+    for n in (67, 55, 67, 300, 1, 299):  # smaller after larger, and a buffer grown in place
+        a = ws.take("x", (n, 3), np.float32, zero=True)
+        assert a.shape == (n, 3) and a.ctypes.data % 64 == 0 and float(np.abs(a).sum()) == 0.0
+        a.fill(1.0)
+    big = backend._Workspace(limit=1000).take("y", (1000,), np.float64)  # above the limit
+    assert big.shape == (1000,)
 
 
 def test_workspace_is_released() -> None:

@@ -24,6 +24,7 @@ import numpy as np
 
 from agilegs.service.bench.render_bench import _build
 from agilegs.service.nbv import backend as B
+from agilegs.service.nbv import kernel_ops as O
 from agilegs.service.nbv import kernels as K
 
 HERE = Path(__file__).resolve().parent
@@ -60,8 +61,8 @@ def main() -> None:
     res = args.size
     arrs = B._params(gm)
     camv = B._camera_vector(cam, gm.dtype, 0.01)
-    m2, con, z, radii, col, op, cov = B._project_np(K, arrs, camv, 1)
-    tiles = B._Tiles(m2, con, op, col, z, radii, cov, res, res, 8)
+    m2, con, z, radii, col, op, cov = O._project_np(K, arrs, camv, 1)
+    tiles = O._Tiles(m2, con, op, col, z, radii, cov, res, res, 8)
     hw = res * res
     n_tiles = tiles.offsets.shape[0] - 1
     rng = np.random.default_rng(0)

@@ -44,7 +44,7 @@ from torch import Tensor
 
 from agilegs.schemas.config import FISHERRF_FIELDS
 
-from ..backend import Backend, kernel_fisher, resolve
+from ..backend import Backend, resolve
 from ..camera import Camera
 from ..gaussians import GaussianMap
 from ..information import (
@@ -53,6 +53,7 @@ from ..information import (
     projection_jacobians,
     screen_second_moments,
 )
+from ..kernel_ops import kernel_fisher
 from ..rasterize import render
 from .base import MethodResult, SelectionContext, register, timed
 from .common import argmax_first
