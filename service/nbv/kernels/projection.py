@@ -321,6 +321,14 @@ def _gaussian(i: int, means: np.ndarray, log_scales: np.ndarray, quats: np.ndarr
 
 
 @_jit
+def _scratch(nk: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One thread's scratch for :func:`_gaussian`: fwd [FWD], jac [10, 11] (zeroed once: only
+    its structurally non-zero entries are written), basis [K], dbasis [K, 3]."""
+    k = max(nk, 1)
+    return np.empty(FWD), np.zeros((10, 11)), np.empty(k), np.empty((k, 3))
+
+
+@_jit
 def project(means: np.ndarray, log_scales: np.ndarray, quats: np.ndarray, logits: np.ndarray,
             sh: np.ndarray, cam: np.ndarray, part: int, nchunks: int, means2d: np.ndarray,
             conics: np.ndarray, depths: np.ndarray, radii: np.ndarray, colors: np.ndarray,
@@ -329,10 +337,7 @@ def project(means: np.ndarray, log_scales: np.ndarray, quats: np.ndarray, logits
     [N], [N] int64, [N, 3], [N], [N, 3])."""
     n = means.shape[0]
     nk = sh.shape[1]
-    fwd = np.empty(FWD)
-    jac = np.zeros((10, 11))
-    basis = np.empty(max(nk, 1))
-    dbasis = np.empty((max(nk, 1), 3))
+    fwd, jac, basis, dbasis = _scratch(nk)
     lo = part * n // nchunks
     hi = (part + 1) * n // nchunks
     for i in range(lo, hi):
@@ -363,10 +368,7 @@ def project_backward(means: np.ndarray, log_scales: np.ndarray, quats: np.ndarra
     (every output array zero-initialised by the caller)."""
     n = means.shape[0]
     nk = sh.shape[1]
-    fwd = np.empty(FWD)
-    jac = np.zeros((10, 11))
-    basis = np.empty(max(nk, 1))
-    dbasis = np.empty((max(nk, 1), 3))
+    fwd, jac, basis, dbasis = _scratch(nk)
     lo = part * n // nchunks
     hi = (part + 1) * n // nchunks
     for i in range(lo, hi):
@@ -404,8 +406,7 @@ def jacobians(means: np.ndarray, log_scales: np.ndarray, quats: np.ndarray, logi
     colour masks [N, 3]."""
     n = means.shape[0]
     nk = sh.shape[1]
-    fwd = np.empty(FWD)
-    dbasis = np.empty((max(nk, 1), 3))
+    fwd, _, _, dbasis = _scratch(nk)
     lo = part * n // nchunks
     hi = (part + 1) * n // nchunks
     for i in range(lo, hi):
@@ -450,10 +451,7 @@ def fisher_chain(order: np.ndarray, moments: np.ndarray, means: np.ndarray, log_
     n = idx.shape[0]
     blocks = ((JAC_MEANS if want[0] else 0) | (JAC_SCALES if want[1] else 0)
               | (JAC_QUATS if want[2] else 0))
-    fwd = np.empty(FWD)
-    jac = np.zeros((10, 11))
-    basis = np.empty(max(nk, 1))
-    dbasis = np.empty((max(nk, 1), 3))
+    fwd, jac, basis, dbasis = _scratch(nk)
     phi = np.empty((6, 6))
     y = np.empty(6)
     lo = part * n // nchunks

@@ -323,6 +323,8 @@ def fisher_tiles(offsets: np.ndarray, rec: np.ndarray, rbox: np.ndarray, xs: np.
             mx = rec[e, 0]
             my = rec[e, 1]
             c0, c1, c2 = float(rec[e, REC]), float(rec[e, REC + 1]), float(rec[e, REC + 2])
+            # the 34 sums in scalars, written out: loops over a small array, or a helper per
+            # colour row, measured 41-43 against 35 ms at 100k Gaussians, 256²
             m0 = m1 = m2 = m3 = m4 = m5 = m6 = m7 = m8 = m9 = m10 = m11 = m12 = m13 = \
                 m14 = 0.0
             r0 = r1 = r2 = r3 = r4 = r5 = 0.0
