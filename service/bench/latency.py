@@ -1,6 +1,7 @@
 """``agilegs bench latency``: selection latency and EIG percentile of every method.
 
-Loads a scene as the current map (seeded subsample to at most ``--max-gaussians``), builds a
+Loads a scene as the current map (a seeded subsample to ``--max-gaussians``, or, when the
+scene holds fewer, the scene densified to that many: :func:`densified`), builds a
 pool as a capture would (``capture_pool``: orbits at three elevations with near-duplicates)
 plus a few evenly spread acquired views, forms Hhat = lambda + sum of their Fisher, and then,
 for each of ``--events`` selection events, times every entry on the same map, Hhat and pool
@@ -18,6 +19,10 @@ rebuilds H_train from every training view inside its selection (its ``informatio
 the Hhat-based methods (``full_eig``, ``agile``, ``agile_plus``) add the committed view's
 Fisher to Hhat (one pass, timed on that view at every event: ``upkeep_ms``); Random and
 COVER keep nothing (COVER rebuilds its bins inside its selection).
+
+Memory: ``peak_rss_mb`` per entry is the largest resident set size sampled (every few ms)
+during its selections, and ``base_rss_mb`` the process's before the first selection (the map,
+Hhat and the pool); ``peak_rss_mb`` of the run is the process's own peak (``getrusage``).
 
 Entries are methods and variants (:mod:`agilegs.service.bench.variants`): by default the
 methods, the shortlist ablations (``agile@knearest``, ``agile_plus@topnorm``, ...) and the
@@ -38,10 +43,13 @@ import logging
 import math
 import os
 import platform
+import resource
 import statistics
 import sys
+import threading
 import time
 from pathlib import Path
+from types import TracebackType
 from typing import Any
 
 import torch
@@ -56,6 +64,7 @@ from agilegs.service.nbv.information import (
     init_information,
 )
 from agilegs.service.nbv.methods import get_method, method_names
+from agilegs.service.nbv.rotations import quat_to_rotmat
 from agilegs.service.nbv.selectors import SelectConfig, select
 
 from .options import add_latency_arguments
@@ -95,7 +104,75 @@ def _load_map(path: str, max_gaussians: int, seed: int) -> Any:
         gen = torch.Generator().manual_seed(seed)
         idx = torch.sort(torch.randperm(len(gmap), generator=gen)[:max_gaussians]).values
         gmap = gmap.subset(idx)
+    elif max_gaussians > len(gmap) > 0:
+        gmap = densified(gmap, max_gaussians, seed)
     return gmap
+
+
+def densified(gmap: GaussianMap, n: int, seed: int = 0) -> GaussianMap:
+    """A map of ``n`` Gaussians made from ``gmap`` (fewer than n) as 3D Gaussian Splatting's
+    densification splits a Gaussian: Gaussian i % N of the original is the parent of child i,
+    drawn from the parent's own 3D normal, with its rotation, opacity and colour and its scales
+    divided by k^(1/3) (k children per parent, so the volume they cover stays); the parents
+    are dropped. A stand-in for a capture's map of that size (seeded)."""
+    n0 = len(gmap)
+    g = gmap.detach()
+    gen = torch.Generator().manual_seed(seed)
+    parent = torch.arange(n) % n0
+    k = torch.bincount(parent, minlength=n0).to(g.dtype)
+    eps = torch.randn(n, 3, generator=gen, dtype=g.dtype)
+    rot = quat_to_rotmat(g.quats[parent])
+    offset = (rot @ (torch.exp(g.log_scales[parent]) * eps)[..., None])[..., 0]
+    return GaussianMap(
+        means=g.means[parent] + offset,
+        log_scales=g.log_scales[parent] - torch.log(k[parent])[:, None] / 3.0,
+        quats=g.quats[parent],
+        opacity_logits=g.opacity_logits[parent],
+        sh=g.sh[parent],
+    )
+
+
+def rss_mb() -> float:
+    """The process's resident set size in MiB (Linux /proc; elsewhere its peak so far)."""
+    try:
+        with open("/proc/self/statm") as fh:
+            return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except OSError:
+        return peak_rss_mb()
+
+
+def peak_rss_mb() -> float:
+    """The process's peak resident set size so far, MiB."""
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / 2**20 if sys.platform == "darwin" else peak / 1024.0
+
+
+class PeakRSS:
+    """The largest RSS sampled every ``interval`` seconds while the block runs (MiB)."""
+
+    def __init__(self, interval: float = 0.005) -> None:
+        self.interval = interval
+        self.peak = 0.0
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def __enter__(self) -> PeakRSS:
+        self.peak = rss_mb()
+
+        def poll() -> None:
+            while not self._stop.wait(self.interval):
+                self.peak = max(self.peak, rss_mb())
+
+        self._thread = threading.Thread(target=poll, daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+        self.peak = max(self.peak, rss_mb())
 
 
 def spearman(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -172,9 +249,10 @@ def run(args: argparse.Namespace) -> int:
 
     records: dict[str, dict[str, Any]] = {
         n: {"latency_ms": [], "event_ms": [], "cpu_ms": [], "stages": [], "pct": [],
-            "head_pct": [], "picks": []}
+            "head_pct": [], "picks": [], "peak_mb": 0.0}
         for n in names
     }
+    base_rss = rss_mb()
     upkeep_ms: list[float] = []
     states: dict[str, dict[str, Any] | None] = {n: None for n in names}
     variants = {n: parse_variant(n, args.shortlist) for n in names}
@@ -186,11 +264,13 @@ def run(args: argparse.Namespace) -> int:
         for name in order:
             v = variants[name]
             cpu0 = time.process_time()
-            sel = select(
-                v.method, gmap, h_acc, pool, intr, config=v.config(base), acquired=acquired,
-                state=states[name],
-            )
+            with PeakRSS() as mem:
+                sel = select(
+                    v.method, gmap, h_acc, pool, intr, config=v.config(base),
+                    acquired=acquired, state=states[name],
+                )
             cpu_ms = (time.process_time() - cpu0) * 1e3
+            records[name]["peak_mb"] = max(records[name]["peak_mb"], mem.peak)
             states[name] = sel.state
             if name == REFERENCE:
                 phi_all = torch.tensor(
@@ -251,6 +331,7 @@ def run(args: argparse.Namespace) -> int:
             "eig_percentile": statistics.fmean(rec["pct"]),
             "eig_percentiles": rec["pct"],
             "picks": rec["picks"],
+            "peak_rss_mb": rec["peak_mb"],
         }
         if rec["head_pct"]:
             out["head_eig_percentile"] = statistics.fmean(rec["head_pct"])
@@ -291,10 +372,15 @@ def run(args: argparse.Namespace) -> int:
             "platform": platform.platform(),
             "methods": names,
         },
+        "base_rss_mb": base_rss,
+        # the kernel's high-water mark lags the sampled RSS by a little: the larger of both
+        "peak_rss_mb": max([peak_rss_mb(), base_rss] + [r["peak_mb"] for r in records.values()]),
         "upkeep_ms": upkeep_ms,
         "methods": methods_out,
     }
     _print_table(methods_out)
+    sys.stdout.write(f"RSS before the selections {base_rss:.0f} MiB; process peak "
+                     f"{result['peak_rss_mb']:.0f} MiB\n")
     if args.json_out:
         Path(args.json_out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json_out).write_text(json.dumps(result, indent=2))
@@ -306,8 +392,8 @@ def _print_table(methods: dict[str, Any]) -> None:
     lines = [
         "| method | selection ms | per event ms | information | anchor | scoring | leverage | "
         "rerank | full EIG / method | FisherRF / method | FisherRF / method (per event) | "
-        "CPU ms | EIG pct | head pct | proxy Spearman |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "CPU ms | EIG pct | head pct | proxy Spearman | peak RSS MB |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, m in methods.items():
         s = m["stages_ms"]
@@ -320,7 +406,8 @@ def _print_table(methods: dict[str, Any]) -> None:
             f"{_ratio(m, 'speedup_vs_fisherrf')} | {_ratio(m, 'event_speedup_vs_fisherrf')} | "
             f"{m['cpu_median_ms']:.1f} | {m['eig_percentile']:.1f} | "
             f"{'' if head is None or math.isnan(head) else f'{head:.1f}'} | "
-            f"{'' if rho is None or math.isnan(rho) else f'{rho:.2f}'} |"
+            f"{'' if rho is None or math.isnan(rho) else f'{rho:.2f}'} | "
+            f"{m['peak_rss_mb']:.0f} |"
         )
     sys.stdout.write("\n".join(lines) + "\n")
 

@@ -27,14 +27,17 @@ Information state Ĥ is a dict keyed by the field names, each the field's shape;
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Mapping
 from typing import Literal
 
 import torch
 from torch import Tensor
 
+from agilegs.service.nbv.backend import Backend, resolve
 from agilegs.service.nbv.camera import Camera, Intrinsics
 from agilegs.service.nbv.gaussians import FIELD_NAMES, GaussianMap
+from agilegs.service.nbv.kernel_ops import kernel_fisher, kernel_jacobians, kernel_moments
 from agilegs.service.nbv.projection import Projected, project_map
 from agilegs.service.nbv.rasterize import (
     composite_pairs,
@@ -70,6 +73,7 @@ def screen_second_moments(
     near: float = 0.01,
     max_elements: int = 1 << 22,
     residuals: Residuals = "channels",
+    backend: Backend | None = None,
 ) -> Tensor:
     """M_i = Σ_r g_r g_rᵀ over the screen attributes of every Gaussian [N, 9, 9].
 
@@ -77,11 +81,22 @@ def screen_second_moments(
     ``residuals``: "channels" (every pixel and channel a residual r, g_r = ∂C_pc/∂s_i: the
     exact Fisher) or "pixels" (one residual per pixel, the channel sum: g_r = ∂(Σ_c C_pc)/∂s_i
     with the derivatives of α taken through its 0.99 clamp, as FisherRF's rasterizer does).
-    Differentiable in whatever ``gmap`` and ``camera.c2w`` carry a graph for.
+    Differentiable in whatever ``gmap`` and ``camera.c2w`` carry a graph for (then always by
+    the torch path; otherwise by the compiled kernels where ``backend`` allows, see
+    :mod:`agilegs.service.nbv.backend`).
     """
     if residuals not in ("channels", "pixels"):
         raise ValueError(f"residuals must be 'channels' or 'pixels', got {residuals!r}")
     dt, dev = gmap.means.dtype, gmap.means.device
+    graph = torch.is_grad_enabled() and (
+        bool(camera.c2w.requires_grad) or any(t.requires_grad for t in gmap.tensors().values()))
+    if resolve(backend, [*gmap.tensors().values(), camera.c2w], pose_grad=graph):
+        big_phi, c2, mcc = kernel_moments(gmap, camera, background=background,
+                                          tile_size=tile_size, near=near, residuals=residuals)
+        with torch.no_grad():
+            proj = project_map(gmap, camera, near=near)
+        return _assemble(big_phi.to(dt), c2.to(dt), mcc.to(dt), proj.conics, proj.opacities,
+                         residuals)
     proj = project_map(gmap, camera, near=near)
     bg = (
         torch.zeros(3, dtype=dt, device=dev)
@@ -113,8 +128,15 @@ def screen_second_moments(
     c2 = torch.zeros(n, 18, dtype=dt, device=dev).index_add(
         0, g, (f2[:, :, None] * phi[:, None, :]).reshape(-1, 18)).reshape(n, 3, 6)
     mcc = torch.zeros(n, dtype=dt, device=dev).index_add(0, g, w * w)
-    amat = _screen_basis(proj.conics, proj.opacities)  # [N, 6, 6]
-    mgg = amat @ big_phi.reshape(n, 6, 6) @ amat.transpose(-1, -2)
+    return _assemble(big_phi.reshape(n, 6, 6), c2, mcc, proj.conics, proj.opacities, residuals)
+
+
+def _assemble(big_phi: Tensor, c2: Tensor, mcc: Tensor, conics: Tensor, opacities: Tensor,
+              residuals: Residuals) -> Tensor:
+    """M [N, 9, 9] from Φ [N, 6, 6], C2 [N, 3, 6] and Σ w² [N] (see the module docstring)."""
+    dt, dev = big_phi.dtype, big_phi.device
+    amat = _screen_basis(conics, opacities)  # [N, 6, 6]
+    mgg = amat @ big_phi @ amat.transpose(-1, -2)
     mgc = c2 @ amat.transpose(-1, -2)  # [N, 3, 6]
     top = torch.cat([mgg, mgc.transpose(1, 2)], dim=2)  # [N, 6, 9]
     # colour block: Σ w² on the diagonal (one residual per channel), or in every entry
@@ -148,21 +170,28 @@ def fisher_diag(
     tile_size: int = 8,
     near: float = 0.01,
     max_elements: int = 1 << 22,
+    backend: Backend | None = None,
 ) -> dict[str, Tensor]:
     """Exact diag(JᵀJ) of the rendered RGB w.r.t. each parameter block, in one pass.
 
     Args:
         gmap: the Gaussians (N).
-        camera: the view; if ``camera.c2w`` requires grad the result is differentiable in it.
+        camera: the view; if ``camera.c2w`` requires grad the result is differentiable in it
+            (twice: the torch path).
         background: background colour [3] used by the render (default black).
         fields: which blocks to return (default all five).
         tile_size, near, max_elements: as in :func:`render`.
+        backend: "auto", "numba" or "torch" (:mod:`agilegs.service.nbv.backend`); the kernels
+            serve every call whose pose does not require grad.
 
     Returns:
         {field name: diag Fisher of that field, same shape as the field}.
     """
     want = _check_fields(fields, FIELD_NAMES)
     pose_grad = bool(camera.c2w.requires_grad) and torch.is_grad_enabled()
+    if resolve(backend, [*gmap.tensors().values(), camera.c2w], pose_grad=pose_grad):
+        return kernel_fisher(gmap, camera, want, background=background, tile_size=tile_size,
+                             near=near)
     with torch.set_grad_enabled(pose_grad):
         m = screen_second_moments(
             gmap.detach(),
@@ -171,8 +200,10 @@ def fisher_diag(
             tile_size=tile_size,
             near=near,
             max_elements=max_elements,
+            backend="torch",
         )
-    jac = projection_jacobians(gmap, camera, want, near=near, create_graph=pose_grad)
+    jac = projection_jacobians(gmap, camera, want, near=near, create_graph=pose_grad,
+                               backend="torch")
     result: dict[str, Tensor] = {}
     for f in want:
         h = jacobian_sandwich(jac[f], m)
@@ -201,13 +232,19 @@ def projection_jacobians(
     *,
     near: float = 0.01,
     create_graph: bool = False,
+    backend: Backend | None = None,
 ) -> dict[str, Tensor]:
     """∂s_i/∂θ_i of every Gaussian's 9 screen attributes w.r.t. its own parameters.
 
-    Returns {field: [N, 9, P_f]} (P_f the field's entries per Gaussian). One backward per
-    screen attribute: each Gaussian's attributes depend on its own parameters only, so the
-    gradient of Σ_i s_i,a w.r.t. θ holds every Gaussian's own row.
+    Returns {field: [N, 9, P_f]} (P_f the field's entries per Gaussian). The torch path: one
+    backward per screen attribute (each Gaussian's attributes depend on its own parameters
+    only, so the gradient of Σ_i s_i,a w.r.t. θ holds every Gaussian's own row); the kernels:
+    the closed-form Jacobian (not differentiable, so never with ``create_graph`` or a pose
+    that requires grad).
     """
+    graph = create_graph or (bool(camera.c2w.requires_grad) and torch.is_grad_enabled())
+    if resolve(backend, [*gmap.tensors().values(), camera.c2w], pose_grad=graph):
+        return kernel_jacobians(gmap, camera, fields, near=near)
     leaves = {k: v.requires_grad_(True) for k, v in gmap.detach().items()}
     jac: dict[str, list[Tensor]] = {f: [] for f in fields}
     with torch.enable_grad():
@@ -222,9 +259,9 @@ def projection_jacobians(
                 allow_unused=True,
             )
             for f, g in zip(fields, grads):
-                n = leaves[f].shape[0]
+                shape = (leaves[f].shape[0], math.prod(leaves[f].shape[1:]))
                 jac[f].append(
-                    torch.zeros_like(leaves[f]).reshape(n, -1) if g is None else g.reshape(n, -1)
+                    torch.zeros_like(leaves[f]).reshape(shape) if g is None else g.reshape(shape)
                 )
     return {f: torch.stack(jac[f], dim=1) for f in fields}
 

@@ -1,4 +1,8 @@
-"""A differentiable Gaussian rasterizer in pure torch (CPU and CUDA alike).
+"""A differentiable Gaussian rasterizer in pure torch (CPU and CUDA alike), and ``render``.
+
+On the CPU, :func:`render` hands the projection and the compositing to the compiled kernels
+(:mod:`agilegs.service.nbv.backend`, :mod:`agilegs.service.nbv.kernels`) wherever they apply;
+the pure-torch code below is their reference, and serves everything else.
 
 It follows the reference 3D Gaussian Splatting rasterizer (Kerbl et al. 2023). The
 Gaussians are projected by :mod:`agilegs.service.nbv.projection` (EWA, low-pass, culling, SH
@@ -37,8 +41,10 @@ from typing import Any, Literal
 import torch
 from torch import Tensor
 
+from agilegs.service.nbv.backend import Backend, resolve
 from agilegs.service.nbv.camera import Camera
 from agilegs.service.nbv.gaussians import GaussianMap
+from agilegs.service.nbv.kernel_ops import kernel_composite, kernel_project
 from agilegs.service.nbv.projection import Projected, project_map
 
 ALPHA_MIN = 1.0 / 255.0
@@ -388,9 +394,13 @@ def composite(
         out_dacc = t.depth_acc.reshape(h, w)
     else:
         raise ValueError(f"backward must be 'analytic' or 'autograd', got {backward!r}")
-    has = out_a > 0
-    depth = torch.where(has, out_dacc / torch.where(has, out_a, torch.ones_like(out_a)), 0.0)
-    return out_c, out_a, depth
+    return out_c, out_a, expected_depth(out_a, out_dacc)
+
+
+def expected_depth(alpha: Tensor, depth_acc: Tensor) -> Tensor:
+    """Σ w z / Σ w from the accumulated alpha [H, W] and Σ w z [H, W] (0 where alpha is 0)."""
+    has = alpha > 0
+    return torch.where(has, depth_acc / torch.where(has, alpha, torch.ones_like(alpha)), 0.0)
 
 
 def _check_inputs(gmap: GaussianMap, camera: Camera) -> None:
@@ -410,6 +420,7 @@ def render(
     near: float = 0.01,
     backward: BackwardMode = "analytic",
     max_elements: int = 1 << 22,
+    backend: Backend | None = None,
 ) -> RenderResult:
     """Render ``gmap`` from ``camera``.
 
@@ -421,15 +432,30 @@ def render(
             background) into ``RenderResult.features`` [H, W, C].
         tile_size: tile edge in pixels of the reference binning rule.
         near: near-plane depth for culling.
-        backward: "analytic" (closed-form backward) or "autograd" (reference).
-        max_elements: candidate pixel-Gaussian pairs evaluated at once (memory bound).
+        backward: "analytic" (closed-form backward) or "autograd" (reference, pure torch).
+        max_elements: candidate pixel-Gaussian pairs evaluated at once (memory bound; the
+            torch path only).
+        backend: "auto", "numba" (the compiled CPU kernels) or "torch" (this module's
+            pure-torch path); None: :func:`agilegs.service.nbv.backend.default_backend`. The
+            kernels composite whenever they apply (CPU, float32/float64, ``backward=
+            "analytic"``) and also project unless the pose requires grad.
 
     Returns:
         RenderResult with rgb [H, W, 3], alpha [H, W], depth [H, W] and per-Gaussian extras.
     """
     _check_inputs(gmap, camera)
+    if backward not in ("analytic", "autograd"):
+        raise ValueError(f"backward must be 'analytic' or 'autograd', got {backward!r}")
+    if backward == "autograd" and backend == "numba":
+        raise ValueError("backend='numba' has no autograd backward: use backward='analytic'")
     dt, dev = gmap.means.dtype, gmap.means.device
-    proj = project_map(gmap, camera, near=near)
+    use_kernels = backward == "analytic" and resolve(
+        backend, [*gmap.tensors().values(), camera.c2w])
+    pose_grad = bool(camera.c2w.requires_grad) and torch.is_grad_enabled()
+    if use_kernels and not pose_grad:
+        proj = kernel_project(gmap, camera, near=near)
+    else:
+        proj = project_map(gmap, camera, near=near)
     bg = (
         torch.zeros(3, dtype=dt, device=dev)
         if background is None
@@ -448,11 +474,16 @@ def render(
         n_feat = features.shape[1]
         colors = torch.cat([colors, features.to(dt)], dim=1)
         bg = torch.cat([bg, torch.zeros(n_feat, dtype=dt, device=dev)])
-    pairs = pairs_of(proj, camera.width, camera.height, tile_size, max_elements)
-    out_c, out_a, depth = composite(
-        proj.means2d, proj.conics, proj.opacities, colors, proj.depths, bg, pairs,
-        backward=backward,
-    )
+    if use_kernels:
+        out_c, out_a, out_dacc = kernel_composite(proj, colors, bg, camera.width,
+                                                  camera.height, tile_size)
+        depth = expected_depth(out_a, out_dacc)
+    else:
+        pairs = pairs_of(proj, camera.width, camera.height, tile_size, max_elements)
+        out_c, out_a, depth = composite(
+            proj.means2d, proj.conics, proj.opacities, colors, proj.depths, bg, pairs,
+            backward=backward,
+        )
     return RenderResult(
         rgb=out_c[..., :3],
         alpha=out_a,

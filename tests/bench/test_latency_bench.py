@@ -4,9 +4,14 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from pathlib import Path
 
+import torch
+
+from agilegs.service.bench.latency import PeakRSS, densified
 from agilegs.service.cli import main
+from agilegs.service.nbv.gaussians import GaussianMap
 
 
 def test_latency_bench_reports_every_method(tmp_path: Path) -> None:
@@ -54,6 +59,8 @@ def test_latency_bench_reports_every_method(tmp_path: Path) -> None:
         "shortlist_best_eig_percentile"
     ]
     assert "proxy_spearman" not in methods["random"]
+    assert res["peak_rss_mb"] >= res["base_rss_mb"] > 0
+    assert all(m["peak_rss_mb"] >= res["base_rss_mb"] * 0.5 for m in methods.values())
 
 
 def test_latency_bench_without_the_full_pool_method(tmp_path: Path) -> None:
@@ -67,3 +74,36 @@ def test_latency_bench_without_the_full_pool_method(tmp_path: Path) -> None:
         assert 0.0 <= m["eig_percentile"] <= 100.0 and "speedup_vs_full_eig" not in m
     assert methods["agile_plus"]["eig_percentile"] == methods["agile_plus"][
         "shortlist_best_eig_percentile"]
+
+
+def test_densified_map_splits_every_gaussian() -> None:
+    g = torch.Generator().manual_seed(0)
+    parent = GaussianMap(
+        means=torch.rand(4, 3, generator=g) * 10,
+        log_scales=torch.full((4, 3), -1.0),
+        quats=torch.randn(4, 4, generator=g),
+        opacity_logits=torch.randn(4, generator=g),
+        sh=torch.randn(4, 4, 3, generator=g),
+    )
+    kids = densified(parent, 4 * 27 + 2, seed=1)
+    assert len(kids) == 110
+    p = torch.arange(110) % 4
+    # children sit near their parent (a few of its standard deviations), share its rotation,
+    # opacity and colour, and are k^(1/3) times smaller (k = 28 for parents 0, 1; 27 else)
+    assert float((kids.means - parent.means[p]).norm(dim=1).max()) < 6 * float(torch.exp(
+        torch.tensor(-1.0)))
+    assert torch.equal(kids.quats, parent.quats[p]) and torch.equal(kids.sh, parent.sh[p])
+    assert torch.equal(kids.opacity_logits, parent.opacity_logits[p])
+    k = torch.where(p < 2, 28.0, 27.0)
+    torch.testing.assert_close(kids.log_scales, (-1.0 - torch.log(k) / 3)[:, None].expand(-1, 3))
+    assert not torch.equal(densified(parent, 110, seed=2).means, kids.means)
+
+
+def test_peak_rss_sees_a_temporary_allocation() -> None:
+    with PeakRSS() as mem:
+        before = mem.peak
+        buf = torch.ones(64 * 2**20 // 4)  # 64 MiB, touched
+        buf.add_(1.0)
+        time.sleep(0.2)  # held long enough for the sampler to see it on a busy machine
+        del buf
+    assert mem.peak - before > 32

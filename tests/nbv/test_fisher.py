@@ -35,14 +35,15 @@ def camera(dtype=F64, w=16, h=14, eye=(0.3, -0.4, -2.0)) -> Camera:
     return Camera.from_c2w(c2w, fx=0.9 * w, fy=0.9 * w, cx=w / 2, cy=h / 2 + 0.3, width=w, height=h)
 
 
+@pytest.mark.parametrize("backend", ["torch", "numba"])
 @pytest.mark.parametrize("deg", [0, 1, 3])
 @pytest.mark.parametrize("bg", [None, (0.1, 0.5, 0.9)])
-def test_fisher_matches_bruteforce_float64(deg: int, bg) -> None:
+def test_fisher_matches_bruteforce_float64(deg: int, bg, backend: str) -> None:
     gm = random_map(30, seed=deg, deg=deg)
     gm.opacity_logits.data[:5] += 5.0  # some clamped at 0.99, and transmittance stops
     cam = camera()
     background = None if bg is None else torch.tensor(bg, dtype=F64)
-    fast = fisher_diag(gm, cam, background=background)
+    fast = fisher_diag(gm, cam, background=background, backend=backend)
     slow = fisher_diag_bruteforce(gm, cam, background=background)
     assert set(fast) == set(FIELD_NAMES)
     for k in FIELD_NAMES:
@@ -53,11 +54,12 @@ def test_fisher_matches_bruteforce_float64(deg: int, bg) -> None:
         assert rel <= 1e-6, (k, rel)
 
 
-def test_fisher_float32_close_to_float64() -> None:
+@pytest.mark.parametrize("backend", ["torch", "numba"])
+def test_fisher_float32_close_to_float64(backend: str) -> None:
     gm = random_map(40, seed=9)
     cam = camera()
-    f64 = fisher_diag(gm, cam)
-    f32 = fisher_diag(gm.to(dtype=torch.float32), cam.to(dtype=torch.float32))
+    f64 = fisher_diag(gm, cam, backend=backend)
+    f32 = fisher_diag(gm.to(dtype=torch.float32), cam.to(dtype=torch.float32), backend=backend)
     for k in FIELD_NAMES:
         assert f32[k].dtype == torch.float32
         rel = ((f32[k].double() - f64[k]).abs().max() / f64[k].abs().max()).item()

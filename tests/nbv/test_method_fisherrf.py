@@ -35,13 +35,14 @@ def camera(w: int = 16, h: int = 14, eye: tuple[float, ...] = (0.3, -0.4, -2.0))
                            height=h)
 
 
+@pytest.mark.parametrize("backend", ["torch", "numba"])
 @pytest.mark.parametrize("deg", [0, 1, 3])
 @pytest.mark.parametrize("bg", [None, (0.1, 0.5, 0.9)])
-def test_fisherrf_hessian_matches_bruteforce_float64(deg: int, bg) -> None:
+def test_fisherrf_hessian_matches_bruteforce_float64(deg: int, bg, backend: str) -> None:
     gm = random_map(30, seed=deg, deg=deg)
     cam = camera()
     background = None if bg is None else torch.tensor(bg, dtype=F64)
-    fast = fisherrf_hessian(gm, cam, background=background)
+    fast = fisherrf_hessian(gm, cam, background=background, backend=backend)
     slow = fisherrf_hessian_bruteforce(gm, cam, background=background)
     assert set(fast) == set(FISHERRF_FIELDS)
     for k in FISHERRF_FIELDS:

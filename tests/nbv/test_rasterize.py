@@ -85,7 +85,13 @@ def test_quat_to_rotmat_is_rotation() -> None:
     torch.testing.assert_close(torch.linalg.det(r), torch.ones(50, dtype=F64))
 
 
-def test_single_gaussian_matches_closed_form() -> None:
+BACKENDS = ["torch", "numba"]
+"""The pure-torch reference and the compiled kernels, each against the closed forms and the
+per-pixel loop below (tests/nbv/test_kernels.py compares the two directly)."""
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_single_gaussian_matches_closed_form(backend: str) -> None:
     # one isotropic Gaussian straight ahead: its image is an isotropic 2D Gaussian whose
     # variance is f²s²/z² + 0.3 (the low-pass), centred on the principal point
     s, z, f, o = 0.05, 2.0, 40.0, 0.8
@@ -100,7 +106,7 @@ def test_single_gaussian_matches_closed_form() -> None:
         torch.eye(4, dtype=F64), fx=f, fy=f, cx=16.0, cy=16.0, width=32, height=32
     )
     bg = torch.tensor([0.2, 0.3, 0.4], dtype=F64)
-    out = render(gm, cam, background=bg)
+    out = render(gm, cam, background=bg, backend=backend)
     var = (f * s / z) ** 2 + 0.3
     ys, xs = torch.meshgrid(torch.arange(32, dtype=F64), torch.arange(32, dtype=F64), indexing="ij")
     d2 = (xs + 0.5 - 16.0) ** 2 + (ys + 0.5 - 16.0) ** 2
@@ -117,13 +123,14 @@ def test_single_gaussian_matches_closed_form() -> None:
     torch.testing.assert_close(out.depth, expect_depth, atol=1e-12, rtol=0)
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("seed", [0, 1])
-def test_matches_naive_per_pixel_reference(seed: int) -> None:
+def test_matches_naive_per_pixel_reference(seed: int, backend: str) -> None:
     gm = random_map(40, seed=seed, scale=(0.05, 0.2))
     gm.opacity_logits.data += 3.0  # opaque: exercises the transmittance stop and 0.99 clamp
     cam = make_camera(w=20, h=18)
     bg = torch.tensor([0.1, 0.2, 0.3], dtype=F64)
-    out = render(gm, cam, background=bg, tile_size=8)
+    out = render(gm, cam, background=bg, tile_size=8, backend=backend)
     ref = naive_render(gm, cam, bg)
     torch.testing.assert_close(out.rgb, ref, atol=1e-12, rtol=0)
 
@@ -131,8 +138,8 @@ def test_matches_naive_per_pixel_reference(seed: int) -> None:
 def test_tile_size_and_chunking_do_not_change_the_image() -> None:
     gm = random_map(80, seed=3)
     cam = make_camera(w=24, h=20)
-    a = render(gm, cam, tile_size=8).rgb
-    b = render(gm, cam, tile_size=8, max_elements=500).rgb
+    a = render(gm, cam, tile_size=8, backend="torch").rgb
+    b = render(gm, cam, tile_size=8, max_elements=500, backend="torch").rgb
     torch.testing.assert_close(a, b, atol=1e-12, rtol=0)
 
 
@@ -152,7 +159,8 @@ def _loss(out) -> torch.Tensor:  # a generic scalar of every output
     return (out.rgb * wts).sum() + 0.3 * (out.alpha**2).sum() + 0.1 * out.depth.sum()
 
 
-def test_analytic_backward_matches_autograd() -> None:
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_analytic_backward_matches_autograd(backend: str) -> None:
     gm = random_map(60, seed=5, deg=2)
     cam0 = make_camera(w=24, h=20)
     grads = {}
@@ -160,7 +168,8 @@ def test_analytic_backward_matches_autograd() -> None:
         g = gm.clone().requires_grad_()
         c2w = cam0.c2w.clone().requires_grad_()
         out = render(g, cam0.with_pose(c2w), background=torch.tensor([0.1, 0.2, 0.3], dtype=F64),
-                     backward=mode, max_elements=3000)  # fmt: skip
+                     backward=mode, max_elements=3000,
+                     backend=backend if mode == "analytic" else "torch")  # fmt: skip
         grads[mode] = torch.autograd.grad(_loss(out), [*g.tensors().values(), c2w])
     for a, b in zip(grads["analytic"], grads["autograd"], strict=True):
         torch.testing.assert_close(a, b, atol=1e-10, rtol=1e-9)
@@ -169,17 +178,18 @@ def test_analytic_backward_matches_autograd() -> None:
 @pytest.mark.gradcheck
 @pytest.mark.parametrize("field", ["means", "log_scales", "quats", "opacity_logits", "sh", "pose"])
 def test_gradcheck_every_field_and_pose(field: str) -> None:
+    """The reference path (the kernels': tests/nbv/test_kernels.py)."""
     gm = random_map(6, seed=7, scale=(0.1, 0.2))
     cam = make_camera(w=10, h=9)
     bg = torch.tensor([0.1, 0.2, 0.3], dtype=F64)
 
     def fn(x: torch.Tensor) -> torch.Tensor:
         if field == "pose":
-            out = render(gm, cam.with_pose(x), background=bg)
+            out = render(gm, cam.with_pose(x), background=bg, backend="torch")
         else:
             params = gm.tensors()
             params[field] = x
-            out = render(GaussianMap(**params), cam, background=bg)
+            out = render(GaussianMap(**params), cam, background=bg, backend="torch")
         return torch.cat([out.rgb.flatten(), out.alpha.flatten(), out.depth.flatten()])
 
     x0 = (cam.c2w if field == "pose" else getattr(gm, field)).clone().requires_grad_()

@@ -135,7 +135,10 @@ def test_unknown_routes_and_methods_use_the_error_body(api: InProcess) -> None:
     assert _error(_raw(api, "DELETE", "/healthz"))["code"] == "method_not_allowed"
 
 
-def test_healthz_answers_during_a_long_selection(api: InProcess) -> None:
+def test_healthz_answers_during_a_long_selection(api: InProcess,
+                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    # the pure-torch path: a selection that takes long enough for the test to mean much
+    monkeypatch.setenv("AGILEGS_KERNELS", "torch")
     sid = new_id()
     intr = {"fx": 56.0, "fy": 56.0, "cx": 32.0, "cy": 32.0, "width": 64, "height": 64}
     with api.client() as c:

@@ -111,17 +111,23 @@ def filled_bins(
     return filled
 
 
-def gaussian_coverage(means: Tensor, cam_pos: Tensor, bins: Tensor, filled: Tensor) -> Tensor:
+def gaussian_coverage(means: Tensor, cam_pos: Tensor, bins: Tensor, filled: Tensor,
+                      chunk: int = 1 << 16) -> Tensor:
     """c_i = max over filled bins of (cos(d_i, b_g) + 1) / 2, 0 without filled bins [N];
     d_i the direction from the candidate's centre to the mean.
 
     Args:
         means: [N, 3]; cam_pos: candidate centre [3]; bins: [G, 3]; filled: [N, G] bool.
+        chunk: Gaussians per block (the [block, G] scores are the memory: a block at a time).
     """
-    d = _unit(means - cam_pos.to(means.dtype))
-    score = (d @ bins.T + 1.0) * 0.5
-    score = torch.where(filled, score, torch.full_like(score, -1.0))
-    return score.amax(dim=1).clamp_min(0.0)
+    out = torch.empty(means.shape[0], dtype=means.dtype, device=means.device)
+    pos = cam_pos.to(means.dtype)
+    for s in range(0, means.shape[0], chunk):
+        d = _unit(means[s:s + chunk] - pos)
+        score = (d @ bins.T + 1.0) * 0.5
+        score.masked_fill_(~filled[s:s + chunk], -1.0)
+        out[s:s + chunk] = score.amax(dim=1).clamp_min(0.0)
+    return out
 
 
 def cover_scores(

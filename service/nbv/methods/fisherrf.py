@@ -28,8 +28,9 @@ Point by point, following JiangWenPL/FisherRF:
     parameters linearly, as any gradient: H_logscale = H_s · s and H_logit = H_σ · σ(1 - σ).
 
 ``fisherrf_hessian`` evaluates exactly that with the one-pass moment machinery of
-:mod:`agilegs.service.nbv.information` (channel-summed residuals); ``fisherrf_hessian_bruteforce``
-is the slow reference (one autograd backward per pixel). The rotation block is not offered:
+:mod:`agilegs.service.nbv.information` (channel-summed residuals; the compiled kernels where
+they apply, :mod:`agilegs.service.nbv.backend`); ``fisherrf_hessian_bruteforce`` is the slow
+reference (one autograd backward per pixel). The rotation block is not offered:
 its kernel gradient is taken w.r.t. the unnormalised quaternion, which our projection (it
 normalises) does not expose; FisherRF leaves it out by default anyway.
 """
@@ -43,6 +44,7 @@ from torch import Tensor
 
 from agilegs.schemas.config import FISHERRF_FIELDS
 
+from ..backend import Backend, resolve
 from ..camera import Camera
 from ..gaussians import GaussianMap
 from ..information import (
@@ -51,6 +53,7 @@ from ..information import (
     projection_jacobians,
     screen_second_moments,
 )
+from ..kernel_ops import kernel_fisher
 from ..rasterize import render
 from .base import MethodResult, SelectionContext, register, timed
 from .common import argmax_first
@@ -67,6 +70,7 @@ def fisherrf_hessian(
     tile_size: int = 8,
     near: float = 0.01,
     max_elements: int = 1 << 22,
+    backend: Backend | None = None,
 ) -> dict[str, Tensor]:
     """FisherRF's diagonal Hessian of one view, per stored parameter block.
 
@@ -78,17 +82,32 @@ def fisherrf_hessian(
         camera: the view.
         background: the render's background colour [3] (None: black).
         fields: blocks to return (default: means, log_scales, opacity_logits, sh).
+        backend: "auto", "numba" or "torch" (:mod:`agilegs.service.nbv.backend`).
 
     Returns:
         {field: H, the field's shape}.
     """
     want = _check_fields(fields, FISHERRF_FIELDS)
     g = gmap.detach()
+    if resolve(backend, [*g.tensors().values(), camera.c2w]):
+        # the kernels give Jᵀ M J in the stored parameters; FisherRF chains linearly
+        hk = kernel_fisher(g, camera, want, background=background, tile_size=tile_size,
+                           near=near, residuals="pixels")
+        if "opacity_logits" in hk:  # J = σ' on the opacity: Jᵀ M J = M_oo σ'², FisherRF M_oo σ'
+            sig = torch.sigmoid(g.opacity_logits)
+            sp = sig * (1.0 - sig)
+            hk["opacity_logits"] = torch.where(
+                sp > 0, hk["opacity_logits"] / sp.clamp_min(1e-38), torch.zeros_like(sp))
+        if "log_scales" in hk:
+            hk["log_scales"] = hk["log_scales"] / torch.exp(g.log_scales).clamp_min(1e-30)
+        return hk
     with torch.no_grad():
         m = screen_second_moments(g, camera, background=background, tile_size=tile_size,
-                                  near=near, max_elements=max_elements, residuals="pixels")
+                                  near=near, max_elements=max_elements, residuals="pixels",
+                                  backend="torch")
     jac_fields = tuple(f for f in want if f != "opacity_logits")
-    jac = projection_jacobians(g, camera, jac_fields, near=near) if jac_fields else {}
+    jac = (projection_jacobians(g, camera, jac_fields, near=near, backend="torch")
+           if jac_fields else {})
     out: dict[str, Tensor] = {}
     with torch.no_grad():
         for f in want:
