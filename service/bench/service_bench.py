@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from agilegs.schemas.config import METHODS
+from agilegs.config.selection import METHODS
 from agilegs.service.data import bundled_scene
 from agilegs.service.launch import ServerProcess
 

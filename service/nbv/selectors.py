@@ -29,13 +29,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from agilegs.schemas.config import (
-    SHORTLISTS,
-    AnchorConfig,
-    ScoringConfig,
-    SelectConfig,
-    validate_config,
-)
+from agilegs.config.selection import SHORTLISTS, AnchorConfig, ScoringConfig, SelectConfig
+from agilegs.config.types import validate_config
 
 from .camera import Intrinsics, check_pose
 from .candidates import pool_radius, scene_center_radius

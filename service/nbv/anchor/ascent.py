@@ -22,7 +22,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from agilegs.schemas.config import AnchorConfig, validate_config
+from agilegs.config.selection import AnchorConfig
+from agilegs.config.types import validate_config
 
 from ..camera import Camera, Intrinsics
 from ..candidates import pool_radius, scene_center_radius

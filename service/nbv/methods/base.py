@@ -17,7 +17,7 @@ from typing import Any, Protocol
 import torch
 from torch import Tensor
 
-from agilegs.schemas.config import SelectConfig
+from agilegs.config.selection import SelectConfig
 
 from ..camera import Intrinsics
 from ..gaussians import GaussianMap

@@ -41,7 +41,7 @@ from collections.abc import Iterable
 import torch
 from torch import Tensor
 
-from agilegs.schemas.config import FISHERRF_FIELDS
+from agilegs.config.selection import FISHERRF_FIELDS
 
 from ..camera import Camera
 from ..gaussians import GaussianMap
