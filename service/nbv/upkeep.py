@@ -27,7 +27,8 @@ def view_information(gmap: GaussianMap, c2w: Tensor, intrinsics: Intrinsics,
     if gmap.num_gaussians == 0:
         return {k: torch.zeros_like(v) for k, v in gmap.items()}
     with torch.no_grad():
-        return fisher_diag(gmap.detach(), Camera(c2w=c2w.to(gmap.dtype), intrinsics=intrinsics),
+        c2w = c2w.to(device=gmap.means.device, dtype=gmap.dtype)
+        return fisher_diag(gmap.detach(), Camera(c2w=c2w, intrinsics=intrinsics),
                            background=background)
 
 
