@@ -66,6 +66,7 @@ from agilegs.service.sessions.transitions import (
     Limits,
     acquire,
     new_record,
+    pool_index,
     recompute_information,
     set_pool,
 )
@@ -268,9 +269,9 @@ def run_progressive(
                            "and no initial points)")
     rec = run_record(scene, mapper.gmap, profile.lam)
     for i in initial:  # Ĥ is recomputed at every event (see the module docstring)
-        rec, _ = acquire(rec, rec.pool_poses[int(np.nonzero(rec.pool_ids == i)[0][0])],
-                         candidate_id=i, update_information=False)
-    acquired = [int(v.candidate_id) for v in rec.views]
+        rec, _ = acquire(rec, rec.pool_poses[pool_index(rec, i, "initial")], candidate_id=i,
+                         update_information=False)
+    acquired = list(initial)
     budget = min(profile.view_budget or d, d)
     bg = torch.tensor(scene.background, dtype=torch.float32, device=dev)
     candidates_all = scene.pool_poses.to(dev)
