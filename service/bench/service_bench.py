@@ -14,6 +14,10 @@ Starts ``agilegs serve`` in a subprocess on free loopback ports (or uses ``--url
 2. **Load.** ``--clients`` clients, each on a session of its own, select and commit
    ``--selections`` times at once over HTTP msgpack; reports selections per second, errors,
    and checks that every acknowledged commit is in the session afterwards.
+
+With ``--instance ID`` (and ``--url`` / ``--zenoh`` of another instance of the same cluster)
+the sessions are created on instance ``ID``: every request then goes through the instance the
+benchmark talks to and is forwarded to the owner, and the overhead includes the forwarding.
 """
 
 from __future__ import annotations
@@ -59,6 +63,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--clients", type=int, default=8, help="concurrent clients in the load phase")
     a("--selections", type=int, default=10, help="select + commit per client")
     a("--load-method", default="agile", help="selection method of the load phase")
+    a("--instance", help="create the sessions on this instance of a cluster (requests to "
+      "--url's instance are then forwarded to it)")
     a("--json", dest="json_out", help="also write the results here")
 
 
@@ -137,7 +143,8 @@ def run(args: argparse.Namespace) -> int:
         server = ServerProcess(Path(tmp.name) / "state", env=env).start()
         url, zenoh_ep = server.url, server.zenoh_endpoint
     results: dict[str, Any] = {"pool": args.pool, "method": args.method,
-                               "gaussians": args.max_gaussians, "size": args.size}
+                               "gaussians": args.max_gaussians, "size": args.size,
+                               "instance": args.instance}
     clients: dict[str, Any] = {}
     try:
         clients["http-json"] = Client(url, token=args.token, encoding="json")
@@ -154,7 +161,7 @@ def run(args: argparse.Namespace) -> int:
         scene: dict[str, Any] = ({"gaussians": arrays} if arrays is not None else
                                  {"bounds": bounds, "init_gaussians": args.max_gaussians})
         sid = f"bench-{os.getpid()}"
-        c.create_session(intr, id=sid, pool=poses, **scene)
+        c.create_session(intr, id=sid, pool=poses, instance=args.instance, **scene)
         results["overhead"] = {}
         for name, client in clients.items():
             for shape in ("preset", "inline"):
@@ -191,7 +198,7 @@ def _load(url: str, args: argparse.Namespace, intr: dict[str, Any], scene: dict[
     ids = [f"load-{os.getpid()}-{i}" for i in range(args.clients)]
     with Client(url, token=args.token) as c:
         for sid in ids:
-            c.create_session(intr, id=sid, pool=poses, **scene)
+            c.create_session(intr, id=sid, pool=poses, instance=args.instance, **scene)
     acked: dict[str, list[int]] = {sid: [] for sid in ids}
     errors: list[str] = []
     barrier = threading.Barrier(args.clients)
@@ -228,9 +235,11 @@ def _load(url: str, args: argparse.Namespace, intr: dict[str, Any], scene: dict[
 
 def _print(results: dict[str, Any]) -> None:
     out = sys.stdout
+    where = (f", sessions on instance {results['instance']} (forwarded)"
+             if results.get("instance") else "")
     out.write(f"\nagilegs bench service: select ({results['method']}) over a "
               f"{results['pool']}-candidate pool, {results['gaussians']} Gaussians, "
-              f"{results['size']}x{results['size']} px\n\n")
+              f"{results['size']}x{results['size']} px{where}\n\n")
     out.write(f"{'transport / pool':<24}{'overhead p50':>14}{'p99':>10}{'in server p50':>15}"
               f"{'p99':>10}{'core p50':>11}\n")
     for name, r in results["overhead"].items():
