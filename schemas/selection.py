@@ -59,7 +59,8 @@ class SelectRequest(BaseModel):
     session's pool as it is (the same poses in the same order, the same ids or none) leaves
     it, its ids and the version unchanged. ``commit``
     acquires the chosen candidate (as a commit does) in the same step. A selection without
-    commit changes nothing.
+    commit changes nothing persisted; the next acquisition (a commit, or an observation of a
+    new view) moves the selector's warm state on as ``commit`` would have.
     """
 
     model_config = ConfigDict(extra="forbid", strict=True, json_schema_extra={

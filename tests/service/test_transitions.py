@@ -301,3 +301,19 @@ def test_decoded_frames_are_kept_for_the_mapper_only(tmp_path: Path) -> None:
         assert s.take_frame(1) is None  # taken once
     finally:
         core.close()
+
+
+def test_a_reply_s_pose_stays_within_the_wire_s_bound() -> None:
+    """An anchor computed in float32 from a candidate at the bound rounds past it: the reply
+    clips it (and a pose within the bound is returned as it is)."""
+    from agilegs.config.geometry import MAX_COORD
+    from agilegs.service.sessions.convert import pose_out
+
+    at_bound = np.eye(4)
+    at_bound[:3, 3] = [0.0025, MAX_COORD, -MAX_COORD]
+    rounded = torch.from_numpy(at_bound).float()
+    rounded[1, 3] = MAX_COORD + 0.125
+    out = pose_out(rounded).to_matrix()
+    assert out[1, 3] == MAX_COORD and out[2, 3] == -MAX_COORD
+    m.Pose.model_validate(pose_out(rounded).model_dump())  # what the schema accepts
+    assert np.array_equal(pose_out(at_bound).to_matrix(), at_bound)
