@@ -7,7 +7,8 @@ Starts ``agilegs serve`` in a subprocess on free loopback ports (or uses ``--url
 1. **Overhead.** ``--requests`` selections (no commit) over HTTP JSON, HTTP msgpack and
    Zenoh, each timed by the client. Transport overhead = client round trip - the core's
    selection time (``latency_ms.total``); also shown: server time (``server_ms``) - core
-   time, the part of the overhead spent inside the server (decode, validate, lock, encode).
+   time, the part of the overhead spent inside the server (decode, validate, lock, encode),
+   the core time itself, and the whole round trip.
    Two request shapes: the pool set beforehand (``preset``: a small body naming the
    session's 300 candidates) and the pool sent inside the select request (``inline``: 300
    poses in the body, persisted before the answer).
@@ -108,7 +109,7 @@ def _time_selects(select: Callable[[], Any], n: int, warmup: int) -> dict[str, A
         select()
     gc.collect()
     gc.freeze()  # as a long-running robot process would: full collections skip the imports
-    rtt, server, core = [], [], []
+    rtt, server, core, whole = [], [], [], []
     for _ in range(n):
         t = time.perf_counter()
         r = select()
@@ -117,8 +118,9 @@ def _time_selects(select: Callable[[], Any], n: int, warmup: int) -> dict[str, A
         rtt.append(dt - total)
         server.append((r.server_ms or 0.0) - total)
         core.append(total)
+        whole.append(dt)
     return {"overhead_ms": _stats(rtt), "server_overhead_ms": _stats(server),
-            "core_ms": _stats(core), "requests": n}
+            "core_ms": _stats(core), "round_trip_ms": _stats(whole), "requests": n}
 
 
 def check_methods(args: argparse.Namespace) -> None:
@@ -241,11 +243,12 @@ def _print(results: dict[str, Any]) -> None:
               f"{results['pool']}-candidate pool, {results['gaussians']} Gaussians, "
               f"{results['size']}x{results['size']} px{where}\n\n")
     out.write(f"{'transport / pool':<24}{'overhead p50':>14}{'p99':>10}{'in server p50':>15}"
-              f"{'p99':>10}{'core p50':>11}\n")
+              f"{'p99':>10}{'core p50':>11}{'round trip p50':>16}\n")
     for name, r in results["overhead"].items():
         o, s, c = r["overhead_ms"], r["server_overhead_ms"], r["core_ms"]
+        w = r["round_trip_ms"]
         out.write(f"{name:<24}{o['p50']:>11.2f} ms{o['p99']:>7.2f} ms{s['p50']:>12.2f} ms"
-                  f"{s['p99']:>7.2f} ms{c['p50']:>8.2f} ms\n")
+                  f"{s['p99']:>7.2f} ms{c['p50']:>8.2f} ms{w['p50']:>13.2f} ms\n")
     ld = results["load"]
     out.write(f"\nload: {ld['clients']} clients x {ld['selections'] // max(ld['clients'], 1)} "
               f"select+commit ({ld['method']}), {ld['selections_per_s']:.1f} selections/s, "
