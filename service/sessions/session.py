@@ -36,7 +36,6 @@ from agilegs.schemas.geometry import Intrinsics as WireIntrinsics
 
 from ..errors import not_found, session_damaged
 from ..integrity import DamagedFile, FileProblem
-from ..nbv.camera import Intrinsics
 from ..nbv.gaussians import GaussianMap
 from ..records import SessionRecord, ViewRecord
 from ..settings import Settings
@@ -125,9 +124,6 @@ class Session:
                                                   f"{self.damaged}")
         if self.closed:
             raise not_found("session", f"session {self.id!r} was deleted")
-
-    def intrinsics(self, rec: SessionRecord | None = None) -> Intrinsics:
-        return tr.intrinsics_of(rec or self.record)
 
     def apply(self, new: SessionRecord, blobs: dict[str, bytes] | None = None) -> SessionRecord:
         """Persist ``new`` (the next record a transition returned; the lock is held) and swap
