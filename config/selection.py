@@ -123,10 +123,13 @@ class AnchorConfig:
         description="the function the anchor ascends: 'proxy' (rasterization-free model of "
         "the view's information, fitted to Hhat) or 'exact' (the trace surrogate through the "
         "exact Fisher of a render at T)")
-    model: Literal["fitted", "typical"] = Field(
-        default="fitted",
+    model: Literal["fitted", "directional", "typical"] = Field(
+        default="directional",
         description="the proxy's observation model: 'fitted' (a Gaussian's gain from a view "
-        "is log(1 + a_i w_i(T)), a_i fitted to Hhat over the acquired views) or 'typical' (one "
+        "is log(1 + a_i w_i(T)), a_i fitted to Hhat over the acquired views), 'directional' "
+        "(per parameter slot, log(1 + a_iq w_i(T) f_q(T)) with f_q the slot's direction "
+        "factor: a mean's world axis or a scale's local axis is seen across the view's rays, "
+        "not along them; a_iq fitted to Hhat over the acquired views) or 'typical' (one "
         "typical Fisher value per parameter slot); without acquired views the typical model "
         "is used")
     unseen: Literal["quarter_view", "prior"] = Field(
@@ -134,6 +137,24 @@ class AnchorConfig:
         description="the fitted model's Gaussians no acquired view saw: 'quarter_view' (as "
         "if a quarter of a typical view had seen them) or 'prior' (the seen Gaussians' "
         "median information per unit of footprint against their own Hhat, as the exact EIG)")
+    unexplored: Bool = Field(
+        default=True,
+        description="the fitted and directional models also count the unexplored part of "
+        "the map's extent (grid points no acquired view saw in front of the map's surfaces) "
+        "as never-observed Gaussians, at the map's density")
+    unexplored_cells: Annotated[int, Strict(), Field(ge=2, le=64),
+                                BeforeValidator(integral)] = Field(
+        default=16, description="grid points per axis of the unexplored space")
+    anchors: Annotated[int, Strict(), Field(ge=1, le=8), BeforeValidator(integral)] = Field(
+        default=3,
+        description="anchors kept from distinct modes of psi (the ascents' end points, best "
+        "first, each at least mode_separation from the better ones); with more than one, the "
+        "starts are spread the same way and the shortlist is drawn across every anchor's "
+        "support samples")
+    mode_separation: Softness = Field(
+        default=0.5,
+        description="least SE(3) distance between two modes, in pool radii (a radian of "
+        "rotation counts as one radius)")
     iterations: Steps = Field(default=3, description="most accepted ascent steps per start")
     step_size: Softness = Field(default=0.15,
         description="initial step length in the twist metric (0.15: ~9 degrees or 0.15 pool "
@@ -288,13 +309,14 @@ class SelectConfig:
 
 PRESETS: dict[str, dict[str, Any]] = {
     "paper": {
-        "anchor": {"psi": "exact"},
+        "anchor": {"psi": "exact", "anchors": 1, "model": "fitted", "unexplored": False},
         "scoring": {"condition_on_acquired": False},
     },
 }
-"""Named SelectConfig patches. ``paper``: AGILE-GS as the paper states it: the anchor
-ascends the trace surrogate of the exact Fisher rendered at T (through the rasterizer), and
-the leverage greedy starts from lambda_G I."""
+"""Named SelectConfig patches. ``paper``: AGILE-GS as the paper states it: one anchor, which
+ascends the trace surrogate of the exact Fisher rendered at T (through the rasterizer; its
+starts are the pool's best under the isotropic fitted proxy), and the leverage greedy starts
+from lambda_G I."""
 
 
 def preset_config(name: str, **overrides: Any) -> SelectConfig:

@@ -99,20 +99,37 @@ class Request:
     local: bool = False
 
 
-@dataclass
 class Reply:
     """The answer: HTTP status, encoded body and its media type; ``model`` is the response
-    (None for an error), ``error`` the refusal (None for a success)."""
+    (None for an error), ``error`` the refusal (None for a success).
 
-    status: int
-    body: bytes
-    media_type: str
-    model: BaseModel | None = None
-    error: ServiceError | None = None
+    The answer of another instance passed through as it came is decoded into ``model`` only
+    when a caller reads it (``decode``)."""
+
+    def __init__(self, status: int, body: bytes, media_type: str,
+                 model: BaseModel | None = None, error: ServiceError | None = None, *,
+                 decode: Callable[[], BaseModel] | None = None) -> None:
+        self.status = status
+        self.body = body
+        self.media_type = media_type
+        self.error = error
+        self._model = model
+        self._decode = decode
+
+    @property
+    def model(self) -> BaseModel | None:
+        if self._model is None and self._decode is not None:
+            self._model = self._decode()
+            self._decode = None
+        return self._model
 
     @property
     def ok(self) -> bool:
         return self.error is None
+
+    def __repr__(self) -> str:
+        return (f"Reply(status={self.status}, media_type={self.media_type!r}, "
+                f"{len(self.body)} bytes, error={self.error!r})")
 
 
 @dataclass(frozen=True)
@@ -302,7 +319,7 @@ class Gateway:
         if got.kind != kind:  # a body in one type, the answer asked in the other
             body = codec.dump(_owner_answer(req.op, got), kind)
         self.count(req.transport, req.op, 200)
-        return Reply(200, body, kind)
+        return Reply(200, body, kind, decode=lambda: _owner_answer(req.op, got))
 
     def encode(self, model: BaseModel, kind: str) -> bytes:
         """``model`` as ``kind`` bytes; within a request each model is encoded once per type

@@ -53,6 +53,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
            "(AGILEGS_ZENOH_LISTEN, default tcp/127.0.0.1:7447)")
     a("--zenoh-connect", action="append", type=_endpoints, metavar="ENDPOINTS",
       help="Zenoh peers / routers to connect to (AGILEGS_ZENOH_CONNECT)")
+    a("--ros2", action="append", type=_endpoints, metavar="NAMESPACE",
+      help="serve agilegs' ROS 2 topics and services under NAMESPACE over Zenoh, as "
+           "zenoh-bridge-ros2dds carries them (e.g. /bot1/agilegs); comma-separated or "
+           "repeated (AGILEGS_ROS2; see docs/ros2.md)")
     # several instances (see agilegs.service.cluster)
     a("--zenoh-mode", choices=["peer", "client", "router"],
       help="Zenoh mode (AGILEGS_ZENOH_MODE, default peer; client: through a zenohd router)")
@@ -106,7 +110,7 @@ def build_settings(args: argparse.Namespace) -> Any:
         value = getattr(args, name, None)
         if value is not None:
             overrides[name] = value
-    for name in ("zenoh_listen", "zenoh_connect"):
+    for name in ("zenoh_listen", "zenoh_connect", "ros2"):
         value = getattr(args, name, None)
         if value is not None:
             overrides[name] = [e for group in value for e in group]

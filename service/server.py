@@ -4,7 +4,8 @@
 <agilegs.service.sessions.registry.SessionRegistry>`), the request pipeline
 (:class:`~agilegs.service.gateway.Gateway`), the cluster node that routes operations to the
 instance owning a session (:class:`~agilegs.service.cluster.ClusterNode`), the Zenoh
-transport (:class:`~agilegs.service.zenoh_adapter.ZenohAdapter`) and the metrics; the HTTP
+transport (:class:`~agilegs.service.zenoh_adapter.ZenohAdapter`) with the ROS 2 one on its
+session (:class:`~agilegs.service.ros2.adapter.Ros2Adapter`) and the metrics; the HTTP
 transport is an app around it (:func:`agilegs.service.http_app.create_app`).
 
 The command ``agilegs serve`` that runs one is :mod:`agilegs.service.serve`.
@@ -14,6 +15,7 @@ from __future__ import annotations
 
 import gc
 import logging
+from typing import TYPE_CHECKING
 
 from .cluster import ClusterNode
 from .gateway import Gateway
@@ -22,6 +24,9 @@ from .sessions.registry import SessionRegistry
 from .settings import Settings
 from .state_dir import StateLock, claim_state_dir
 from .zenoh_adapter import ZenohAdapter
+
+if TYPE_CHECKING:
+    from .ros2.adapter import Ros2Adapter
 
 __all__ = ["Server"]
 
@@ -53,6 +58,7 @@ class Server:
         self.gateway.router = self.cluster
         self.gateway.decision_hooks.append(self.registry.decisions.record)
         self.zenoh: ZenohAdapter | None = None
+        self.ros2: Ros2Adapter | None = None
         self.state_lock: StateLock | None = None
 
     def claim_state(self) -> None:
@@ -71,12 +77,20 @@ class Server:
         if self.settings.zenoh:
             self.zenoh = ZenohAdapter(self.gateway, self.cluster, self.settings)
             self.zenoh.start()
+            if self.settings.ros2:
+                from .ros2.adapter import Ros2Adapter
+
+                self.ros2 = Ros2Adapter(self.gateway, self.settings.ros2)
+                self.ros2.start(self.zenoh.session)
         if self.freeze_gc:
             gc.collect()
             gc.freeze()
 
     def close(self) -> None:
         """Leave Zenoh, stop the mapper and the worker threads."""
+        if self.ros2 is not None:
+            self.ros2.close()
+            self.ros2 = None
         if self.zenoh is not None:
             self.zenoh.close()
             self.zenoh = None

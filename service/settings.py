@@ -59,6 +59,11 @@ class Settings(BaseSettings):
     max_gaussians: int = Field(default=2_000_000, ge=1, description="most Gaussians per session")
     max_views: int = Field(default=10_000, ge=1, description="most acquired views per session")
     max_shortlist: int = Field(default=256, ge=1, description="largest shortlist size N")
+    # ROS 2 over Zenoh (see agilegs.service.ros2)
+    ros2: Endpoints = Field(
+        default_factory=list, description="ROS 2 namespaces served over Zenoh (CDR on the keys "
+        "zenoh-bridge-ros2dds uses), e.g. /bot1/agilegs; needs zenoh"
+    )
     # the decisions feed (see agilegs.service.decisions)
     max_poll_wait: float = Field(
         default=25.0, ge=0.0, le=60.0, description="longest wait of a decisions poll, and "
@@ -71,7 +76,7 @@ class Settings(BaseSettings):
     workers: int = Field(default=16, ge=1, description="threads running session work")
     torch_threads: int = Field(default=0, ge=0, description="torch intra-op threads (0: default)")
     fsync: bool = Field(default=True, description="fsync files and folders before acknowledging")
-    # the mapper (see agilegs.service.trainer)
+    # the mapper (see agilegs.service.sessions.trainer)
     mapper: bool = Field(default=True, description="train sessions' maps from their images")
     mapper_steps_per_view: int = Field(
         default=100, ge=0, description="mapper training steps per view with an image"
@@ -81,7 +86,7 @@ class Settings(BaseSettings):
     )
     log_level: str = Field(default="info", description="uvicorn / logging level")
 
-    @field_validator("zenoh_listen", "zenoh_connect", mode="before")
+    @field_validator("zenoh_listen", "zenoh_connect", "ros2", mode="before")
     @classmethod
     def _split(cls, value: Any) -> Any:
         if isinstance(value, str):
@@ -97,7 +102,19 @@ class Settings(BaseSettings):
     def _some_transport(self) -> Settings:
         if not (self.http or self.zenoh):
             raise ValueError("serve over HTTP, Zenoh or both (AGILEGS_HTTP, AGILEGS_ZENOH)")
+        if self.ros2 and not self.zenoh:
+            raise ValueError("ROS 2 (AGILEGS_ROS2) travels over Zenoh: turn AGILEGS_ZENOH on")
         return self
+
+    @field_validator("ros2")
+    @classmethod
+    def _namespaces(cls, value: list[str]) -> list[str]:
+        from agilegs.client.ros2.keys import normalize_namespace
+
+        out = [normalize_namespace(v) for v in value]
+        if len(set(out)) != len(out):
+            raise ValueError(f"ROS 2 namespaces repeat: {out}")
+        return out
 
     @field_validator("token", mode="before")
     @classmethod

@@ -1,5 +1,6 @@
-"""Posed image sets as benchmark scenes: NeRF-synthetic ``transforms.json`` folders and COLMAP
-models (see :mod:`agilegs.service.bench.scenes` for the conventions)."""
+"""Posed image sets as benchmark scenes: NeRF-synthetic ``transforms.json`` folders, COLMAP
+models and rosbag2 recordings (see :mod:`agilegs.service.bench.scenes` for the
+conventions)."""
 
 from __future__ import annotations
 
@@ -23,7 +24,7 @@ from .scene_model import (
 
 log = logging.getLogger(__name__)
 
-__all__ = ["load_colmap_scene", "load_transforms_scene"]
+__all__ = ["load_bag_scene", "load_colmap_scene", "load_transforms_scene"]
 
 
 def _split_views(views: list[Any], opt: SceneOptions) -> tuple[list[Any], list[Any]]:
@@ -216,3 +217,38 @@ def load_colmap_scene(path: Path, opt: SceneOptions) -> BenchScene:
     return _posed_scene(scene_name(path), "colmap", str(model), pool_views, test_views, opt,
                         points, colors, {"init": "sparse", "images_dir": str(images),
                                          "sparse_points": int(points.shape[0])})
+
+
+def load_bag_scene(path: Path, opt: SceneOptions, topics: Any = None) -> BenchScene:
+    """A rosbag2 (folder or .mcap / .db3 file) read by
+    :func:`agilegs.client.ros2.bag.read_bag` with ``topics`` (a ``BagTopics``; None: found
+    by type); at most twice the profile's pool and test views are decoded, evenly spaced."""
+    import numpy as np
+
+    from agilegs.client.ros2.bag import read_bag
+    from agilegs.service.data.images import View, target_size
+    from agilegs.service.nbv.camera import Camera, Intrinsics
+
+    frames = read_bag(path, topics, max_frames=2 * (opt.pool_size + opt.test_count))
+    if not frames:
+        raise ValueError(f"scene {path}: the bag gives no posed frame")
+    k0 = frames[0].intrinsics
+    w, h = target_size(k0["width"], k0["height"], k0["width"] / opt.width)
+    views = []
+    for f in frames:
+        intr = Intrinsics(**f.intrinsics)
+        img = torch.from_numpy(f.rgb.astype(np.float32) / 255.0)
+        if img.shape[:2] != (h, w):
+            img = torch.nn.functional.interpolate(img.permute(2, 0, 1)[None], size=(h, w),
+                                                  mode="area")[0].permute(1, 2, 0)
+        depth_m = f.depth_m()
+        depth = _resized_depth(torch.from_numpy(depth_m), h, w) if depth_m is not None else None
+        views.append(View(name=str(f.stamp_ns), image=img, depth=depth,
+                          camera=Camera.from_intrinsics(torch.from_numpy(f.c2w),
+                                                        intr.scaled(w, h))))
+    pool_views, test_views = _split_views(views, opt)
+    pts, cols = _random_points(torch.stack([v.camera.c2w.float() for v in views]), opt)
+    described = topics.describe() if topics is not None else ""
+    source = f"{path}?{described}" if described else str(path)
+    return _posed_scene(scene_name(path), "rosbag", source, pool_views, test_views, opt, pts,
+                        cols, {"init": "random", "bag_frames": len(frames)})

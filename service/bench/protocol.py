@@ -13,10 +13,11 @@ each event (the curve against the number of views), each event's selection laten
 ``Selection.latency_ms`` breakdown, wall clock) and the process CPU time of the ``select``
 call (``select_cpu_ms``: on a shared machine other processes inflate wall-clock times by
 varying amounts, while the CPU time of a single-threaded run measures the work itself), the
-time spent recomputing Ĥ, the chosen view
-sequence, its camera path length and mean frame-index jump. ``DIR/table.md`` lays the means
-± std over seeds out as the paper's main results table, plus latency, trajectory and (when
-asked) ablation tables; PNG plots go next to it. A rerun with the same ``DIR`` skips the
+time spent recomputing Ĥ, the chosen view sequence, its camera path length and mean frame-index
+jump, and how redundant its picks are with the views already acquired (``redundancy``:
+:mod:`agilegs.service.bench.redundancy`). ``DIR/table.md`` lays the means ± std over seeds out
+as the paper's main results table, plus latency, trajectory, redundancy and (when asked)
+ablation tables; PNG plots go next to it. A rerun with the same ``DIR`` skips the
 (scene, method, seed) runs whose file exists with the same settings.
 
 The run's state is a session's record (:class:`~agilegs.service.records.SessionRecord`: the
@@ -72,6 +73,7 @@ from agilegs.service.sessions.transitions import (
 )
 
 from .profiles import RESULTS_FORMAT, Profile
+from .redundancy import run_redundancy
 from .scenes import BenchScene
 from .variants import Variant
 
@@ -184,6 +186,8 @@ def fingerprint(scene: BenchScene, variant: Variant, seed: int, profile: Profile
         {
             "scene": scene.source,
             "variant": asdict(variant),
+            # the settings it selects with: a changed default is another run
+            "config": asdict(variant.config()),
             "seed": seed,
             "profile": profile.describe(),
             "embodied_k": embodied_k,
@@ -371,6 +375,8 @@ def run_progressive(
             "scores": [[remaining[i], float(v)] for i, v in sel.scores.items()
                        if math.isfinite(float(v))],
             "anchor": None if sel.anchor_c2w is None else _matrix(sel.anchor_c2w),
+            "anchor_psi": sel.details.get("anchor_psi"),
+            "best_candidate_psi": sel.details.get("best_candidate_psi"),
         })
         times["select_s"] += wall_ms / 1e3
         times["information_s"] += h_ms / 1e3
@@ -429,6 +435,7 @@ def run_progressive(
         **times,
         "wall_s": time.perf_counter() - t_run,
     }
+    record["redundancy"] = run_redundancy(record)
     return record
 
 

@@ -43,6 +43,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
 from agilegs.service.bench.profiles import RESULTS_FORMAT
+from agilegs.service.bench.redundancy import redundancy_table, summarise_redundancy
 from agilegs.service.bench.scenes import BenchScene
 from agilegs.service.bench.variants import SHORTLIST_DISPLAY, display_name
 
@@ -123,6 +124,7 @@ def _summarise_runs(runs: Mapping[int, Mapping[str, Any]]) -> dict[str, Any]:
         {"views": n, "psnr_mean": mean_std(v)[0], "psnr_std": mean_std(v)[1], "runs": len(v)}
         for n, v in sorted(curve.items())
     ]
+    out["redundancy"] = summarise_redundancy(recs)
     return out
 
 
@@ -205,6 +207,8 @@ def build_results(
             "cpu_ms_mean": statistics.fmean(cpu) if cpu else None,
             "path_length_mean": mean_std(p["path_length_mean"] for p in per)[0],
             "mean_index_jump_mean": mean_std(p["mean_index_jump_mean"] for p in per)[0],
+            "redundancy": {k: mean_std(p["redundancy"][k] for p in per)[0]
+                           for k in per[0]["redundancy"]},
             "scenes": len(per),
         }
     for ref in ("fisherrf", "full_eig"):
@@ -311,6 +315,8 @@ def render_table(results: Mapping[str, Any]) -> str:
         lines += _main_table(results, scenes, keys)
         lines += _latency_table(results, keys)
         lines += _trajectory_table(results, keys, emb)
+        lines += redundancy_table(
+            [(_display(k), results["summary"][k].get("redundancy") or {}) for k in keys])
         lines += _paired_table(results, keys)
         lines += _paired_by_table(results, keys)
     # the ablations' reference rows (the paper's settings) are the main agile / agile_plus runs

@@ -32,6 +32,8 @@ from rich.progress import (
 )
 from torch import Tensor
 
+from agilegs.client.ros2.bag import BagTopics
+
 from ..nbv.methods import method_names
 from . import plots, report
 from .profiles import PROFILES, resolve_profile
@@ -58,8 +60,13 @@ def _str_list(text: str) -> list[str]:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene", action="append", required=True, metavar="PATH",
                         help="a ground-truth splat (.splat/.ply or its folder), a "
-                        "transforms.json image set or a COLMAP model folder; repeat for "
+                        "transforms.json image set, a COLMAP model folder or a rosbag2 "
+                        "(a folder with metadata.yaml, or an .mcap file); repeat for "
                         "several scenes")
+    parser.add_argument("--bag-topics", default="", metavar="SPEC",
+                        help="the topics of rosbag2 scenes, e.g. image=/cam/color/image_raw,"
+                        "depth=none,pose=tf,world=map (default: found by type; see "
+                        "docs/ros2.md)")
     parser.add_argument("--methods", default=",".join(method_names()),
                         help=f"comma-separated methods ({','.join(method_names())}) or "
                         "variants (method@option, see agilegs.service.bench.variants)")
@@ -170,9 +177,13 @@ def run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
     scenes: dict[str, BenchScene] = {}
+    try:
+        bag_topics = BagTopics.parse(args.bag_topics) if args.bag_topics else None
+    except ValueError as exc:
+        raise SystemExit(f"--bag-topics: {exc}") from None
     for path in args.scene:
         try:
-            sc = load_bench_scene(path, profile.scene)
+            sc = load_bench_scene(path, profile.scene, bag_topics=bag_topics)
         except (FileNotFoundError, ValueError) as exc:
             raise SystemExit(f"--scene {path}: {exc}") from None
         if sc.name in scenes:

@@ -16,7 +16,7 @@ from torch import Tensor
 from agilegs.service.nbv.camera import Camera, Intrinsics, look_at
 
 PathLike = str | os.PathLike[str]
-SceneKind = Literal["splat", "transforms", "colmap"]
+SceneKind = Literal["splat", "transforms", "colmap", "rosbag"]
 
 __all__ = [
     "BenchScene",
@@ -102,7 +102,7 @@ class BenchScene:
 
     Attributes:
         name: short name (folder or file stem).
-        kind: "splat", "transforms" or "colmap".
+        kind: "splat", "transforms", "colmap" or "rosbag".
         source: the path it was loaded from.
         intrinsics: shared by every pool (and test) camera.
         pool_poses: candidate camera-to-world poses [D, 4, 4] (OpenCV axes), capture order.

@@ -26,6 +26,12 @@ Three kinds of scene, detected from the path (:func:`detect_scene_kind`):
   least the target width): Mip-NeRF 360, Tanks & Temples and Deep Blending come this way.
   Views are sorted by name (capture order), the test set is every 8th, the pool the rest;
   initial points are the sparse cloud.
+- ``rosbag``: a rosbag2 recording (a folder with ``metadata.yaml``, or an ``.mcap`` / ``.db3``
+  file) of a camera's colour images, camera info, optional registered depth, and poses from
+  ``/tf`` + ``/tf_static`` or a PoseStamped topic (:mod:`agilegs.client.ros2.bag`; the topics
+  are found by type unless ``bag_topics`` names them). Frames in stamp order, the test set
+  every 8th, the pool the rest; random initial points as for ``transforms`` (the depth when
+  every pool frame has one).
 
 For posed image sets the images are resized to ``SceneOptions.width`` (aspect kept) and, when
 the set is larger than the profile allows, the pool and the test set are thinned evenly
@@ -47,12 +53,13 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from agilegs.client.ros2.bag import BagTopics, is_bag
 from agilegs.service.nbv.camera import Camera, Intrinsics
 from agilegs.service.nbv.candidates import capture_pool, scene_center_radius
 from agilegs.service.nbv.gaussians import SUFFIXES, load_scene
 from agilegs.service.nbv.rasterize import render
 
-from .posed_scenes import load_colmap_scene, load_transforms_scene
+from .posed_scenes import load_bag_scene, load_colmap_scene, load_transforms_scene
 from .scene_model import (
     BenchScene,
     PathLike,
@@ -85,7 +92,8 @@ def _splat_files(folder: Path) -> list[Path]:
 
 
 def detect_scene_kind(path: PathLike) -> SceneKind:
-    """"splat", "transforms" or "colmap" for a scene path (see the module docstring).
+    """"splat", "transforms", "colmap" or "rosbag" for a scene path (see the module
+    docstring).
 
     Raises:
         FileNotFoundError: the path does not exist.
@@ -94,13 +102,15 @@ def detect_scene_kind(path: PathLike) -> SceneKind:
     p = Path(path)
     if not p.exists():
         raise FileNotFoundError(f"scene {p} not found")
+    if is_bag(p):
+        return "rosbag"
     if p.is_file():
         if p.suffix.lower() in SUFFIXES:
             return "splat"
         if p.suffix.lower() == ".json":
             return "transforms"
-        raise ValueError(f"scene {p}: a file must be a .splat / .ply splat or a "
-                         "transforms.json")
+        raise ValueError(f"scene {p}: a file must be a .splat / .ply splat, a "
+                         "transforms.json or a rosbag2 .mcap / .db3")
     if (p / "transforms.json").is_file() or (p / "transforms_train.json").is_file():
         return "transforms"
     if colmap_model_dir(p) is not None:
@@ -108,8 +118,9 @@ def detect_scene_kind(path: PathLike) -> SceneKind:
     if _splat_files(p):
         return "splat"
     raise ValueError(
-        f"scene {p}: found no .splat/.ply file, no transforms.json / transforms_train.json "
-        "and no COLMAP model (sparse/0, sparse or the folder itself with cameras and images)"
+        f"scene {p}: found no .splat/.ply file, no transforms.json / transforms_train.json, "
+        "no COLMAP model (sparse/0, sparse or the folder itself with cameras and images) "
+        "and no rosbag2 metadata.yaml"
     )
 
 # ----------------------------------------------------------------------------- splat scenes
@@ -185,8 +196,10 @@ def _splat_type(file: Path) -> str:
         method = None
     return "capture" if method == "capture" else "object"
 
-def load_bench_scene(path: PathLike, options: SceneOptions | None = None) -> BenchScene:
-    """Load a scene of any kind (see the module docstring) for the progressive protocol.
+def load_bench_scene(path: PathLike, options: SceneOptions | None = None, *,
+                     bag_topics: BagTopics | None = None) -> BenchScene:
+    """Load a scene of any kind (see the module docstring) for the progressive protocol
+    (``bag_topics``: the topics of a rosbag2 scene).
 
     Raises:
         FileNotFoundError: the path does not exist.
@@ -200,6 +213,8 @@ def load_bench_scene(path: PathLike, options: SceneOptions | None = None) -> Ben
         scene = _load_splat_scene(p, opt)
     elif kind == "transforms":
         scene = load_transforms_scene(p, opt)
+    elif kind == "rosbag":
+        scene = load_bag_scene(p, opt, bag_topics)
     else:
         scene = load_colmap_scene(p, opt)
     log.info("scene %s (%s): pool %d, test %d, %dx%d", scene.name, kind, scene.pool_size,

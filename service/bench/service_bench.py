@@ -4,11 +4,12 @@ Starts ``agilegs serve`` in a subprocess on free loopback ports (or uses ``--url
 ``--zenoh``), creates a session on a scene (default: the teapot subsampled to
 ``--max-gaussians``) with a pool of ``--pool`` candidates, then:
 
-1. **Overhead.** ``--requests`` selections (no commit) over HTTP JSON, HTTP msgpack and
-   Zenoh, each timed by the client. Transport overhead = client round trip - the core's
-   selection time (``latency_ms.total``); also shown: server time (``server_ms``) - core
-   time, the part of the overhead spent inside the server (decode, validate, lock, encode),
-   the core time itself, and the whole round trip.
+1. **Overhead.** ``--requests`` selections (no commit) over HTTP JSON, HTTP msgpack,
+   Zenoh and ROS 2 (the ``select`` service as CDR on the keys of zenoh-bridge-ros2dds, a
+   started server serving ``--ros2``; ``preset`` only), each timed by the client. Transport
+   overhead = client round trip - the core's selection time (``latency_ms.total``); also
+   shown: server time (``server_ms``) - core time, the part of the overhead spent inside the
+   server (decode, validate, lock, encode), the core time itself, and the whole round trip.
    Two request shapes: the pool set beforehand (``preset``: a small body naming the
    session's 300 candidates) and the pool sent inside the select request (``inline``: 300
    poses in the body, persisted before the answer).
@@ -52,6 +53,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a = parser.add_argument
     a("--url", help="a running server (default: start one)")
     a("--zenoh", help="its Zenoh endpoint, e.g. tcp/127.0.0.1:7447 (with --url)")
+    a("--ros2", default=None, metavar="NAMESPACE",
+      help="the ROS 2 namespace timed (default /bench/agilegs on a started server; with "
+           "--url: only when given)")
     a("--token", default=os.environ.get("AGILEGS_TOKEN"), help="bearer token (AGILEGS_TOKEN)")
     a("--scene", default=DEFAULT_SCENE, help=".splat / .ply scene (random Gaussians if absent)")
     a("--max-gaussians", type=int, default=2000, help="subsample the scene to this many")
@@ -142,7 +146,9 @@ def run(args: argparse.Namespace) -> int:
     tmp = tempfile.TemporaryDirectory(prefix="agilegs-bench-")
     if url is None:
         env = {"AGILEGS_TOKEN": args.token} if args.token else {}
-        server = ServerProcess(Path(tmp.name) / "state", env=env).start()
+        args.ros2 = args.ros2 or "/bench/agilegs"
+        server = ServerProcess(Path(tmp.name) / "state", env=env,
+                               args=["--ros2", args.ros2]).start()
         url, zenoh_ep = server.url, server.zenoh_endpoint
     results: dict[str, Any] = {"pool": args.pool, "method": args.method,
                                "gaussians": args.max_gaussians, "size": args.size,
@@ -164,9 +170,11 @@ def run(args: argparse.Namespace) -> int:
                                  {"bounds": bounds, "init_gaussians": args.max_gaussians})
         sid = f"bench-{os.getpid()}"
         c.create_session(intr, id=sid, pool=poses, instance=args.instance, **scene)
+        if zenoh_ep and args.ros2:
+            clients["ros2"] = _Ros2Client(args.ros2, zenoh_ep, sid, args.token)
         results["overhead"] = {}
         for name, client in clients.items():
-            for shape in ("preset", "inline"):
+            for shape in ("preset",) if name == "ros2" else ("preset", "inline"):
                 log.info("timing %s, %s pool", name, shape)
                 if shape == "preset":
                     def select(cl: Any = client) -> Any:
@@ -191,6 +199,32 @@ def run(args: argparse.Namespace) -> int:
     if args.json_out:
         Path(args.json_out).write_text(json.dumps(results, indent=2))
     return 0 if results["load"]["errors"] == 0 and results["load"]["lost"] == 0 else 1
+
+
+class _Ros2Client:
+    """``select`` over the ROS 2 service (CDR), with the client's answer shape."""
+
+    def __init__(self, namespace: str, endpoint: str, sid: str, token: str | None) -> None:
+        from agilegs.client.ros2.robot import Ros2Robot
+
+        self.robot = Ros2Robot(namespace, connect=[endpoint])
+        self.robot.token = token or ""
+        opened = self.robot.open_session(sid)
+        if opened.status.status != 200:
+            self.robot.close()
+            raise SystemExit(f"--ros2 {namespace}: open_session refused: "
+                             f"{opened.status.message}")
+
+    def select(self, sid: str, method: str) -> Any:
+        from types import SimpleNamespace
+
+        r = self.robot.select(method=method)
+        if r.status.status != 200:
+            raise SystemExit(f"ros2 select refused: {r.status.message}")
+        return SimpleNamespace(latency_ms={"total": r.latency_ms}, server_ms=r.server_ms)
+
+    def close(self) -> None:
+        self.robot.close()
 
 
 def _load(url: str, args: argparse.Namespace, intr: dict[str, Any], scene: dict[str, Any],

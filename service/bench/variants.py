@@ -48,6 +48,8 @@ DISPLAY = {
     "agile_plus": "AGILE-GS+",
     "agile@paper": "AGILE-GS (paper)",
     "agile_plus@paper": "AGILE-GS+ (paper)",
+    "agile@single": "AGILE-GS (one anchor)",
+    "agile_plus@single": "AGILE-GS+ (one anchor)",
 }
 SHORTLIST_DISPLAY = {
     "leverage": "Ridge leverage",
@@ -98,6 +100,19 @@ OPTIONS: dict[str, tuple[str, Callable[[SelectConfig], SelectConfig]]] = {
                       _anchor(visibility="zbuffer", occluders=2000, occlusion_tests=COVER_ZBUFFER)),
     "mixed_zbuffer": ("z-buffer visibility: the mean of the point and the 3x3 tests",
                       _anchor(visibility="zbuffer", occluders=2000, occlusion_tests=MIXED_ZBUFFER)),
+    "directional": ("the proxy's directional model: per parameter slot, with a mean's world "
+                    "axes and a scale's local axes seen across the rays",
+                    _anchor(model="directional")),
+    "isotropic": ("the proxy's fitted model without directions: one rate per Gaussian",
+                  _anchor(model="fitted")),
+    "unexplored": ("the proxy also counts the unexplored part of the map's extent as "
+                   "never-observed Gaussians", _anchor(unexplored=True)),
+    "no_unexplored": ("the proxy counts only the map's Gaussians", _anchor(unexplored=False)),
+    "modes": ("three anchors from distinct modes of psi (starts spread alike), the shortlist "
+              "drawn across their support samples", _anchor(anchors=3)),
+    "one_anchor": ("one anchor, the shortlist drawn around it", _anchor(anchors=1)),
+    "single": ("one anchor of the isotropic fitted proxy over the map's Gaussians only",
+               _anchor(model="fitted", unexplored=False, anchors=1)),
     "quarter_unseen": ("the fitted model counts unseen Gaussians as seen by a quarter of a "
                        "typical view", _anchor(unseen="quarter_view")),
     "unconditioned": ("the leverage greedy starts from lambda_G I (not the acquired rows)",

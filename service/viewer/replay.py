@@ -6,8 +6,9 @@ written so far) and serves a viser page: pick the scene, the method and the seed
 event by event (a slider, or play). Event 0 shows the initial views and the pool; event k
 the k-th selection: the chosen view (red), the shortlist (filled) and the candidates
 coloured by the method's scores, the anchor (orange) where the method has one, and the path
-of the views acquired so far (blue); the panel shows the event's latency breakdown and the
-run's PSNR curve against views, the current event marked.
+of the views acquired so far (blue); the panel shows the event's latency breakdown, how
+redundant the pick (and the anchor) are with the views already acquired (the record's
+``redundancy``), and the run's PSNR curve against views, the current event marked.
 
 Records written before the pool's poses were added to them (``pool_poses``, ``scores`` and
 ``anchor`` per event) are replayed from their camera centres (``trajectory``): the path as
@@ -212,7 +213,8 @@ class RunReplay:
                 f"**{d.get('method', variant)}** · `{variant}` · seed {seed} · profile "
                 f"{d.get('profile', '?')}  \nfinal PSNR **{_num(d.get('psnr'))} dB** · SSIM "
                 f"{_num(d.get('ssim'), 4)} · {len(rec.events)} events · mean selection "
-                f"{_num(lat, 1)} ms · path length {_num(d.get('path_length'))}{note}")
+                f"{_num(lat, 1)} ms · path length {_num(d.get('path_length'))}"
+                f"{_redundancy_line(d.get('redundancy'))}{note}")
             self.show_event(0)
 
     def show_event(self, event: int) -> None:
@@ -251,11 +253,21 @@ class RunReplay:
             return (f"**event 0 of {len(rec.events)}**: the {len(rec.data.get('initial', []))} "
                     f"initial views (blue) and the pool")
         shortlist = ", ".join(str(i) for i in ev.get("shortlist", [])) or "–"
+        red = (rec.data.get("redundancy") or {}).get("events") or []
+        angles = ""
+        if event - 1 < len(red):
+            r = red[event - 1]
+            angles = f"  \npick → nearest acquired view {_num(r.get('pick_angle_deg'), 1)}°"
+            if r.get("anchor_angle_deg") is not None:
+                angles += (f" · anchor → nearest acquired view "
+                           f"{_num(r.get('anchor_angle_deg'), 1)}°")
+            if r.get("psi_ratio") is not None:
+                angles += f" · ψ(anchor) / ψ(best candidate) {_num(r.get('psi_ratio'), 2)}"
         return (f"**event {event} of {len(rec.events)}** (step {ev.get('step', '?')}, "
                 f"{ev.get('views_before', '?')} views before): chose view **{ev['choice']}**  \n"
                 f"shortlist: {shortlist} · {ev.get('eligible', '?')} eligible · "
                 f"{ev.get('num_gaussians', '?')} Gaussians · Ĥ recomputed in "
-                f"{_num(ev.get('information_ms'), 1)} ms\n\n"
+                f"{_num(ev.get('information_ms'), 1)} ms{angles}\n\n"
                 + latency_markdown(ev.get("latency_ms", {})))
 
     def _chart(self, event: int) -> None:
@@ -307,6 +319,14 @@ class RunReplay:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _redundancy_line(red: dict[str, Any] | None) -> str:
+    """The run's redundancy figures (``bench run``'s ``redundancy``), or nothing."""
+    if not red:
+        return ""
+    return (f"  \npicks → nearest acquired view {_num(red.get('pick_angle_mean_deg'), 1)}° "
+            f"(mean) · the pool's final gap {_num(red.get('final_gap_deg'), 1)}°")
 
 
 def _num(value: Any, digits: int = 2) -> str:

@@ -162,18 +162,22 @@ def test_warm_start_is_one_of_the_starts(scene) -> None:
     assert cold.starts.shape[0] == 2
 
 
-def test_starts_are_the_best_pool_candidates_under_the_proxy(scene) -> None:
+@pytest.mark.parametrize("anchors", [1, 3])
+def test_starts_are_the_best_pool_candidates_under_the_proxy(scene, anchors: int) -> None:
+    from agilegs.service.nbv.anchor.ascent import distinct_best
+    from agilegs.service.nbv.candidates import pool_radius
+
     gmap, pool, _, h = scene
-    res = optimize_anchor(
-        gmap,
-        h,
-        pool,
-        INTR,
-        config=AnchorConfig(iterations=0, num_starts=3),
-        generator=torch.Generator().manual_seed(0),
-    )
+    cfg = AnchorConfig(iterations=0, num_starts=3, anchors=anchors)
+    res = optimize_anchor(gmap, h, pool, INTR, config=cfg,
+                          generator=torch.Generator().manual_seed(0))
     assert res.pool_psi is not None
-    best = torch.topk(res.pool_psi, 3).indices.tolist()
+    if anchors == 1:  # the top three
+        best = torch.topk(res.pool_psi, 3).indices.tolist()
+    else:  # the best three of distinct modes
+        r = pool_radius(pool)
+        best = distinct_best(pool, res.pool_psi, 3, cfg.mode_separation * r, r).tolist()
+        assert len(best) == 3 and best != torch.topk(res.pool_psi, 3).indices.tolist()
     assert res.extra["start_indices"] == best
     assert res.psi == pytest.approx(float(res.pool_psi.max()), rel=1e-9)
 
@@ -396,7 +400,8 @@ def test_log_form_proxy_and_its_importance_sampling(scene) -> None:
     torch.testing.assert_close(torch.stack(vals).mean(0), want, rtol=0.15, atol=0)
 
 
-def test_fitted_model_ranks_the_pool_like_the_exact_eig() -> None:
+@pytest.mark.parametrize("model", ["fitted", "directional"])
+def test_fitted_model_ranks_the_pool_like_the_exact_eig(model: str) -> None:
     """Views of the side no acquired view saw score high under the proxy and the exact EIG."""
     from agilegs.service.nbv.selectors import eig_scores
 
@@ -409,9 +414,10 @@ def test_fitted_model_ranks_the_pool_like_the_exact_eig() -> None:
     phi = eig_scores(gmap, h, pool, INTR)
     gen = torch.Generator().manual_seed(0)
     fitted = optimize_anchor(
-        gmap, h, pool, INTR, config=AnchorConfig(iterations=0), acquired=acq, generator=gen
+        gmap, h, pool, INTR, config=AnchorConfig(iterations=0, model=model, unexplored=False),
+        acquired=acq, generator=gen
     )
-    assert fitted.extra["model"] == "fitted"
+    assert fitted.extra["model"] == model
     assert fitted.pool_psi is not None
 
     def ranks(x: torch.Tensor) -> torch.Tensor:

@@ -306,6 +306,8 @@ def test_paper_preset() -> None:
 
     cfg = preset_config("paper")
     assert cfg.anchor.psi == "exact" and cfg.scoring.condition_on_acquired is False
+    # the paper's one anchor, whatever the defaults
+    assert (cfg.anchor.anchors, cfg.anchor.model, cfg.anchor.unexplored) == (1, "fitted", False)
     # everything else is the default; overrides merge over the preset
     assert cfg.shortlist_size == SelectConfig().shortlist_size
     cfg = preset_config("paper", shortlist_size=5, anchor={"resolution": 32})
@@ -320,16 +322,23 @@ def test_the_anchor_gets_hhat_s_lambda_and_background(world, monkeypatch) -> Non
     from agilegs.service.nbv.anchor import ascent
 
     seen: dict[str, object] = {}
-    real = ascent.observation_rates
 
-    def spy(*args, **kwargs):
-        seen["lam"] = kwargs.get("lam")
-        return real(*args, **kwargs)
+    def spying(name: str):
+        real = getattr(ascent, name)
 
-    monkeypatch.setattr(ascent, "observation_rates", spy)
+        def spy(*args, **kwargs):
+            seen[name] = kwargs.get("lam")
+            return real(*args, **kwargs)
+        return spy
+
+    for name in ("observation_rates", "directional_rates"):
+        monkeypatch.setattr(ascent, name, spying(name))
     gmap, h, pool, acq, _ = world
     select("agile", gmap, h, pool, INTR, acquired=acq, lam=1e-6)
-    assert seen["lam"] == 1e-6
+    assert seen == {"directional_rates": 1e-6}
+    select("agile", gmap, h, pool, INTR, acquired=acq, lam=1e-6,
+           config=SelectConfig(anchor=AnchorConfig(model="fitted")))
+    assert seen["observation_rates"] == 1e-6
     # the exact psi renders on the background the config gives
     from agilegs.service.nbv.information import trace_surrogate
 

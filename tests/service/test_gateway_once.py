@@ -63,6 +63,7 @@ def test_a_request_for_another_instance_s_session_goes_and_comes_back_as_it_came
                                    content_type=codec.MSGPACK, accept=codec.MSGPACK))
     assert reply.status == 200 and reply.body is answer and reply.media_type == codec.MSGPACK
     assert router.sent == [("commit", "remote", body, codec.MSGPACK)] and router.routed == []
+    assert reply.model == VIEW  # decoded only for a caller that reads it
     # no body: the answer is asked in the type the caller accepts
     reply = gateway.handle(Request(op="get_session", session="remote", accept=codec.JSON))
     assert router.sent[-1] == ("get_session", "remote", None, codec.JSON)

@@ -278,8 +278,8 @@ def test_limits_are_settings(tmp_path: Path) -> None:
 
 
 def test_everything_acknowledged_is_reloaded(core: SessionRegistry, tmp_path: Path) -> None:
-    core.call("extend_pool", "s", {"poses": [{"matrix": np.eye(4).tolist()}], "ids": [500]})
     core.call("select", "s", {"method": "agile", "commit": True})
+    core.call("extend_pool", "s", {"poses": [{"matrix": np.eye(4).tolist()}], "ids": [500]})
     core.call("add_observations", "s", {"observations": [{
         "pose": {"position": [0, 0, -2], "orientation_xyzw": [0, 0, 0, 1]},
         "image": {"encoding": "raw", "dtype": "uint8", "shape": [32, 32, 3],

@@ -267,6 +267,13 @@ def test_the_replay_steps_through_a_run(run_dir: Path) -> None:
                 assert h.color == expect.get(cid, GREY)
                 assert (h.variant == "filled") == (cid in ev["shortlist"])
             assert f"event {k} of {n}" in rp.event_md.content
+            red = rec.data["redundancy"]["events"][k - 1]
+            assert f"pick → nearest acquired view {red['pick_angle_deg']:.1f}°" in (
+                rp.event_md.content)
+            assert f"anchor → nearest acquired view {red['anchor_angle_deg']:.1f}°" in (
+                rp.event_md.content)
+        gap = rec.data["redundancy"]["final_gap_deg"]
+        assert f"the pool's final gap {gap:.1f}°" in rp.run_md.content
         curve = rec.data["curve"]
         assert rp.psnr_chart.data[1].tolist() == [c["psnr"] for c in curve]
         assert np.nansum(rp.psnr_chart.data[2]) == pytest.approx(curve[-1]["psnr"])

@@ -29,17 +29,20 @@ from ..camera import Camera, Intrinsics
 from ..candidates import pool_radius, scene_center_radius
 from ..gaussians import FIELD_NAMES, GaussianMap
 from ..information import fisher_diag, trace_surrogate
-from ..se3 import project_to_se3, se3_exp
+from ..se3 import pose_distance, project_to_se3, se3_exp
 from .envelope import PoolEnvelope
 from .fitting import (
+    directional_rates,
     information_weights,
     observation_rates,
     typical_fisher_from_h_acc,
 )
 from .proxy import ProxyPsi, pick_occluders
+from .unexplored import unexplored_space
 from .visibility import OpacityMaps
 
-__all__ = ["AnchorResult", "ascend", "exact_psi_fn", "optimize_anchor", "optimize_anchor_validated"]
+__all__ = ["AnchorResult", "ascend", "distinct_best", "exact_psi_fn", "optimize_anchor",
+           "optimize_anchor_validated"]
 
 
 @dataclass
@@ -55,6 +58,9 @@ class AnchorResult:
         evaluations: psi evaluations (batched proxy calls count once per pose).
         pool_psi: the proxy psi of every pool candidate scored for the starts [D] (None for
             the exact psi without a proxy).
+        modes: the anchors of distinct modes [M, 4, 4], best first (``c2w`` first; only it
+            unless ``config.anchors`` > 1).
+        mode_psi: psi at each of ``modes``.
         extra: diagnostics (typical Fisher used, timings).
     """
 
@@ -65,6 +71,8 @@ class AnchorResult:
     starts: Tensor
     evaluations: int
     pool_psi: Tensor | None = None
+    modes: Tensor | None = None
+    mode_psi: list[float] = field(default_factory=list)
     extra: dict[str, Any] = field(default_factory=dict)
 
 
@@ -259,11 +267,25 @@ def optimize_anchor_validated(
     timings["visibility"] = time.perf_counter() - t0
     fitted = (
         typical is None
-        and config.model == "fitted"
+        and config.model in ("fitted", "directional")
         and acquired is not None
         and acquired.shape[0] > 0
     )
-    if fitted:
+    if fitted and config.model == "directional":
+        assert acquired is not None
+        drate = directional_rates(gmap, h_acc, acquired, prox_intr, fields, lam=lam,
+                                  near=common["near"], edge=common["edge"],
+                                  grid=common.get("grid"), generator=generator)
+        c = torch.log1p(drate.rate * drate.typical).sum(1)
+        proxy = ProxyPsi.build(
+            gmap, c, prox_intr, num_samples=config.num_gaussians, rate=drate.rate,
+            slot_kinds=drate.kinds, **common,
+        )
+        extra["model"] = "directional"
+        extra["typical_term"] = drate.typical
+        prior_rate: Tensor = drate.prior_rate
+        per_gaussian = 1.0
+    elif fitted:
         assert acquired is not None
         fit = observation_rates(gmap, h_acc, acquired, prox_intr, fields, lam=lam,
                                 unseen=config.unseen, **common)
@@ -274,6 +296,8 @@ def optimize_anchor_validated(
         )
         extra["model"] = "fitted"
         extra["typical_term"] = fit.typical
+        prior_rate = torch.tensor(fit.prior_rate, dtype=dt)
+        per_gaussian = float(fit.slots)
     else:
         if typical is not None:
             extra["typical_source"] = "given"
@@ -283,13 +307,26 @@ def optimize_anchor_validated(
         c = information_weights(h_acc, typical, fields)
         proxy = ProxyPsi.build(gmap, c, prox_intr, num_samples=config.num_gaussians, **common)
         extra["model"] = "typical"
+    if fitted and config.unexplored:
+        assert acquired is not None
+        space = unexplored_space(gmap, acquired, proxy, cells=config.unexplored_cells,
+                                 generator=generator)
+        if space.means.shape[0]:
+            rates = prior_rate.to(dt).expand(space.means.shape[0], *prior_rate.shape)
+            proxy = proxy.extended(space.means, space.cov, per_gaussian * space.weight, rates)
+        extra["unexplored_fraction"] = space.unexplored_fraction
+        extra["unexplored_points"] = int(space.means.shape[0])
     timings["proxy_build"] = time.perf_counter() - t0
     # starts: best pool candidates under the proxy (+ the previous anchor)
     with torch.no_grad():
         pool = candidates.detach().to(dt)
         pool_psi = proxy(envelope.project(pool) if envelope is not None else pool)
     k = min(config.num_starts, pool.shape[0])
-    best = torch.topk(pool_psi, k).indices
+    separation = config.mode_separation * radius
+    if config.anchors > 1:
+        best = distinct_best(pool, pool_psi, k, separation, radius)
+    else:
+        best = torch.topk(pool_psi, k).indices
     starts = pool[best]
     if config.warm_start and warm_c2w is not None:
         starts = torch.cat([starts, warm_c2w.detach().to(dt).reshape(1, 4, 4)])
@@ -307,6 +344,7 @@ def optimize_anchor_validated(
             exact, starts, config=config, envelope=envelope, radius=radius, batched=False
         )
     win = int(torch.argmax(vals))
+    modes = distinct_best(poses, vals, config.anchors, separation, radius)
     timings["ascent"] = time.perf_counter() - t0 - timings["proxy_build"] - timings["starts"]
     extra["timings_s"] = timings
     extra["start_indices"] = [int(i) for i in best]
@@ -319,8 +357,29 @@ def optimize_anchor_validated(
         starts=starts,
         evaluations=evals,
         pool_psi=pool_psi.detach(),
+        modes=poses[modes].detach(),
+        mode_psi=[float(vals[i]) for i in modes],
         extra=extra,
     )
+
+
+def distinct_best(poses: Tensor, scores: Tensor, k: int, separation: float,
+                  radius: float) -> Tensor:
+    """Up to ``k`` indices of poses [P, 4, 4], best ``scores`` [P] first, each at least
+    ``separation`` (world units) from those before it under the SE(3) distance with
+    ``radius`` world units per radian (greedy non-maximum suppression; the best is always
+    first)."""
+    order = torch.sort(scores.detach(), descending=True, stable=True).indices
+    chosen: list[int] = []
+    for i in order.tolist():
+        if len(chosen) >= k:
+            break
+        if chosen:
+            d = pose_distance(poses[chosen], poses[i].expand(len(chosen), 4, 4), radius)
+            if float(d.min()) < separation:
+                continue
+        chosen.append(i)
+    return torch.tensor(chosen, dtype=torch.long, device=poses.device)
 
 
 def exact_psi_fn(

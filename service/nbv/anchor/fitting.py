@@ -18,14 +18,18 @@ from torch import Tensor
 
 from ..camera import Intrinsics
 from ..gaussians import GaussianMap
-from .proxy import ProxyPsi
+from .proxy import DIRECTION_KINDS, ProxyPsi, direction_factors, local_axes
 from .visibility import OpacityMaps
 
 __all__ = [
+    "FIELD_KINDS",
+    "DirectionalRates",
     "FittedRates",
+    "directional_rates",
     "information_weights",
     "observation_rates",
     "prior_floor",
+    "slot_kinds",
     "typical_fisher_from_h_acc",
     "typical_fisher_from_views",
 ]
@@ -80,12 +84,15 @@ class FittedRates:
         accumulated: W_i, the proxy terms summed over the acquired poses [N].
         typical: f, the median proxy term of the (Gaussian, acquired view) pairs that see it.
         slots: parameter slots per Gaussian in the fields used (P).
+        prior_rate: the rate of a Gaussian no view has seen (Hhat = lambda), with the seen
+            Gaussians' median information per unit of footprint.
     """
 
     rate: Tensor
     accumulated: Tensor
     typical: float
     slots: int
+    prior_rate: float = 0.0
 
 
 @torch.no_grad()
@@ -161,15 +168,17 @@ def observation_rates(
     seen_mask = w_sum >= floor
     r_sum = torch.zeros(n, dtype=dt, device=dev)
     new_sum = torch.zeros(n, dtype=dt, device=dev)
+    prior_sum = 0.0
     slots = 0
     for name in fields:
         flat = h_acc[name].detach().to(dt).reshape(n, -1)
         prior = prior_floor(flat, lam)
         excess = (flat - prior).clamp_min(0)
         r_sum += (excess / flat.clamp_min(1e-30)).clamp(0, 1).sum(1)
-        if unseen == "prior" and bool(seen_mask.any()):
+        if bool(seen_mask.any()):
             g_med = (excess[seen_mask] / w_sum[seen_mask, None]).median(dim=0).values  # [P]
             new_sum += (g_med[None, :] / flat.clamp_min(1e-30)).sum(1)
+            prior_sum += float((g_med / prior[0].clamp_min(1e-30)).sum())
         slots += flat.shape[1]
     r = r_sum / max(slots, 1)
     if unseen == "prior" and bool(seen_mask.any()):
@@ -177,7 +186,119 @@ def observation_rates(
     else:
         fresh = torch.full_like(r, 1 / floor)
     rate = torch.where(seen_mask, r / w_sum.clamp_min(floor), fresh)
-    return FittedRates(rate=rate, accumulated=w_sum, typical=f_typ, slots=slots)
+    return FittedRates(rate=rate, accumulated=w_sum, typical=f_typ, slots=slots,
+                       prior_rate=prior_sum / max(slots, 1))
+
+
+FIELD_KINDS: dict[str, tuple[int, ...] | None] = {
+    "means": (1, 2, 3),
+    "log_scales": (4, 5, 6),
+}
+"""Each parameter block's direction factors (indices into
+:data:`~agilegs.service.nbv.anchor.proxy.DIRECTION_KINDS`): a mean's world axes, a scale's
+local axes; every other block is isotropic."""
+
+
+def slot_kinds(h_acc: dict[str, Tensor], fields: tuple[str, ...]) -> Tensor:
+    """The direction factor of every parameter slot of ``fields`` [Q], in the order of the
+    blocks' flattened rows (``h_acc[name].reshape(N, -1)``, blocks in ``fields`` order)."""
+    kinds: list[int] = []
+    for name in fields:
+        per = int(h_acc[name][0].numel())
+        fixed = FIELD_KINDS.get(name)
+        kinds += list(fixed) if fixed is not None and len(fixed) == per else [0] * per
+    return torch.tensor(kinds, dtype=torch.long)
+
+
+@dataclass
+class DirectionalRates:
+    """The directional observation model of the proxy (:func:`directional_rates`).
+
+    Attributes:
+        rate: a_iq per Gaussian and parameter slot [N, Q]: a view at T gives slot q of
+            Gaussian i the information ratio ``H_T,iq / Hhat_iq ~ a_iq w_i(T) f_q(d_i(T))``.
+        kinds: the direction factor of each slot [Q].
+        accumulated: W_ik, the proxy terms times each direction factor, summed over the
+            acquired poses [N, 7].
+        typical: f, the median proxy term of the (Gaussian, acquired view) pairs that see it.
+        prior_rate: the rates of a Gaussian no view has seen (Hhat = lambda) [Q]: g_q / lambda_q.
+    """
+
+    rate: Tensor
+    kinds: Tensor
+    accumulated: Tensor
+    typical: float
+    prior_rate: Tensor
+
+
+@torch.no_grad()
+def directional_rates(
+    gmap: GaussianMap,
+    h_acc: dict[str, Tensor],
+    acquired: Tensor,
+    intrinsics: Intrinsics,
+    fields: tuple[str, ...],
+    *,
+    near: float,
+    edge: float,
+    grid: OpacityMaps | None = None,
+    generator: torch.Generator | None = None,
+    chunk: int = 16,
+    lam: float | None = None,
+) -> DirectionalRates:
+    """Fit the directional observation model to Hhat over the acquired poses [A, 4, 4].
+
+    Model: a view at T adds ``g_iq w_i(T) f_q(d_i(T))`` to slot q of Gaussian i, with
+    ``w_i(T)`` the proxy's footprint x inside x visible term, ``d_i(T)`` the ray from T's
+    centre to the Gaussian and ``f_q`` the slot's direction factor
+    (:func:`~agilegs.service.nbv.anchor.proxy.direction_factors`: 1 for opacity, colour and
+    rotation; ``1 - d_k^2`` for a mean's world axis k; ``1 - (d . u_k)^2`` for a scale's
+    local axis u_k). The acquired views give ``Hhat_iq - lambda_q = g_iq W_iq`` with
+    ``W_iq = sum_a w_i(T_a) f_q(d_i(T_a))``, so ``g_iq = (Hhat_iq - lambda_q) / W_iq`` where
+    the acquired views saw that slot (W_iq at least a quarter of the typical term f times
+    the factor's typical value), and elsewhere (a Gaussian no acquired view saw, or a mean
+    seen only along one axis) the median g_q of the slots that were seen: the information a
+    typical view would give it. Then ``a_iq = g_iq / Hhat_iq``: the model's diagonal EIG of a
+    view at T is ``sum_iq log(1 + a_iq w_i(T) f_q)``, and a slot that the acquired views left
+    unconstrained (Hhat_iq ~ lambda_q) is worth a view that sees it across.
+    """
+    n = gmap.num_gaussians
+    dt = gmap.dtype
+    dev = gmap.means.device
+    full = ProxyPsi.build(gmap, torch.ones(n, dtype=dt, device=dev), intrinsics,
+                          num_samples=0, near=near, edge=edge, generator=generator, grid=grid)
+    axes = local_axes(gmap.quats.detach().to(dt))
+    poses = acquired.detach().to(dt)
+    w_sum = torch.zeros(n, len(DIRECTION_KINDS), dtype=dt, device=dev)
+    seen: list[Tensor] = []
+    for i in range(0, poses.shape[0], chunk):
+        p = poses[i : i + chunk]
+        w = full(p, per_sample=True)  # [B, N]
+        f = direction_factors(full.means.to(dt), p[:, :3, 3], axes)  # [B, N, 7]
+        w_sum += (w.unsqueeze(-1) * f).sum(0)
+        seen.append(w[w > 1e-6])
+    pos = torch.cat(seen) if seen else torch.zeros(0, dtype=dt, device=dev)
+    f_typ = float(pos.median()) if pos.numel() else 1.0
+    # the floor of each factor: a quarter of a typical view, at the factor's mean over a
+    # uniform direction (2/3 for 1 - c^2)
+    floor = 0.25 * f_typ * torch.tensor([1.0] + [2.0 / 3.0] * 6, dtype=dt, device=dev)
+    kinds = slot_kinds(h_acc, fields).to(dev)
+    flat = torch.cat([h_acc[name].detach().to(dt).reshape(n, -1) for name in fields], dim=1)
+    prior = torch.cat([prior_floor(h_acc[name].detach().to(dt).reshape(n, -1), lam)
+                       for name in fields], dim=1)  # [1, Q]
+    excess = (flat - prior).clamp_min(0)
+    w_slot = w_sum[:, kinds]  # [N, Q]
+    seen_slot = w_slot >= floor[kinds]
+    g = excess / w_slot.clamp_min(1e-30)
+    g_med = torch.stack([
+        g[seen_slot[:, q], q].median() if bool(seen_slot[:, q].any())
+        else torch.zeros((), dtype=dt, device=dev)
+        for q in range(flat.shape[1])
+    ])
+    g = torch.where(seen_slot, g, g_med.unsqueeze(0))
+    rate = g / flat.clamp_min(1e-30)
+    return DirectionalRates(rate=rate, kinds=kinds, accumulated=w_sum, typical=f_typ,
+                            prior_rate=g_med / prior[0].clamp_min(1e-30))
 
 
 def typical_fisher_from_views(

@@ -13,6 +13,7 @@ to Hhat is in :mod:`agilegs.service.nbv.anchor.fitting`.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import torch
@@ -23,9 +24,17 @@ from agilegs.config.selection import POINT_ZBUFFER
 from ..camera import Intrinsics
 from ..gaussians import GaussianMap
 from ..projection import covariance_3d
+from ..rotations import quat_to_rotmat
 from .visibility import OpacityMaps
 
-__all__ = ["ProxyPsi", "pick_occluders", "to_camera"]
+__all__ = [
+    "DIRECTION_KINDS",
+    "ProxyPsi",
+    "direction_factors",
+    "local_axes",
+    "pick_occluders",
+    "to_camera",
+]
 
 
 def pick_occluders(
@@ -49,8 +58,12 @@ class ProxyPsi:
     """The rasterization-free psi over a fixed importance sample of Gaussians.
 
     With the per-sample term ``w_s(T) = footprint_s(T) * inside_s(T) * visible_s(T)``:
-    ``psi(T) = sum_s weight_s * log(1 + rate_s * w_s(T))`` when ``rate`` is set (the fitted
-    model, ``observation_rates``), else ``psi(T) = sum_s weight_s * w_s(T)``. ``visible_s``:
+    ``psi(T) = sum_s weight_s * log(1 + rate_s * w_s(T))`` when ``rate`` is set [S] (the fitted
+    model, ``observation_rates``), ``psi(T) = sum_s weight_s * sum_q log(1 + rate_sq * w_s(T) *
+    f_q(d_s(T)))`` when ``rate`` is per parameter slot [S, Q] (the directional model,
+    ``directional_rates``: f_q the slot's direction factor, :func:`direction_factors`, of the
+    ray d_s from the camera centre to the sample), else ``psi(T) = sum_s weight_s * w_s(T)``.
+    ``visible_s``:
     with ``grid``, the transmittance from the camera centre to the sample through the
     map (deep opacity maps, differentiable in the pose); else, with ``occluders``, a point
     z-buffer test:
@@ -71,7 +84,11 @@ class ProxyPsi:
         occluders: occluder means [M, 3] (None: no occlusion test).
         occ_grid: z-buffer grid edge in cells.
         occ_tests: the visibility tests (cover in cells, odd; relative depth tolerance).
-        rate: per-sample rate a_s of the log form [S] (None: the linear form).
+        rate: per-sample rate a_s of the log form [S], or per sample and parameter slot
+            [S, Q] (the directional form), or None (the linear form).
+        slot_kinds: the direction factor of each slot [Q] (indices into
+            :func:`direction_factors`' last axis; the directional form only).
+        axes: the samples' local axes, as columns [S, 3, 3] (the directional form only).
         grid: the occluders of the transmittance visibility (None: the z-buffer).
     """
 
@@ -86,6 +103,8 @@ class ProxyPsi:
     rate: Tensor | None = None
     occ_tests: tuple[tuple[int, float], ...] = POINT_ZBUFFER
     grid: OpacityMaps | None = None
+    slot_kinds: Tensor | None = None
+    axes: Tensor | None = None
 
     @classmethod
     def build(
@@ -106,13 +125,16 @@ class ProxyPsi:
         slots: int = 1,
         occluders: Tensor | None = None,
         grid: OpacityMaps | None = None,
+        slot_kinds: Tensor | None = None,
     ) -> ProxyPsi:
         """Importance-sample ``num_samples`` Gaussians with probability ~ c [N] (seeded).
 
         Linear form (``rate`` None): ``psi = sum_i c_i w_i``, estimated by the sample.
         Log form (``rate`` [N]): ``psi = sum_i slots * log(1 + rate_i w_i)``, estimated by the
         sample drawn ~ c (c_i should be that Gaussian's typical term) and reweighted by
-        ``1 / c_i``. ``num_samples`` 0 or >= N takes every Gaussian once, unweighted.
+        ``1 / c_i``. Directional form (``rate`` [N, Q] with ``slot_kinds`` [Q]): ``psi =
+        sum_i sum_q log(1 + rate_iq w_i f_q)``, sampled and reweighted alike (``slots`` is
+        not used). ``num_samples`` 0 or >= N takes every Gaussian once, unweighted.
         ``grid`` gives the transmittance visibility; without it, ``num_occluders`` > 0
         enables the z-buffer test with that many opaque Gaussians (opacity >= ``min_opacity``;
         all of them when fewer) as occluders, or with ``occluders`` [M, 3] when given; 0
@@ -121,9 +143,13 @@ class ProxyPsi:
         c = c.detach().clamp_min(0)
         n = c.shape[0]
         total = float(c.sum())
+        directional = rate is not None and rate.ndim == 2
+        if directional and slot_kinds is None:
+            raise ValueError("a per-slot rate [N, Q] needs slot_kinds [Q]")
+        per_slot = 1.0 if directional else float(slots)
         if num_samples == 0 or num_samples >= n or total <= 0:
             idx = torch.arange(n, device=c.device)
-            w = c if rate is None else torch.full_like(c, float(slots))
+            w = c if rate is None else torch.full_like(c, per_slot)
         else:
             draws = torch.multinomial(
                 c.cpu().double(), num_samples, replacement=True, generator=generator
@@ -132,7 +158,7 @@ class ProxyPsi:
             idx = uniq.to(c.device)
             w = counts.to(device=c.device, dtype=c.dtype) * (total / num_samples)
             if rate is not None:
-                w = w * float(slots) / c[idx].clamp_min(1e-30)
+                w = w * per_slot / c[idx].clamp_min(1e-30)
         means = gmap.means.detach()[idx]
         cov = covariance_3d(gmap.log_scales.detach()[idx], gmap.quats.detach()[idx])
         occ = (
@@ -152,6 +178,8 @@ class ProxyPsi:
             rate=None if rate is None else rate.detach()[idx],
             occ_tests=tuple((int(c), float(t)) for c, t in occ_tests),
             grid=grid,
+            slot_kinds=slot_kinds if directional else None,
+            axes=local_axes(gmap.quats.detach()[idx]) if directional else None,
         )
 
     def visibility(
@@ -227,13 +255,10 @@ class ProxyPsi:
         k = self.intrinsics
         dt = c2w.dtype
         rot = c2w[:, :3, :3]
-        t = c2w[:, :3, 3]
-        x, y, z = to_camera(self.means.to(dt), rot, t)  # each [B, S]
+        x, y, z = to_camera(self.means.to(dt), rot, c2w[:, :3, 3])  # each [B, S]
         # smooth positive depth (softplus above the near plane): finite Jacobians behind it
         zs = self.near + torch.nn.functional.softplus(z - self.near, beta=20.0 / self.near)
         tx, ty = x / zs, y / zs
-        u = k.fx * tx + k.cx
-        v = k.fy * ty + k.cy
         ex, ey, ez = rot[:, :, 0], rot[:, :, 1], rot[:, :, 2]  # camera axes in world [B, 3]
         pairs = [(ex, ex), (ex, ey), (ex, ez), (ey, ey), (ey, ez), (ez, ez)]
         # w[b, p] . sigma6[s] = e_a^T Sigma_s e_b with sigma6 = (xx, yy, zz, 2xy, 2xz, 2yz)
@@ -262,21 +287,66 @@ class ProxyPsi:
         bb = k.fx * k.fy * iz2 * (qxy - tx * qyz - ty * qxz + tx * ty * qzz)
         cc = k.fy * k.fy * iz2 * (qyy - 2 * ty * qyz + ty * ty * qzz) + 0.3
         foot = torch.sqrt((a * cc - bb * bb).clamp_min(1e-12))
+        terms = foot * self._inside(x, y, z) * self.visibility(c2w, (x, y, z))
+        if per_sample:
+            return terms
+        if self.rate is not None and self.rate.ndim == 2:
+            assert self.slot_kinds is not None
+            f = self.direction_factors(c2w)[..., self.slot_kinds]  # [B, S, Q]
+            terms = torch.log1p(terms.unsqueeze(-1) * f * self.rate.to(dt)).sum(-1)
+        elif self.rate is not None:
+            terms = torch.log1p(terms * self.rate.to(dt))
+        return terms @ self.weight.to(dt)
+
+    def _inside(self, x: Tensor, y: Tensor, z: Tensor) -> Tensor:
+        """The smooth in-frustum test of camera coordinates (each [B, S]) -> [B, S]."""
+        k = self.intrinsics
+        zs = self.near + torch.nn.functional.softplus(z - self.near, beta=20.0 / self.near)
+        u = k.fx * x / zs + k.cx
+        v = k.fy * y / zs + k.cy
         e = self.edge
-        inside = (
+        return (
             torch.sigmoid((z - self.near) / (0.25 * self.near))
             * torch.sigmoid(u / e)
             * torch.sigmoid((k.width - u) / e)
             * torch.sigmoid(v / e)
             * torch.sigmoid((k.height - v) / e)
         )
-        vis = self.visibility(c2w, (x, y, z))
-        terms = foot * inside * vis
-        if per_sample:
-            return terms
+
+    def seen(self, c2w: Tensor) -> Tensor:
+        """How much of each sample a pose sees, inside x visible, from poses [B, 4, 4] ->
+        [B, S] (the footprint left out)."""
+        x, y, z = to_camera(self.means.to(c2w.dtype), c2w[:, :3, :3], c2w[:, :3, 3])
+        return self._inside(x, y, z) * self.visibility(c2w, (x, y, z))
+
+    def extended(self, means: Tensor, cov: Tensor, weight: Tensor, rate: Tensor | None
+                 ) -> ProxyPsi:
+        """This proxy with extra samples appended: centres [E, 3], covariances [E, 3, 3],
+        weights [E] and rates ([E] or [E, Q], as this proxy's; None for the linear form).
+        Their local axes (directional form) are the world axes."""
+        dt = self.means.dtype
+        axes = None
+        if self.axes is not None:
+            eye = torch.eye(3, dtype=dt, device=means.device).expand(means.shape[0], 3, 3)
+            axes = torch.cat([self.axes, eye])
+        new_rate = None
         if self.rate is not None:
-            terms = torch.log1p(terms * self.rate.to(dt))
-        return terms @ self.weight.to(dt)
+            if rate is None:
+                raise ValueError("a proxy with rates needs the extra samples' rates")
+            new_rate = torch.cat([self.rate, rate.to(dt)])
+        return dataclasses.replace(
+            self,
+            means=torch.cat([self.means, means.to(dt)]),
+            cov=torch.cat([self.cov, cov.to(dt)]),
+            weight=torch.cat([self.weight, weight.to(self.weight.dtype)]),
+            rate=new_rate,
+            axes=axes,
+        )
+
+    def direction_factors(self, c2w: Tensor) -> Tensor:
+        """:func:`direction_factors` of the samples from poses [B, 4, 4] -> [B, S, 7]."""
+        return direction_factors(self.means.to(c2w.dtype), c2w[:, :3, 3],
+                                 None if self.axes is None else self.axes.to(c2w.dtype))
 
     def __post_init__(self) -> None:
         c = self.cov
@@ -284,6 +354,37 @@ class ProxyPsi:
         self.sigma6 = torch.stack(
             [c[:, 0, 0], c[:, 1, 1], c[:, 2, 2], 2 * c[:, 0, 1], 2 * c[:, 0, 2], 2 * c[:, 1, 2]]
         )
+
+
+DIRECTION_KINDS = ("isotropic", "world_x", "world_y", "world_z", "local_0", "local_1",
+                   "local_2")
+"""The direction factors of :func:`direction_factors`, in order."""
+
+
+def local_axes(quats: Tensor) -> Tensor:
+    """The local axes of Gaussians with quaternions (w, x, y, z) [N, 4], as the columns of
+    their rotation matrices [N, 3, 3]."""
+    return quat_to_rotmat(quats)
+
+
+def direction_factors(points: Tensor, centres: Tensor, axes: Tensor | None) -> Tensor:
+    """How much a view from each camera centre [B, 3] tells about a direction-bound parameter
+    of each point [S, 3]: [B, S, 7], in :data:`DIRECTION_KINDS` order.
+
+    With d the unit ray from the camera centre to the point: 1 for isotropic parameters
+    (opacity, colour, rotation), ``1 - d_k^2`` for the world axis k of a mean (a pinhole
+    camera sees a mean move across its rays, not along them) and ``1 - (d . u_k)^2`` for the
+    local axis u_k of a scale (``axes`` [S, 3, 3], columns u_k; 1 without axes).
+    """
+    d = points.unsqueeze(0) - centres.unsqueeze(1)  # [B, S, 3]
+    d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    world = 1.0 - d * d
+    if axes is None:
+        local = torch.ones_like(world)
+    else:
+        c = torch.einsum("bsk,skj->bsj", d, axes)
+        local = 1.0 - c * c
+    return torch.cat([torch.ones_like(world[..., :1]), world, local], dim=-1)
 
 
 def to_camera(points: Tensor, rot: Tensor, t: Tensor) -> tuple[Tensor, Tensor, Tensor]:

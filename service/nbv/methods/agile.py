@@ -14,6 +14,7 @@ that the anchor stays in the reachable neighbourhood.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import torch
@@ -82,7 +83,20 @@ def _anchor(ctx: SelectionContext, lat: dict[str, float], out: dict[str, Any]) -
         )
         out["state"]["anchor_c2w"] = res.c2w.clone()
     out["psi_trace"] = list(res.psi_trace)
+    if res.modes is not None and res.modes.shape[0] > 1:
+        out["modes"] = (res.modes, res.mode_psi)
+        out["details"]["anchor_modes"] = len(res.mode_psi)
+    # psi at the anchor against psi at the best candidate, both of the function ascended:
+    # the proxy's over every eligible candidate, the exact one's over the pool starts
+    n_pool_starts = len(res.extra.get("start_indices", []))
+    if cfg.anchor.psi == "proxy" and res.pool_psi is not None and res.pool_psi.numel():
+        best_psi: float | None = float(res.pool_psi.max())
+    else:
+        firsts = [tr[0] for tr in res.traces[:n_pool_starts] if tr]
+        best_psi = max(firsts) if firsts else None
     out["details"].update(
+        anchor_psi=float(res.psi),
+        best_candidate_psi=best_psi,
         psi_evaluations=res.evaluations,
         anchor_starts=[ctx.eligible[i] for i in res.extra.get("start_indices", [])],
         proxy_samples=res.extra.get("proxy_samples"),
@@ -107,27 +121,20 @@ def _knearest(ctx: SelectionContext, anchor_c2w: Tensor, n_short: int, lat: dict
     return shortlist, scores
 
 
-def _rows(ctx: SelectionContext, anchor_c2w: Tensor, lat: dict[str, float],
+def _rows(ctx: SelectionContext, anchors: list[tuple[Tensor, float]], lat: dict[str, float],
           details: dict[str, Any]) -> tuple[Tensor, Tensor]:
     """B = M Pi of the eligible candidates [E, d], and of the acquired views that condition
-    the leverage shortlist [A, d] (empty unless ``condition_on_acquired``)."""
+    the leverage shortlist [A, d] (empty unless ``condition_on_acquired``).
+
+    ``anchors``: (pose [4, 4], weight) of each anchor, the best first. With several, M is
+    their coverage matrices side by side, each scaled by the square root of its weight (its
+    psi over the best one's), so that ||b_v||^2 adds the candidate's coverage of every
+    anchor's support samples in proportion to that anchor's psi.
+    """
     sc = ctx.config.scoring
     dt = ctx.gmap.dtype
     acquired = ctx.acquired
     with timed(lat, "scoring"):
-        x = support_samples(
-            ctx.gmap.means,
-            anchor_c2w,
-            ctx.intrinsics,
-            opacities=ctx.gmap.opacities.detach(),
-            grid=sc.grid,
-            ray_samples=sc.ray_samples,
-            ray_min_fraction=sc.ray_min_fraction,
-            min_opacity=sc.min_opacity,
-            near=sc.near,
-            max_samples=sc.max_samples,
-            generator=ctx.generator(3),
-        )
         sigma_p = sc.sigma_p if sc.sigma_p is not None else 0.5 * ctx.radius
         # the acquired views' rows (scored like the candidates; rows are independent)
         # condition the leverage shortlist: one coverage matrix for both
@@ -140,34 +147,62 @@ def _rows(ctx: SelectionContext, anchor_c2w: Tensor, lat: dict[str, float],
             and acquired.shape[0]
         ):
             rows = torch.cat([rows, acquired.detach().to(dt)])
-        cov = coverage_matrix(
-            x,
-            rows,
-            anchor_c2w,
-            ctx.intrinsics,
-            sigma_p=sigma_p,
-            gamma=sc.gamma,
-            eps=sc.eps * ctx.radius,
-            near=sc.near,
-        )
-        pi = jl_projection(x.shape[0], sc.jl_dim, seed=ctx.config.seed, dtype=dt,
-                           device=x.device)
-        b_all = cov.m @ pi
-    details["support_samples"] = int(x.shape[0])
-    details["rho"] = {v: float(r) for v, r in zip(ctx.eligible, cov.rho[:n_elig])}
+        blocks: list[Tensor] = []
+        rho: Tensor | None = None
+        for a, (pose, weight) in enumerate(anchors):
+            x = support_samples(
+                ctx.gmap.means,
+                pose,
+                ctx.intrinsics,
+                opacities=ctx.gmap.opacities.detach(),
+                grid=sc.grid,
+                ray_samples=sc.ray_samples,
+                ray_min_fraction=sc.ray_min_fraction,
+                min_opacity=sc.min_opacity,
+                near=sc.near,
+                max_samples=sc.max_samples,
+                generator=ctx.generator(3 + 16 * a),
+            )
+            cov = coverage_matrix(
+                x,
+                rows,
+                pose,
+                ctx.intrinsics,
+                sigma_p=sigma_p,
+                gamma=sc.gamma,
+                eps=sc.eps * ctx.radius,
+                near=sc.near,
+            )
+            blocks.append(cov.m if a == 0 else cov.m * math.sqrt(max(weight, 0.0)))
+            rho = cov.rho if rho is None else rho
+        m = blocks[0] if len(blocks) == 1 else torch.cat(blocks, dim=1)
+        pi = jl_projection(m.shape[1], sc.jl_dim, seed=ctx.config.seed, dtype=dt,
+                           device=m.device)
+        b_all = m @ pi
+    assert rho is not None
+    details["support_samples"] = int(m.shape[1])
+    details["rho"] = {v: float(r) for v, r in zip(ctx.eligible, rho[:n_elig])}
     return b_all[:n_elig], b_all[n_elig:]
 
 
 def shortlist(ctx: SelectionContext, anchor_c2w: Tensor, lat: dict[str, float],
-              details: dict[str, Any]) -> tuple[list[int], dict[int, float]]:
+              details: dict[str, Any], modes: tuple[Tensor, list[float]] | None = None,
+              ) -> tuple[list[int], dict[int, float]]:
     """The N-candidate shortlist of ``ctx.config.shortlist`` and its per-candidate scores
-    (conditional leverage at pick time, ||b||, distance to the anchor, or NaN for online)."""
+    (conditional leverage at pick time, ||b||, distance to the anchor, or NaN for online).
+    ``modes``: the anchors of distinct modes and their psi (the best, ``anchor_c2w``,
+    first), whose support samples the coverage matrix spans together."""
     cfg = ctx.config
     sc = cfg.scoring
     n_short = min(int(cfg.shortlist_size), len(ctx.eligible))
     if cfg.shortlist == "knearest":
         return _knearest(ctx, anchor_c2w, n_short, lat)
-    b, prior = _rows(ctx, anchor_c2w, lat, details)
+    anchors = [(anchor_c2w, 1.0)]
+    if modes is not None:
+        poses, psi = modes
+        top = max(psi[0], 1e-30)
+        anchors += [(poses[i], psi[i] / top) for i in range(1, len(psi))]
+    b, prior = _rows(ctx, anchors, lat, details)
     with timed(lat, "leverage"):
         bmax = float((b.to(torch.float64) ** 2).sum(1).max())
         ridge = sc.ridge if sc.ridge_absolute else sc.ridge * max(bmax, 1e-30)
@@ -201,7 +236,7 @@ class AgileMethod:
         lat: dict[str, float] = {}
         out: dict[str, Any] = {"state": {}, "details": {}, "psi_trace": []}
         anchor_c2w = _anchor(ctx, lat, out)
-        picked, scores = shortlist(ctx, anchor_c2w, lat, out["details"])
+        picked, scores = shortlist(ctx, anchor_c2w, lat, out["details"], out.get("modes"))
         index = picked[0]
         chosen: dict[str, Tensor] | None = None
         if self.rerank:
