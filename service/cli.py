@@ -1,8 +1,12 @@
-"""The ``agilegs`` command line.
+"""agilegs: the next-best-view service for active 3D Gaussian Splatting.
 
 Each subcommand lives in its own module exposing ``add_arguments(parser)`` and
-``run(args) -> int``; this file only wires them together, importing each lazily so that a
-client-only install (no torch) still prints a clear message instead of a traceback.
+``run(args) -> int``. Building the parser imports no command module but the one the command
+line names, and only for its options: a module that imports torch defines its options in a
+light module instead (:data:`OPTIONS`), so ``agilegs --help``, ``agilegs COMMAND --help``
+and a mistyped command answer without importing torch, FastAPI or matplotlib. The command's
+own module is imported when it runs; on a client-only install (no torch) that prints what to
+install instead of a traceback.
 """
 
 from __future__ import annotations
@@ -33,12 +37,27 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
      "how the anchor's choices follow the exact EIG on trained maps"),
 ]
 
+GROUPS: dict[str, str] = {
+    "store": "check or repair a server's state folder, offline",
+    "bench": "the benchmarks: render, latency, run, service, value, proxy",
+}
+"""The help of each command that groups subcommands."""
+
+OPTIONS: dict[str, str] = {
+    "agilegs.service.bench.latency": "agilegs.service.bench.options:add_latency_arguments",
+    "agilegs.service.bench.run_cli": "agilegs.service.bench.options:add_run_arguments",
+    "agilegs.service.bench.value": "agilegs.service.bench.options:add_value_arguments",
+    "agilegs.service.bench.proxy_check": "agilegs.service.bench.options:add_proxy_arguments",
+}
+"""``module:function`` that adds the options of a command whose module imports torch (the
+others' ``add_arguments`` is used)."""
 
 # third-party modules of the `service` extra: a client-only install lacks them
 _SERVER_EXTRAS = {
     "torch",
     "uvicorn",
     "fastapi",
+    "fastapi_offline",
     "zenoh",
     "pydantic_settings",
     "prometheus_client",
@@ -50,32 +69,57 @@ _SERVER_EXTRAS = {
     "starlette",
 }
 
+_INSTALL = "Install them with: pip install torch==2.13.0 && pip install 'agilegs[service]'\n"
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="agilegs", description=__doc__.splitlines()[0])
+
+def options_function(module: str) -> str:
+    """Where the options of the command run by ``module`` are defined (``module:function``)."""
+    return OPTIONS.get(module, f"{module}:add_arguments")
+
+
+def _add_options(sub: argparse.ArgumentParser, module: str) -> None:
+    where, _, function = options_function(module).partition(":")
+    try:
+        mod = importlib.import_module(where)
+    except ImportError as exc:  # e.g. the viewer's extra, or torch, missing
+        sub.set_defaults(_import_error=str(exc))
+        return
+    getattr(mod, function)(sub)
+
+
+def _positionals(argv: Sequence[str]) -> list[str]:
+    return [a for a in argv if not a.startswith("-")]
+
+
+def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
+    """The ``agilegs`` parser. With ``argv``, only the command it names gets its options
+    (enough to parse it, and fast); without, every command does."""
+    words = _positionals(argv) if argv is not None else None
+    parser = argparse.ArgumentParser(
+        prog="agilegs", description=(__doc__ or "").splitlines()[0],
+        epilog="Run agilegs COMMAND --help for a command's options. Documentation: README.md "
+               "and docs/ of the repository.")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     top = parser.add_subparsers(dest="command", metavar="COMMAND")
     groups: dict[str, argparse._SubParsersAction] = {}
     for path, module, help_text in COMMANDS:
         if len(path) == 1:
-            sub = top.add_parser(path[0], help=help_text)
+            sub = top.add_parser(path[0], help=help_text, description=help_text)
         else:
             if path[0] not in groups:
-                g = top.add_parser(path[0], help=f"{path[0]} subcommands")
+                text = GROUPS.get(path[0], f"{path[0]} subcommands")
+                g = top.add_parser(path[0], help=text, description=text)
                 groups[path[0]] = g.add_subparsers(dest="subcommand", metavar="SUBCOMMAND")
-            sub = groups[path[0]].add_parser(path[1], help=help_text)
+            sub = groups[path[0]].add_parser(path[1], help=help_text, description=help_text)
         sub.set_defaults(_module=module)
-        try:
-            mod = importlib.import_module(module)
-        except ImportError as exc:  # e.g. torch missing in a client-only install
-            sub.set_defaults(_import_error=str(exc))
-            continue
-        mod.add_arguments(sub)
+        if words is None or words[:len(path)] == list(path):
+            _add_options(sub, module)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser(argv)
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
@@ -86,20 +130,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     err = getattr(args, "_import_error", None)
     if err:
-        sys.stderr.write(
-            f"agilegs: this command needs the server extras ({err}).\n"
-            "Install them with: pip install torch==2.13.0 && pip install 'agilegs[service]'\n"
-        )
+        sys.stderr.write(f"agilegs: this command needs the server extras ({err}).\n{_INSTALL}")
         return 2
-    mod = importlib.import_module(args._module)
     try:
+        mod = importlib.import_module(args._module)
         return int(mod.run(args) or 0)
     except ModuleNotFoundError as exc:
         if exc.name and exc.name.split(".")[0] in _SERVER_EXTRAS:
-            sys.stderr.write(
-                f"agilegs: this command needs the server extras (missing {exc.name!r}).\n"
-                "Install them with: pip install torch==2.13.0 && pip install 'agilegs[service]'\n"
-            )
+            sys.stderr.write(f"agilegs: this command needs the server extras (missing "
+                             f"{exc.name!r}).\n{_INSTALL}")
             return 2
         raise
 

@@ -4,7 +4,12 @@ Every operation of :data:`agilegs.schemas.ops.OPERATIONS` is one route (see
 :mod:`agilegs.service.http_routes`); bodies are JSON or msgpack by Content-Type, responses by
 Accept. ``/healthz`` and ``/metrics`` answer on the event loop. Errors, whatever raised them,
 are the :class:`~agilegs.schemas.errors.ErrorBody` of :mod:`agilegs.schemas.errors`. The
-app's lifespan starts and stops the :class:`~agilegs.service.server.Server` it serves.
+app's lifespan starts (unless told otherwise) and stops the
+:class:`~agilegs.service.server.Server` it serves.
+
+``/`` redirects to ``/docs``. The OpenAPI pages (``/docs``: Swagger UI, ``/redoc``) load their
+scripts and styles from the server itself (fastapi-offline's copies), never from a CDN, so
+they work on a network without the internet.
 """
 
 from __future__ import annotations
@@ -15,7 +20,8 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import Response
+from fastapi.responses import RedirectResponse, Response
+from fastapi_offline import FastAPIOffline
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 from starlette.types import ASGIApp, Receive, Scope, Send
@@ -73,21 +79,24 @@ class BearerAuth:
         await self.app(scope, receive, send)
 
 
-def create_app(settings: Settings, server: Server | None = None) -> FastAPI:
+def create_app(settings: Settings, server: Server | None = None, *, start: bool = True
+               ) -> FastAPI:
     """The FastAPI app of ``server`` (default: a new one on ``settings``); its lifespan
-    starts the server (sessions loaded, Zenoh joined) and stops it on shutdown."""
+    starts the server (sessions loaded, Zenoh joined; with ``start=False`` the caller has
+    started it) and stops it on shutdown."""
     server = server or Server(settings)
     gateway = server.gateway
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        server.start()
+        if start:
+            server.start()
         try:
             yield
         finally:
             server.close()
 
-    app = FastAPI(
+    app = FastAPIOffline(
         title="agilegs",
         summary="AGILE-GS next-best-view service for active 3D Gaussian Splatting",
         description=DESCRIPTION,
@@ -95,8 +104,13 @@ def create_app(settings: Settings, server: Server | None = None) -> FastAPI:
         lifespan=lifespan,
         docs_url="/docs",
         openapi_url="/openapi.json",
+        swagger_ui_parameters={"validatorUrl": None},  # no request to a public validator
     )
     app.state.server = server
+
+    @app.get("/", include_in_schema=False)
+    async def root(request: Request) -> RedirectResponse:
+        return RedirectResponse(f"{request.scope.get('root_path', '')}/docs")
 
     def error(request: Request, err: ServiceError) -> Response:
         kind = codec.negotiate(request.headers.get("accept")) or codec.JSON

@@ -7,24 +7,30 @@ a flag given on the command line wins. The bearer token is read from ``AGILEGS_T
 
 The state folder is claimed before anything else (:mod:`agilegs.service.state_dir`): a folder
 that cannot be created, is read-only, or is held by another server ends the command with one
-line on stderr and exit status 2.
+line on stderr and exit status 2. So do an HTTP address that cannot be bound (a port already
+taken: the HTTP socket is bound next, before the sessions load) and a Zenoh session that
+cannot start (a listen endpoint already taken, an address not on this machine:
+:func:`zenoh_start_error`); each line names the address, the cause and the flag to change.
+
+The module imports the server (torch, FastAPI) only when the command runs, so that
+``agilegs serve --help`` answers at once.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import re
 import signal
+import socket
 import sys
 import threading
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from .http_app import create_app
-from .server import Server
-from .settings import Settings
-from .state_dir import StateDirError
+if TYPE_CHECKING:
+    from .server import Server
 
-__all__ = ["add_arguments", "build_settings", "run"]
+__all__ = ["add_arguments", "build_settings", "run", "zenoh_start_error"]
 
 log = logging.getLogger(__name__)
 
@@ -105,6 +111,8 @@ _FIELDS = ("host", "port", "state_dir", "http", "zenoh", "zenoh_mode", "instance
 
 def build_settings(args: argparse.Namespace) -> Any:
     """Settings from the environment, overridden by the flags given."""
+    from .settings import Settings
+
     overrides: dict[str, Any] = {}
     for name in _FIELDS:
         value = getattr(args, name, None)
@@ -117,7 +125,53 @@ def build_settings(args: argparse.Namespace) -> Any:
     return Settings(**overrides)
 
 
+def bind_http(host: str, port: int) -> socket.socket:
+    """The HTTP server's socket, bound (as uvicorn binds it); OSError if it cannot be."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    sock = socket.socket(family=family)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind((host, port))
+    except OSError:
+        sock.close()
+        raise
+    sock.set_inheritable(True)
+    return sock
+
+
+def http_bind_error(exc: OSError, host: str, port: int) -> str:
+    """One line saying why the HTTP address cannot be used, and the flags to change it."""
+    cause = exc.strerror or str(exc)
+    return (f"cannot listen on http://{host}:{port}: {cause[:1].lower()}{cause[1:]}; give "
+            "another with --port (AGILEGS_PORT) or --host (AGILEGS_HOST), or serve Zenoh only "
+            "with --no-http")
+
+
+def zenoh_start_error(exc: BaseException, settings: Any) -> str | None:
+    """One line saying why Zenoh could not start (the endpoint, the cause, the flag to
+    change), or None when ``exc`` is not Zenoh's."""
+    if type(exc).__module__.split(".")[0] != "zenoh":
+        return None
+    text = str(exc)
+    listen = re.search(r"bound to (\S+?):? \[(?:[^\]]*?: )?([^\]]*?)(?: \(os error \d+\))?"
+                       r"(?: at \S+)?\]", text)
+    if listen:
+        endpoint, cause = listen.group(1), listen.group(2).strip()
+        return (f"cannot listen on the Zenoh endpoint {endpoint}: {cause[:1].lower()}"
+                f"{cause[1:]}; give another with --zenoh-listen (AGILEGS_ZENOH_LISTEN)"
+                + (", or serve HTTP only with --no-zenoh" if settings.http else ""))
+    cause = re.sub(r" at /\S+", "", text.splitlines()[0] if text else type(exc).__name__)
+    return (f"Zenoh could not start ({settings.zenoh_mode} mode, listening on "
+            f"{','.join(settings.zenoh_listen) or 'nothing'}, connecting to "
+            f"{','.join(settings.zenoh_connect) or 'nothing'}): {cause.rstrip('.')}; check "
+            "--zenoh-listen, --zenoh-connect and --zenoh-mode"
+            + (", or serve HTTP only with --no-zenoh" if settings.http else ""))
+
+
 def run(args: argparse.Namespace) -> int:
+    from .server import Server
+    from .state_dir import StateDirError
+
     settings = build_settings(args)
     settings.warn_if_unsafe()
     server = Server(settings, freeze_gc=True)
@@ -128,10 +182,23 @@ def run(args: argparse.Namespace) -> int:
         server.close()
         return 2
     if not settings.http:
-        return _serve_zenoh_only(server)
-    import uvicorn
+        return _start(server) or _serve_zenoh_only(server)
+    try:
+        sock = bind_http(settings.host, settings.port)
+    except OSError as exc:
+        sys.stderr.write(f"agilegs serve: {http_bind_error(exc, settings.host, settings.port)}"
+                         "\n")
+        server.close()
+        return 2
+    import uvicorn  # before the start, so that its objects are frozen with the server's
 
-    app = create_app(settings, server)
+    from .http_app import create_app
+
+    app = create_app(settings, server, start=False)
+    failed = _start(server)
+    if failed:
+        sock.close()
+        return failed
     log.info("agilegs serve: http://%s:%d (state in %s, zenoh %s)", settings.host, settings.port,
              settings.state_dir, "on" if settings.zenoh else "off")
     config = uvicorn.Config(app, host=settings.host, port=settings.port,
@@ -147,16 +214,34 @@ def run(args: argparse.Namespace) -> int:
         exit_now(sig, frame)
 
     http.handle_exit = handle_exit  # type: ignore[method-assign]
-    http.run()
+    try:
+        http.run(sockets=[sock])
+    finally:
+        server.close()  # the lifespan closed it unless uvicorn stopped before it ran
+        sock.close()
+    return 0
+
+
+def _start(server: Server) -> int:
+    """Start ``server`` (sessions loaded, Zenoh joined): 0, or 2 after one line on stderr
+    when Zenoh cannot start."""
+    try:
+        server.start()
+    except Exception as exc:
+        server.close()
+        line = zenoh_start_error(exc, server.settings)
+        if line is None:
+            raise
+        sys.stderr.write(f"agilegs serve: {line}\n")
+        return 2
     return 0
 
 
 def _serve_zenoh_only(server: Server) -> int:
-    """Serve over Zenoh until SIGTERM or SIGINT."""
+    """Serve the started ``server`` over Zenoh until SIGTERM or SIGINT."""
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
-    server.start()
     log.info("agilegs serve: zenoh only, instance %r (state in %s)",
              server.cluster.instance_id, server.settings.state_dir)
     try:

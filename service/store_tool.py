@@ -11,6 +11,8 @@ every session checks out, 1 when one is damaged, 2 when the folder cannot be rea
 (:meth:`~agilegs.service.store.SessionStore.repair`: roll back to the previous version, drop
 damaged frames); ``--dry-run`` prints what it would do. Exit status 0 when every session
 checks out afterwards, 1 when one could not be repaired, 2 when the folder cannot be used.
+
+The store (torch) is imported when a command runs, so that ``--help`` answers at once.
 """
 
 from __future__ import annotations
@@ -19,12 +21,13 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import TextIO
+from typing import TYPE_CHECKING, TextIO
 
 from .integrity import Damage
-from .sessions.listing import damaged_summary, record_summary
 from .state_dir import StateDirError, claim_state_dir, describe_holder, is_claimed, read_holder
-from .store import SessionStore, StoreError
+
+if TYPE_CHECKING:
+    from .store import SessionStore
 
 __all__ = ["add_arguments", "check", "repair", "run"]
 
@@ -60,6 +63,9 @@ def _select(store: SessionStore, only: list[str] | None) -> list[str]:
 def check(root: Path, only: list[str] | None = None, *, as_json: bool = False,
           out: TextIO | None = None) -> int:
     """Check every session of ``root`` (or those in ``only``); see the module docstring."""
+    from .sessions.listing import damaged_summary, record_summary
+    from .store import SessionStore
+
     out = out or sys.stdout
     store = SessionStore(root)
     try:
@@ -94,6 +100,8 @@ def repair(root: Path, only: list[str] | None = None, *, dry_run: bool = False,
            out: TextIO | None = None) -> int:
     """Repair the damaged sessions of ``root`` (or of those in ``only``); see the module
     docstring."""
+    from .store import SessionStore, StoreError
+
     out = out or sys.stdout
     try:
         lock = claim_state_dir(root, command="agilegs store repair")

@@ -1,26 +1,39 @@
 """Shared fixtures: free ports, a real ``agilegs serve`` subprocess (the e2e tests), an
-in-process server behind an httpx transport (the service tests), camera rings."""
+in-process server behind an httpx transport (the service tests), camera rings.
+
+The suite runs with one torch (OpenMP) thread per process, unless ``OMP_NUM_THREADS`` says
+otherwise, and so do the processes it starts: it shares two cores with the servers it
+starts, and two threads per process on two busy cores spend their time waiting for each other
+(tests/nbv took 253 s with two threads and 30 s with one, on the shared machine).
+"""
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
+import torch
 from inprocess import InProcess, serve_in_process
 
 from agilegs.service.launch import ServerProcess as _Launcher
 from agilegs.service.launch import free_port
 
-__all__ = ["ROOT", "SHARED_SCENES", "SMALL_INTRINSICS", "InProcess", "ServerProcess", "free_port",
+os.environ.setdefault("OMP_NUM_THREADS", "1")  # the processes the tests start
+torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
+
+__all__ = ["ROOT", "SCENES", "SHARED_SCENES", "SMALL_INTRINSICS", "InProcess", "ServerProcess", "free_port",
            "gaussian_blob", "ring_poses"]
 
 ROOT = Path(__file__).resolve().parents[1]
 """The repository's root."""
-SHARED_SCENES = ROOT.parent / "shared" / "data" / "scenes"
-"""The shared ground-truth scenes beside the checkout (tests that need them skip without)."""
+SCENES = ROOT / "scenes"
+"""The benchmark's ground-truth scenes, in the repository (not in the wheel)."""
+SHARED_SCENES = SCENES
+"""Another name of :data:`SCENES`."""
 
 
 class ServerProcess(_Launcher):
@@ -34,10 +47,10 @@ class ServerProcess(_Launcher):
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Every test under ``tests/e2e`` (subprocesses, clusters, the demo, deploy files) is
-    ``slow``: ``pytest -m "not slow"`` is the fast lane."""
+    """Every test under ``tests/e2e`` (subprocesses, clusters, the demo, deploy files) and
+    every ``heavy`` one is ``slow``: ``pytest -m "not slow"`` is the fast lane."""
     for item in items:
-        if "e2e" in Path(str(item.fspath)).parts:
+        if "e2e" in Path(str(item.fspath)).parts or item.get_closest_marker("heavy"):
             item.add_marker(pytest.mark.slow)
 
 

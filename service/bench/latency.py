@@ -53,7 +53,6 @@ from typing import Any
 import torch
 
 from agilegs.config.types import validate_config
-from agilegs.service.data import bundled_scene
 from agilegs.service.nbv.camera import Camera, Intrinsics
 from agilegs.service.nbv.candidates import capture_pool, scene_center_radius
 from agilegs.service.nbv.gaussians import GaussianMap
@@ -66,11 +65,12 @@ from agilegs.service.nbv.information import (
 from agilegs.service.nbv.methods import get_method, method_names
 from agilegs.service.nbv.selectors import SelectConfig, select, select_validated
 
+from .options import add_latency_arguments
 from .variants import parse_variant
 
 log = logging.getLogger(__name__)
 
-DEFAULT_SCENE = str(bundled_scene("spot"))
+add_arguments = add_latency_arguments
 REFERENCE = "full_eig"
 """The full-pool exact EIG: its phi of every candidate is every entry's yardstick."""
 RATIOS = ("full_eig", "fisherrf")
@@ -94,31 +94,6 @@ VARIANTS = (
 )
 SLOW = ("agile_plus@exact", "agile@paper", "agile_plus@paper")
 """Variants that ascend the exact psi through the rasterizer (seconds per selection)."""
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--scene", default=DEFAULT_SCENE, help="a .splat or .ply scene")
-    parser.add_argument("--pool", type=int, default=200, help="candidate pool size D")
-    parser.add_argument("--shortlist", type=int, default=10, help="shortlist size N")
-    parser.add_argument("--width", type=int, default=128)
-    parser.add_argument("--height", type=int, default=128)
-    parser.add_argument("--fov", type=float, default=50.0, help="horizontal field of view, deg")
-    parser.add_argument("--max-gaussians", type=int, default=20000)
-    parser.add_argument("--events", type=int, default=3)
-    parser.add_argument("--acquired", type=int, default=5, help="initial acquired views")
-    parser.add_argument(
-        "--orbit-scale", type=float, default=2.6, help="orbit radius / the scene's 98%% radius"
-    )
-    parser.add_argument("--lam", type=float, default=1e-6, help="lambda of Hhat")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: default)")
-    parser.add_argument(
-        "--methods",
-        default="all",
-        help="comma-separated subset of methods/ablations/variants, or 'all', 'base' "
-        "(the methods), 'fast' (all but the exact-psi variants)",
-    )
-    parser.add_argument("--json", dest="json_out", default=None, help="write results here")
 
 
 def _load_map(path: str, max_gaussians: int, seed: int) -> Any:

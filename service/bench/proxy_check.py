@@ -36,6 +36,8 @@ from agilegs.service.nbv.selectors import select
 from agilegs.service.nbv.upkeep import information_of_views
 
 from .latency import eig_percentile, spearman
+from .options import DEFAULT_CONFIGS
+from .options import add_proxy_arguments as add_arguments
 from .profiles import resolve_profile
 from .protocol import run_progressive
 from .scenes import load_bench_scene
@@ -45,8 +47,6 @@ log = logging.getLogger(__name__)
 
 __all__ = ["DEFAULT_CONFIGS", "add_arguments", "config_variant", "percentile", "run", "spearman"]
 
-DEFAULT_CONFIGS = ("default", "typical", "unconditioned", "point_zbuffer", "mixed_zbuffer")
-
 
 def config_variant(name: str) -> Variant:
     """The ``agile`` variant a configuration name stands for (``default``: the defaults)."""
@@ -54,21 +54,6 @@ def config_variant(name: str) -> Variant:
 
 
 METRICS = ("spearman", "agile_pct", "plus_pct", "agile_sep_deg", "plus_sep_deg")
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--scene", action="append", required=True, metavar="PATH",
-                        help="a scene as for bench run; repeat for several")
-    parser.add_argument("--profile", default="cpu", choices=("cpu", "tiny", "paper"),
-                        help="the protocol profile (as bench run)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--driver", default="random", help="the method that acquires the views")
-    parser.add_argument(
-        "--configs", default=",".join(DEFAULT_CONFIGS),
-        help="comma-separated configurations: default, or agile variant options joined by + "
-        "(e.g. typical+unconditioned)"
-    )
-    parser.add_argument("--json", dest="json_out", default=None, help="write results here")
 
 
 def percentile(phi: Tensor, v: int) -> float:

@@ -103,8 +103,8 @@ def run_redundancy(record: Mapping[str, Any]) -> dict[str, Any] | None:
 def summarise_redundancy(records: Sequence[Mapping[str, Any]]) -> dict[str, float | None]:
     """Means over runs of :func:`run_redundancy`'s figures (each run's own redundancy, or one
     computed from the record when it has none)."""
-    per = [r.get("redundancy") or run_redundancy(r) for r in records]
-    per = [p for p in per if p is not None]
+    found = (r.get("redundancy") or run_redundancy(r) for r in records)
+    per: list[Mapping[str, Any]] = [p for p in found if p is not None]
     keys = ("pick_angle_mean_deg", "anchor_angle_mean_deg", "psi_ratio_mean", "final_gap_deg")
     return {k: _mean([p.get(k) for p in per]) for k in keys}
 

@@ -34,9 +34,9 @@ from torch import Tensor
 
 from agilegs.client.ros2.bag import BagTopics
 
-from ..nbv.methods import method_names
 from . import plots, report
-from .profiles import PROFILES, resolve_profile
+from .options import add_run_arguments as add_arguments
+from .profiles import resolve_profile
 from .protocol import estimate_seconds, fingerprint, run_progressive
 from .scenes import BenchScene, load_bench_scene
 from .variants import build_variants
@@ -55,57 +55,6 @@ def _int_list(text: str, what: str) -> list[int]:
 
 def _str_list(text: str) -> list[str]:
     return [s.strip() for s in text.split(",") if s.strip()]
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--scene", action="append", required=True, metavar="PATH",
-                        help="a ground-truth splat (.splat/.ply or its folder), a "
-                        "transforms.json image set, a COLMAP model folder or a rosbag2 "
-                        "(a folder with metadata.yaml, or an .mcap file); repeat for "
-                        "several scenes")
-    parser.add_argument("--bag-topics", default="", metavar="SPEC",
-                        help="the topics of rosbag2 scenes, e.g. image=/cam/color/image_raw,"
-                        "depth=none,pose=tf,world=map (default: found by type; see "
-                        "docs/ros2.md)")
-    parser.add_argument("--methods", default=",".join(method_names()),
-                        help=f"comma-separated methods ({','.join(method_names())}) or "
-                        "variants (method@option, see agilegs.service.bench.variants)")
-    parser.add_argument("--profile", default="cpu", choices=sorted(PROFILES),
-                        help="paper: 10 initial views, +1 per 200 steps, 30K steps (GPU); cpu: "
-                        "64x64, pool 180, 4 initial, +1 per 50 steps to 12 views, 500 steps; "
-                        "tiny: for tests")
-    parser.add_argument("--seeds", default="0,1", help="comma-separated seeds")
-    parser.add_argument("--out", required=True, metavar="DIR", help="output folder")
-    parser.add_argument("--embodied", type=int, default=None, metavar="K",
-                        help="only the K nearest candidates to the current view are eligible "
-                        "(the paper's K = 5)")
-    parser.add_argument("--shortlist-strategies", default="", metavar="LIST",
-                        help="shortlist ablation of AGILE-GS: any of "
-                        "leverage,knearest,topnorm,online")
-    parser.add_argument("--shortlist-method", default="agile", choices=("agile", "agile_plus"),
-                        help="the method of the shortlist ablation (default agile, as the "
-                        "paper's table)")
-    parser.add_argument("--budgets", default="", metavar="LIST",
-                        help="shortlist-budget ablation of AGILE-GS+, e.g. 5,10,20,50")
-    parser.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
-    parser.add_argument("--threads", type=int, default=0,
-                        help="torch threads (0: the profile's: 1 for cpu and tiny)")
-    g = parser.add_argument_group("profile overrides")
-    g.add_argument("--initial-views", type=int, default=None)
-    g.add_argument("--interval", type=int, default=None, help="steps between selections")
-    g.add_argument("--steps", type=int, default=None, help="total training steps")
-    g.add_argument("--view-budget", type=int, default=None, help="views in all")
-    g.add_argument("--pool-size", type=int, default=None)
-    g.add_argument("--resolution", type=int, default=None, help="image width (and height)")
-    g.add_argument("--max-gaussians", type=int, default=None, help="ground-truth subsample")
-    g.add_argument("--shortlist-size", type=int, default=None, help="N")
-    g.add_argument("--lam", type=float, default=None, help="λ of Ĥ")
-    parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
-    parser.add_argument("--estimate-only", action="store_true",
-                        help="print the wall-time estimate and stop")
-    parser.add_argument("--report-only", action="store_true",
-                        help="run nothing: write the tables and plots from the runs already "
-                        "in --out (a run not there yet is left out and listed as missing)")
 
 
 def _run_path(out: Path, scene: str, variant: str, seed: int) -> Path:

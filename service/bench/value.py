@@ -49,6 +49,7 @@ from agilegs.service.nbv.camera import Camera
 from agilegs.service.nbv.information import fisher_diag
 from agilegs.service.nbv.selectors import select
 
+from .options import add_value_arguments as add_arguments
 from .profiles import Profile, resolve_profile
 from .protocol import add_pool_view, evaluate, run_progressive
 from .scenes import BenchScene, load_bench_scene
@@ -73,24 +74,6 @@ PICKS: tuple[str, ...] = ("random", "fisherrf", "cover", "full_eig", "agile", "a
 SHORTLISTS: tuple[str, ...] = ("agile", "agile@paper", "agile@cover_zbuffer",
                                "agile@unconditioned")
 """Shortlist configurations scored by membership (their anchors' ψ too)."""
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--scene", action="append", required=True, metavar="PATH",
-                        help="a scene as for bench run; repeat for several")
-    parser.add_argument("--profile", default="cpu", choices=("cpu", "tiny", "paper"))
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--driver", default="random", help="the method that acquires the views")
-    parser.add_argument("--events", default="1,4,7",
-                        help="comma-separated events to measure (those past the schedule are "
-                        "skipped)")
-    parser.add_argument("--candidates", type=int, default=24,
-                        help="candidates whose realised gain is measured per event")
-    parser.add_argument("--horizon", type=int, default=None,
-                        help="training steps after adding a candidate (default: the "
-                        "profile's interval)")
-    parser.add_argument("--json", dest="json_out", default=None, help="write results here")
-    parser.add_argument("--plots", default=None, metavar="DIR", help="a PNG per scene here")
 
 
 # ----------------------------------------------------------------------------- statistics

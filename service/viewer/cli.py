@@ -50,6 +50,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     logging.getLogger("websockets").setLevel(logging.WARNING)  # viser's connection chatter
+    logging.getLogger("httpx").setLevel(logging.WARNING)  # a line per request (polls) otherwise
     try:
         require_viser()
     except ViewerMissing as exc:

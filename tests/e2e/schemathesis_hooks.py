@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import base64
 import io
+import itertools
 import math
 from typing import Any
 
@@ -212,6 +213,17 @@ def repair(value: Any) -> None:
         _fix_observation(value)
 
 
+_CREATED = itertools.count()
+
+
+def _fresh_id(body: Any) -> None:
+    """A session's creation body with an id gets one no earlier case used (hypothesis may
+    repeat a generated id in every scenario, and all but the first would only meet 409)."""
+    if isinstance(body, dict) and isinstance(body.get("id"), str):
+        suffix = f"-{next(_CREATED)}"
+        body["id"] = body["id"][:64 - len(suffix)] + suffix
+
+
 def _with_gaussians(body: Any) -> None:
     """A session's creation body that gives the map no Gaussians (no upload, no depth frame,
     no bounds, or none of them asked for) gets bounds and a few: another valid body, whose
@@ -238,6 +250,7 @@ def map_case(ctx: Any, case: Any) -> Any:
             repair(case.body)
             if case.method.upper() == "POST" and case.path == "/v1/sessions":
                 _with_gaussians(case.body)
+                _fresh_id(case.body)
         if isinstance(case.query, dict):
             # ?instance= places a session on a cluster's instance: only the live instances' ids
             # are valid (404 instance_unavailable otherwise); positive cases use this server

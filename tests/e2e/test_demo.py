@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from agilegs.service.demo import QUICK, attribution, initial_indices
+from agilegs.service.demo import EXPECT, QUICK, attribution, initial_indices
 
 
 @pytest.mark.timeout(240)
@@ -32,6 +32,7 @@ def test_quick_demo_runs_the_closed_loop(tmp_path: Path) -> None:
             assert re.search(r"PSNR\s+\d+\.\d+ dB", ln), ln
     assert "anchor" in proc.stdout and "rerank" in proc.stdout
     assert "Keenan Crane" in proc.stdout  # the bundled scene's attribution
+    assert proc.stdout.splitlines()[1] == EXPECT  # what to expect, before anything runs
     png = out / "psnr.png"
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     res = json.loads((out / "demo.json").read_text())

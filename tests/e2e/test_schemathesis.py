@@ -1,12 +1,16 @@
 """Schemathesis, as an outside tool runs it, against a live server's OpenAPI schema.
 
-``schemathesis run --checks all`` runs every phase (examples, coverage, fuzzing, and the
-stateful phase, which follows the schema's links from a created session to the operations
-that use its id), positive and negative data, over JSON and msgpack (the hooks in
+``schemathesis run --checks all`` runs the fuzzing phase (positive and negative data for every
+operation) and the stateful phase (which follows the schema's links from a created session to
+the operations that use its id), over JSON and msgpack (the hooks in
 ``schemathesis_hooks.py`` pack msgpack bodies, unpack msgpack answers, and make positive data
-meet the rules JSON Schema cannot state). The test fails on any failure of any check, on
-any 5xx, and unless select, commit, observations, the pool and Ĥ answered 200 on live
-sessions. ``docs/benchmarks.md`` has the command of the long run (5,000+ cases).
+meet the rules JSON Schema cannot state). A run fails on any failure of any check, on any
+5xx, and unless select, commit, observations, the pool and Ĥ answered 200 on live sessions.
+
+Two sizes: the suite's run (:data:`CI`, under a minute on two cores) and the heavy lane's
+(:data:`FULL`: every phase, the coverage phase's boundary cases included; ``pytest -m heavy``,
+which ``.ci/run`` runs after the suite). ``docs/benchmarks.md`` has the command of the long run
+(10,000+ cases).
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ import shutil
 import subprocess
 import sys
 from collections import Counter
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -32,15 +37,24 @@ FUZZ_ENV = {
     "AGILEGS_MAX_POLL_WAIT": "0.2",  # decisions polls and streams end quickly
 }
 
-#: the stateful phase runs more and longer scenarios than the others run cases per operation
-#: (a scenario must create a session, set its pool and then select)
-STATEFUL_CONFIG = """
-[phases.stateful]
-max-steps = 12
 
-[phases.stateful.generation]
-max-examples = 80
-"""
+@dataclass(frozen=True)
+class Fuzz:
+    """One schemathesis run's size: its phases, cases per operation, the stateful phase's
+    scenarios and steps, the fewest cases it must generate, its time limit (s)."""
+
+    phases: str
+    max_examples: int
+    scenarios: int
+    steps: int
+    min_cases: int
+    timeout: float
+
+
+CI = Fuzz("examples,fuzzing,stateful", max_examples=15, scenarios=60, steps=12, min_cases=400,
+          timeout=240)
+FULL = Fuzz("examples,coverage,fuzzing,stateful", max_examples=30, scenarios=80, steps=12,
+            min_cases=1000, timeout=1500)
 
 #: operations that must have answered 200 (on a live session, as only those do)
 REACHED = {
@@ -60,22 +74,29 @@ def _route(url: str) -> str:
     return "/".join(parts)
 
 
-def test_schemathesis_finds_nothing_in_any_phase(tmp_path: Path) -> None:
+def stateful_toml(size: Fuzz) -> str:
+    """The schemathesis config file that sizes the stateful phase."""
+    return (f"[phases.stateful]\nmax-steps = {size.steps}\n\n"
+            f"[phases.stateful.generation]\nmax-examples = {size.scenarios}\n")
+
+
+def fuzz(tmp_path: Path, size: Fuzz) -> None:
+    """Run schemathesis of ``size`` against a fresh server and check its reports."""
     exe = shutil.which("schemathesis") or str(Path(sys.executable).parent / "schemathesis")
     srv = ServerProcess(tmp_path / "state", zenoh=False, env=FUZZ_ENV).start()
     report = tmp_path / "report"
     config = tmp_path / "schemathesis.toml"
-    config.write_text(STATEFUL_CONFIG)
+    config.write_text(stateful_toml(size))
     try:
         env = {**os.environ, "PYTHONPATH": str(HERE), "SCHEMATHESIS_HOOKS": "schemathesis_hooks"}
         cmd = [exe, "--config-file", str(config), "run", f"{srv.url}/openapi.json",
-               "--checks", "all",
-               "--phases", "examples,coverage,fuzzing,stateful", "--max-examples", "30",
+               "--checks", "all", "--phases", size.phases,
+               "--max-examples", str(size.max_examples),
                "--seed", "7", "--request-timeout", "60", "--max-response-time", "60",
                "--workers", "1",
                "--report", "json,har", "--report-dir", str(report)]
         proc = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True,
-                              timeout=1500)
+                              timeout=size.timeout)
     finally:
         srv.stop()
     out = proc.stdout[-6000:] + proc.stderr[-2000:]
@@ -83,15 +104,26 @@ def test_schemathesis_finds_nothing_in_any_phase(tmp_path: Path) -> None:
     assert summary["failures"] == [] and summary["errors"] == [], out
     assert proc.returncode == 0, out
     phases = summary["phases"]
-    assert all(phases[p]["status"] == "success"
-               for p in ("coverage", "fuzzing", "stateful")), phases
+    ran = [p for p in ("coverage", "fuzzing", "stateful") if p in size.phases.split(",")]
+    assert all(phases[p]["status"] == "success" for p in ran), phases
     entries = json.loads(next(report.glob("har-*.json")).read_text())["log"]["entries"]
     statuses = Counter((e["request"]["method"], _route(e["request"]["url"]),
                         e["response"]["status"]) for e in entries)
     assert not [k for k in statuses if k[2] >= 500], statuses
     reached = {(m, r) for m, r, status in statuses if status == 200}
     assert REACHED <= reached, sorted(REACHED - reached)
-    assert summary["test_cases"]["generated"] >= 1000, summary["test_cases"]
+    assert summary["test_cases"]["generated"] >= size.min_cases, summary["test_cases"]
+
+
+@pytest.mark.timeout(300)
+def test_schemathesis_finds_nothing(tmp_path: Path) -> None:
+    fuzz(tmp_path, CI)
+
+
+@pytest.mark.heavy
+@pytest.mark.timeout(1800)
+def test_schemathesis_finds_nothing_in_any_phase(tmp_path: Path) -> None:
+    fuzz(tmp_path, FULL)
 
 
 def test_the_hooks_repair_exactly_what_json_schema_cannot_state() -> None:

@@ -1,10 +1,12 @@
 """Faults beyond a crash with real ``agilegs serve`` processes: two servers on one state
-folder, a killed server's claim, a folder that cannot be used, a real full disk (a small
-tmpfs, as root) over HTTP and Zenoh, and the offline ``agilegs store`` tools."""
+folder, a killed server's claim, a folder that cannot be used, an HTTP port or a Zenoh
+endpoint already taken, a real full disk (a small tmpfs, as root) over HTTP and Zenoh, and
+the offline ``agilegs store`` tools."""
 
 from __future__ import annotations
 
 import os
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -13,6 +15,7 @@ from typing import Any
 import numpy as np
 import pytest
 from conftest import SMALL_INTRINSICS, ring_poses
+from inprocess import serve_in_process
 from readonly import read_only_folder, small_tmpfs
 
 from agilegs.client import (
@@ -78,6 +81,38 @@ def test_a_folder_that_cannot_be_used_is_one_line_and_a_nonzero_exit(tmp_path: P
     with read_only_folder(tmp_path / "ro") as ro:
         line = one_line(serve(ro))
         assert "read-only" in line and str(ro) in line
+
+
+def _error_line(done: subprocess.CompletedProcess[str]) -> str:
+    """The one ``agilegs serve:`` line of a start that failed (log lines may precede it)."""
+    lines = [x for x in done.stderr.splitlines() if x.startswith("agilegs serve:")]
+    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
+    assert len(lines) == 1 and done.stderr.rstrip().endswith(lines[0]), done.stderr
+    return lines[0]
+
+
+def test_a_taken_port_or_endpoint_is_one_line_and_a_nonzero_exit(tmp_path: Path) -> None:
+    from agilegs.service.state_dir import is_claimed
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        with socket.socket() as other:  # a free port for the side that is not under test
+            other.bind(("127.0.0.1", 0))
+            free = other.getsockname()[1]
+        line = _error_line(agilegs("serve", "--host", "127.0.0.1", "--port", str(free),
+                                   "--zenoh-listen", f"tcp/127.0.0.1:{port}",
+                                   "--state-dir", str(tmp_path / "z"), timeout=60))
+        assert f"Zenoh endpoint tcp/127.0.0.1:{port}" in line, line
+        assert "address already in use" in line and "--zenoh-listen" in line, line
+        assert not is_claimed(tmp_path / "z")  # the state folder was let go
+        line = _error_line(agilegs("serve", "--host", "127.0.0.1", "--port", str(port),
+                                   "--no-zenoh", "--state-dir", str(tmp_path / "h"),
+                                   timeout=60))
+        assert f"http://127.0.0.1:{port}" in line and "address already in use" in line, line
+        assert "--port" in line, line
+        assert not is_claimed(tmp_path / "h")
 
 
 def _fill(disk: Path) -> Path:
@@ -184,18 +219,17 @@ def test_store_check_and_repair_from_the_command_line(server_factory: Any,
     assert done.returncode == 1, done.stdout + done.stderr
     assert "2 session(s), 1 damaged" in done.stdout and "manifest.json" in done.stdout
 
-    srv = server_factory(state, zenoh=False).start()  # served: listed damaged, not absent
-    with Client(srv.url) as c:
+    # served (a server in this process: the tools' processes are what is under test here):
+    # listed damaged, not absent
+    with serve_in_process(state) as inproc, inproc.client() as c:
         listed = {s.id: s for s in c.list_sessions().sessions}
         assert listed["a"].state == "damaged" and listed["b"].state == "ok"
         with pytest.raises(SessionDamagedError, match="manifest.json"):
             c.get_session("a")
-    srv.stop()
 
     done = agilegs("store", "repair", str(state))
     assert done.returncode == 0, done.stdout + done.stderr
     assert "a: repaired" in done.stdout and "every session checks out" in done.stdout
     assert agilegs("store", "check", str(state)).returncode == 0
-    srv = server_factory(state, zenoh=False).start()
-    with Client(srv.url) as c:
+    with serve_in_process(state) as inproc, inproc.client() as c:
         assert c.get_session("a").information.digest == intact

@@ -235,3 +235,18 @@ def test_the_viewer_needs_no_torch() -> None:
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=120)
     assert out.returncode == 0, out.stdout + out.stderr
+
+
+def test_the_view_command_does_not_log_each_request(server: ServerProcess) -> None:
+    """``agilegs view`` long-polls the server; its HTTP client logs at WARNING, so the
+    terminal shows no line per request."""
+    sid = new_id()
+    with Client(server.url) as c:
+        c.create_session(SMALL_INTRINSICS, id=sid, gaussians=blob(50), pool=ring_poses(6))
+        c.select(sid, method="random", commit=True)
+    got = subprocess.run(
+        [sys.executable, "-m", "agilegs.service.cli", "view", server.url, "--session", sid,
+         "--port", str(free_port()), "--poll", "0.2", "--duration", "3"],
+        capture_output=True, text=True, timeout=120)
+    assert got.returncode == 0, got.stdout + got.stderr
+    assert "HTTP Request" not in got.stdout + got.stderr, got.stderr[-2000:]

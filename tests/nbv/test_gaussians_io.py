@@ -1,4 +1,4 @@
-"""Gaussian map file IO: Inria PLY, antimatter15 .splat, the shared scenes, bad files."""
+"""Gaussian map file IO: Inria PLY, antimatter15 .splat, the benchmark's scenes, bad files."""
 
 from __future__ import annotations
 
@@ -8,15 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import SHARED_SCENES
+from conftest import SCENES
 from plyfile import PlyData, PlyElement
 
 from agilegs.service.nbv.gaussians import SH_C0, GaussianMap, load_scene
 
-SCENES = SHARED_SCENES
 TEAPOT = SCENES / "teapot" / "teapot_10k.splat"
 PLANT = SCENES / "plant" / "plant.splat"
-needs_scenes = pytest.mark.skipif(not SCENES.is_dir(), reason="shared scenes not present")
 
 
 def random_map(n: int, degree: int, seed: int = 0, dtype: torch.dtype = torch.float32):
@@ -219,7 +217,6 @@ def test_splat_edge_values(tmp_path: Path) -> None:
 
 
 # ------------------------------------------------------------------------------- scenes
-@needs_scenes
 def test_teapot_scene_loads() -> None:
     m = GaussianMap.load(TEAPOT)
     assert m.num_gaussians == 10000
@@ -234,7 +231,6 @@ def test_teapot_scene_loads() -> None:
     assert float(m.scales.max()) < 0.1
 
 
-@needs_scenes
 def test_plant_scene_loads_and_subsamples() -> None:
     m = load_scene(PLANT)
     assert m.num_gaussians == 113648
@@ -251,8 +247,7 @@ def test_plant_scene_loads_and_subsamples() -> None:
     assert torch.equal(sub.means, m.means[idx])
 
 
-@needs_scenes
-def test_every_shared_scene_loads() -> None:
+def test_every_benchmark_scene_loads() -> None:
     files = sorted(SCENES.glob("*/*.splat"))
     assert files
     for f in files:
@@ -261,12 +256,15 @@ def test_every_shared_scene_loads() -> None:
         assert all(torch.isfinite(t).all() for t in m.tensors().values()), f
 
 
-@needs_scenes
 def test_load_scene_folder_and_limits(tmp_path: Path) -> None:
     assert load_scene(SCENES / "teapot").num_gaussians == 10000
     assert load_scene(TEAPOT, max_gaussians=20000).num_gaussians == 10000  # no-op if smaller
+    two = tmp_path / "two"  # two levels of detail: which one is meant?
+    two.mkdir()
+    for name in ("a_10k.splat", "a_5k.splat"):
+        (two / name).write_bytes(TEAPOT.read_bytes()[: 32 * 5000])
     with pytest.raises(ValueError, match="exactly one"):
-        load_scene(SCENES / "spot")  # two levels of detail
+        load_scene(two)
     with pytest.raises(ValueError, match="max_gaussians"):
         load_scene(TEAPOT, max_gaussians=0)
 

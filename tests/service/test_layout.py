@@ -119,7 +119,7 @@ def _reaches(name: str, prefixes: tuple[str, ...]) -> set[str]:
 MATHS = "agilegs.service.nbv"
 TRANSPORTS = tuple(f"agilegs.service.{m}" for m in (
     "gateway", "http_app", "http_routes", "http_openapi", "http_decisions", "zenoh_adapter",
-    "cluster", "server", "serve", "launch"))
+    "cluster", "server", "serve", "launch", "ros2"))
 STORE = tuple(f"agilegs.service.{m}" for m in (
     "store", "store_read", "store_tool", "records", "integrity", "state_dir"))
 

@@ -7,7 +7,7 @@ import math
 
 import pytest
 import torch
-from conftest import SHARED_SCENES
+from conftest import SCENES
 
 from agilegs.service.data.images import View
 from agilegs.service.mapper import (
@@ -429,10 +429,6 @@ def test_opacity_reset_and_sh_schedule() -> None:
     assert (m.gmap.sh[:, 1:] == 0).all()
 
 
-SCENES = SHARED_SCENES
-
-
-@pytest.mark.skipif(not (SCENES / "teapot").is_dir(), reason="shared scenes not present")
 def test_rgbd_views_of_a_real_scene_build_and_train_a_map() -> None:
     """Teapot splat: RGB-D views grow the map, training lowers the loss, Ĥ stays aligned."""
     from agilegs.service.nbv.candidates import capture_pool, scene_center_radius
