@@ -136,22 +136,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 # ============================================================================ helpers
 def attribution(scene: str) -> str:
-    """The attribution line of a bundled scene (from ``scenes/ATTRIBUTION.md``), or a note
+    """The attribution line of a bundled scene (its row of ``scenes/README.md``), or a note
     for a scene file of one's own."""
     from agilegs.service.data import bundled_scene
 
     if scene not in ("spot", "teapot"):
         return f"Scene {scene}: not bundled; see its source for its licence."
     file = bundled_scene(scene)
-    text = (file.parent / "ATTRIBUTION.md").read_text(encoding="utf-8")
+    text = (file.parent.parent / "README.md").read_text(encoding="utf-8")
     row = next((ln for ln in text.splitlines() if f"`{file.name}`" in ln), "")
-    cells = [c.strip() for c in row.strip("|").split("|")]
+    cells = [c.strip() for c in row.strip().strip("|").split("|")]
     credit = next((ln.strip() for ln in text.splitlines() if ln.startswith("Gaussian splats by")),
                   "")
     tail = text.split(credit, 1)[1].split("\n\n", 1)[0] if credit else ""
     credit = " ".join((credit + " " + tail.replace("\n", " ")).split())
-    if len(cells) >= 4:
-        return f"Scene: {cells[3]} ({cells[2]}). {credit}".strip()
+    credit = credit.split(" licensed per object", 1)[0].rstrip(",") + "."
+    if len(cells) >= 6:
+        return f"Scene: {cells[5]} ({cells[4]}). {credit}".strip()
     return f"Scene: {file.name}. {credit}".strip()
 
 

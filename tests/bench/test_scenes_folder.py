@@ -1,7 +1,7 @@
-"""The benchmark's scenes in ``scenes/``: every file intact (its sha256 in the scene's
-meta.json), the licence and attribution of every scene listed in ``scenes/README.md`` as its
-meta.json says (``python tests/bench/test_scenes_folder.py`` prints the rows), and none of it
-in the wheel (tests/e2e/test_client_install.py builds one)."""
+"""The benchmark's scenes in ``service/data/scenes/``: every file intact (its sha256 in the
+scene's meta.json), the licence and attribution of every scene listed in its README.md as its
+meta.json says (``python tests/bench/test_scenes_folder.py`` prints the rows), and none but the
+demo's two in the wheel (tests/e2e/test_client_install.py builds one)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from pathlib import Path
 from agilegs.service.bench.scenes import detect_scene_kind
 
 ROOT = Path(__file__).resolve().parents[2]
-SCENES = ROOT / "scenes"
+SCENES = ROOT / "service" / "data" / "scenes"
 
 OBJECTS = ("bob", "boot", "fish", "koala", "penguin", "skull", "spot", "stanford_bunny",
            "teapot", "violin")
@@ -63,13 +63,13 @@ def test_the_twelve_scenes_are_here_and_intact() -> None:
 def test_the_readme_credits_every_scene_as_its_meta_says() -> None:
     text = (SCENES / "README.md").read_text(encoding="utf-8")
     for row in rows():
-        assert row in text, f"scenes/README.md lacks the row:\n{row}"
+        assert row in text, f"service/data/scenes/README.md lacks the row:\n{row}"
     assert "Marcel Padilla" in text and "zlib" in text and "pybullet" in text
-    # the copies bundled with the package are the same files
-    for name in ("spot", "teapot"):
-        bundled = ROOT / "service" / "data" / "scenes" / f"{name}_10k.splat"
-        assert bundled.read_bytes() == (SCENES / name / f"{name}_10k.splat").read_bytes()
+    # the demo's scenes are the benchmark's folders
+    from agilegs.service.data import bundled_scene
 
+    for name in ("spot", "teapot"):
+        assert bundled_scene(name) == SCENES / name / f"{name}_10k.splat"
 
 if __name__ == "__main__":
     print("\n".join(rows()))

@@ -66,8 +66,8 @@ class How:
     env: tuple[tuple[str, str], ...] = ()  # parse: variables an earlier block of the page set
 
 
-BENCH = How("parse", "hours of CPU (the full tables); the page sets S=scenes first",
-            env=(("S", "scenes"),))
+BENCH = How("parse", "hours of CPU (the full tables); the page sets S=service/data/scenes first",
+            env=(("S", "service/data/scenes"),))
 HOW: dict[tuple[str, str], How] = {
     ("README.md", "python3 -m venv .venv && . .venv/bin/activate && pip install -q "
      "torch==2.13.0 && pip install -q -e \".[service,dev]\" && agilegs demo"):
@@ -116,7 +116,7 @@ HOW: dict[tuple[str, str], How] = {
                     "in tests/client/test_ros2_bag.py"),
     ("docs/ros2.md", "agilegs bench service --pool 300"):
         How("parse", "a benchmark of minutes (its small run: tests/e2e/test_bench_service.py)"),
-    ("docs/benchmarks.md", "S=scenes"): BENCH,
+    ("docs/benchmarks.md", "S=service/data/scenes"): BENCH,
     ("docs/benchmarks.md", "agilegs bench run --scene $S/plant --scene $S/boot --scene "
      "$S/koala --scene $S/floor \\"): BENCH,
     ("docs/benchmarks.md", "agilegs bench value --scene $S/boot --scene $S/plant --scene "
