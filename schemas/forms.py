@@ -21,6 +21,8 @@ from typing import Annotated, Any
 
 from pydantic import BeforeValidator
 
+from agilegs.config.types import integral
+
 __all__ = ["RULES_KEY", "Form", "WireInt", "integral", "one_of"]
 
 RULES_KEY = "x-agilegs-rules"
@@ -34,14 +36,6 @@ readable .ply or .splat file), ``pixels`` (width x height within the server's
 max_image_pixels)."""
 
 Schema = dict[str, Any]
-
-
-def integral(value: Any) -> Any:
-    """An integral float (``2.0``, which JSON Schema counts as an integer) as an int; any
-    other value unchanged (a strict int then refuses strings, bools and fractions)."""
-    if type(value) is float and value.is_integer() and -(2.0**63) <= value < 2.0**64:
-        return int(value)
-    return value
 
 
 WireInt = Annotated[int, BeforeValidator(integral)]

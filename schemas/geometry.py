@@ -40,6 +40,8 @@ from pydantic import (
     model_validator,
 )
 
+from agilegs.config.geometry import MAX_COORD, ORTHONORMAL_ATOL, QUATERNION_NORM_ATOL
+
 from .forms import Form, WireInt, one_of
 
 __all__ = [
@@ -62,13 +64,7 @@ __all__ = [
     "rotation_error",
 ]
 
-ORTHONORMAL_ATOL = 1e-3
-"""Largest accepted ``max |R^T R - I|`` of a pose's rotation block."""
-QUATERNION_NORM_ATOL = 1e-3
-"""Largest accepted ``| ||q|| - 1 |`` of a pose quaternion."""
 LAST_ROW_ATOL = 1e-6
-MAX_COORD = 1e6
-"""Largest accepted absolute coordinate (pose translations, bounds), in scene units."""
 
 ROTATION_ENTRY_MAX = math.sqrt(1.0 + ORTHONORMAL_ATOL)
 """Largest absolute entry of an accepted rotation block (implied by :data:`ORTHONORMAL_ATOL`:

@@ -43,11 +43,14 @@ Placement (creating a session without naming an instance)
 
 HTTP on any instance
     An operation on a session that this instance does not own is forwarded over Zenoh (a get
-    on ``agilegs/<session>/<op>`` with the msgpack body a Zenoh client would send, after the
-    same validation) and the owner's answer is returned as is (its status, code, message and
-    field included). ``POST /v1/sessions`` places the session as above; ``GET /v1/sessions``
-    merges every live instance's sessions (a session appears once); ``/healthz`` and
-    ``/metrics`` describe this instance only.
+    on ``agilegs/<session>/<op>``): a JSON or msgpack body (or none) goes as it came, in its
+    media type, and the owner's answer (or error reply: its status, code, message and field)
+    comes back as it came, neither decoded nor validated here (the owner does both); the
+    fields of a request given as query parameters, or a raw .ply / .splat upload, are
+    validated here and go as the msgpack body a Zenoh client would send. ``POST
+    /v1/sessions`` places the session as above; ``GET /v1/sessions`` merges every live
+    instance's sessions (a session appears once); ``/healthz`` and ``/metrics`` describe this
+    instance only.
 
 Topology
     Instances (and clients) must reach each other through Zenoh. With a router (``zenohd``),
@@ -76,7 +79,7 @@ from typing import TYPE_CHECKING, Any
 
 from pydantic import BaseModel, ValidationError
 
-from agilegs.client.zenoh_rpc import first_answer, query
+from agilegs.client.zenoh_rpc import Answer, first_answer, query
 from agilegs.schemas import codec, keys
 from agilegs.schemas import models as m
 from agilegs.schemas.errors import ErrorBody
@@ -92,6 +95,7 @@ from agilegs.schemas.keys import (
 from agilegs.schemas.ops import OPERATIONS, Operation
 
 from .errors import ServiceError
+from .gateway import Forwarded
 
 if TYPE_CHECKING:
     from concurrent.futures import Executor
@@ -369,6 +373,27 @@ class ClusterNode:
             self.sync()  # declared before the reply leaves: the session is found at once
         return result
 
+    def owned_elsewhere(self, op: str, session: str | None) -> bool:
+        """Whether ``op`` is a session operation on a session this instance does not hold
+        while it is in a Zenoh session (it is then forwarded to the owner)."""
+        return (OPERATIONS[op].scope == "session" and self._z is not None
+                and session is not None and _SESSION_RE.match(session) is not None
+                and not self.registry.holds(session))
+
+    def forward_bytes(self, op: str, session: str, body: bytes | None, kind: str
+                      ) -> Forwarded | None:
+        """The owner's answer to ``op`` with ``body`` (media type ``kind``; without a body the
+        answer comes in ``kind``), as it came; None when no instance answers and this one is
+        not in a cluster (a lone server: the session does not exist, and it says so)."""
+        spec = OPERATIONS[op]
+        ans = self._ask(keys.session_key(session, op), body, spec, kind)
+        if ans is not None:
+            return Forwarded(ans.ok, ans.payload, ans.kind)
+        live = sorted(self.instances())
+        if not self.in_cluster:
+            return None
+        raise session_unavailable(session, live)
+
     def _forward_session(self, spec: Operation, session: str, req: BaseModel | None,
                          run_local: Callable[[], BaseModel]) -> BaseModel:
         body = codec.dump(req, codec.MSGPACK) if req is not None else None
@@ -448,22 +473,31 @@ class ClusterNode:
             log.warning("cluster: get on %s failed", key, exc_info=True)
         return out
 
-    def _forward(self, key: str, body: bytes | None, spec: Operation) -> BaseModel | None:
-        """The owner's answer to ``spec`` on ``key``; None when no instance answers."""
+    def _ask(self, key: str, body: bytes | None, spec: Operation, kind: str = codec.MSGPACK
+             ) -> Answer | None:
+        """The first answer of another instance to ``spec`` on ``key`` (``body`` in media
+        type ``kind``); None when no instance answers; 502 / 504 when the get fails or times
+        out."""
         z = self._z
         if z is None:
             return None
         try:
             ans, timed_out = first_answer(z, key, payload=body, attachment=self._attachment,
                                           timeout=self.forward_timeout, remote_only=True,
-                                          every_reply=True)
+                                          every_reply=True, encoding=kind)
         except Exception as exc:
             raise ServiceError(502, "bad_gateway", f"{spec.name}: forwarding on {key} failed "
                                f"({type(exc).__name__}: {exc})") from exc
+        if ans is None and timed_out:
+            raise ServiceError(504, "gateway_timeout", f"{spec.name}: the instance that "
+                               f"owns it did not answer within {self.forward_timeout:g} s")
+        return ans
+
+    def _forward(self, key: str, body: bytes | None, spec: Operation) -> BaseModel | None:
+        """The owner's answer to ``spec`` on ``key`` (a msgpack ``body``), validated; None
+        when no instance answers."""
+        ans = self._ask(key, body, spec)
         if ans is None:
-            if timed_out:
-                raise ServiceError(504, "gateway_timeout", f"{spec.name}: the instance that "
-                                   f"owns it did not answer within {self.forward_timeout:g} s")
             return None
         if ans.ok:
             try:

@@ -11,8 +11,15 @@ which does, once for every transport:
 5. dispatch: here (:meth:`SessionRegistry.execute
    <agilegs.service.sessions.registry.SessionRegistry.execute>`), or through the
    :attr:`Gateway.router` to the instance that owns the session,
-6. encoding of the answer or of the error body, in the type the request accepts,
+6. encoding of the answer or of the error body, in the type the request accepts (once per
+   request and type: a decision's reply and its Zenoh publication share the bytes,
+   :meth:`Gateway.encode`),
 7. metrics, and the decision hooks after a selection made here.
+
+A session operation whose session another instance of a cluster owns skips steps 3-5 when its
+body is JSON or msgpack (or it has none): the request's bytes are forwarded as they came and
+the owner's answer is passed back as it came (:meth:`Router.forward_bytes`); the owner decodes
+and validates it.
 
 It returns a :class:`Reply` (status, bytes, media type); a write refused for lack of space
 is answered 507 ``insufficient_storage`` (and counted), a bug in a handler is logged and
@@ -25,16 +32,17 @@ from __future__ import annotations
 import hashlib
 import hmac
 import logging
+import threading
 import time
 from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-from pydantic import BaseModel
+from pydantic import BaseModel, ValidationError
 
 from agilegs.schemas import codec
-from agilegs.schemas.errors import ErrorCode
+from agilegs.schemas.errors import ErrorBody, ErrorCode
 from agilegs.schemas.models import SelectResponse
 from agilegs.schemas.ops import OPERATIONS
 
@@ -43,7 +51,8 @@ from .metrics import Metrics
 from .sessions.registry import QueryParams, SessionRegistry, parse_request
 from .settings import Settings
 
-__all__ = ["RAW_TYPES", "Gateway", "Reply", "Request", "Router", "request_media_types"]
+__all__ = ["RAW_TYPES", "Forwarded", "Gateway", "Reply", "Request", "Router",
+           "request_media_types"]
 
 log = logging.getLogger(__name__)
 
@@ -90,20 +99,47 @@ class Request:
     local: bool = False
 
 
-@dataclass
 class Reply:
     """The answer: HTTP status, encoded body and its media type; ``model`` is the response
-    (None for an error), ``error`` the refusal (None for a success)."""
+    (None for an error), ``error`` the refusal (None for a success).
 
-    status: int
-    body: bytes
-    media_type: str
-    model: BaseModel | None = None
-    error: ServiceError | None = None
+    The answer of another instance passed through as it came is decoded into ``model`` only
+    when a caller reads it (``decode``)."""
+
+    def __init__(self, status: int, body: bytes, media_type: str,
+                 model: BaseModel | None = None, error: ServiceError | None = None, *,
+                 decode: Callable[[], BaseModel] | None = None) -> None:
+        self.status = status
+        self.body = body
+        self.media_type = media_type
+        self.error = error
+        self._model = model
+        self._decode = decode
+
+    @property
+    def model(self) -> BaseModel | None:
+        if self._model is None and self._decode is not None:
+            self._model = self._decode()
+            self._decode = None
+        return self._model
 
     @property
     def ok(self) -> bool:
         return self.error is None
+
+    def __repr__(self) -> str:
+        return (f"Reply(status={self.status}, media_type={self.media_type!r}, "
+                f"{len(self.body)} bytes, error={self.error!r})")
+
+
+@dataclass(frozen=True)
+class Forwarded:
+    """The answer of the instance that owns a session, as it came: ``ok`` (a response) or an
+    error reply, its bytes and their media type (JSON or msgpack)."""
+
+    ok: bool
+    payload: bytes
+    kind: str
 
 
 class Router(Protocol):
@@ -112,6 +148,16 @@ class Router(Protocol):
     def route(self, op: str, session: str | None, req: BaseModel | None, *,
               run_local: Callable[[], BaseModel], instance: str | None, local: bool
               ) -> BaseModel: ...
+
+    def owned_elsewhere(self, op: str, session: str | None) -> bool:
+        """Whether ``op`` is a session operation on a session this instance does not hold,
+        in a cluster (its request may go to the owner as it came)."""
+
+    def forward_bytes(self, op: str, session: str, body: bytes | None, kind: str
+                      ) -> Forwarded | None:
+        """Forward a request as it came (``body`` in media type ``kind``, or none: the answer
+        comes in ``kind``) to the instance that owns the session; None when no instance
+        answers and this one is not in a cluster (it runs the request itself)."""
 
 
 class Gateway:
@@ -133,6 +179,7 @@ class Gateway:
         self._digest = hashlib.sha256(token.encode()).digest() if token else None
         self.router: Router | None = None
         self.decision_hooks: list[Callable[[str, SelectResponse], None]] = []
+        self._encoded = threading.local()  # this thread's request: its encodings so far
 
     def close(self) -> None:
         self.executor.shutdown(wait=True, cancel_futures=True)
@@ -199,6 +246,13 @@ class Gateway:
     # ------------------------------------------------------------------ the pipeline
     def handle(self, req: Request) -> Reply:
         """Run ``req`` through every step; never raises."""
+        self._encoded.cache = {}
+        try:
+            return self._handle(req)
+        finally:
+            self._encoded.cache = None
+
+    def _handle(self, req: Request) -> Reply:
         kind = codec.negotiate(req.accept) or codec.JSON
         try:
             spec = OPERATIONS.get(req.op)
@@ -212,11 +266,20 @@ class Gateway:
             kind = self.negotiate(req.accept)
             if req.body is not None:
                 self.check_size(len(req.body))
+            local = req.local
+            as_it_came = self._as_it_came(req, kind)
+            if as_it_came is not None:
+                assert self.router is not None and req.session is not None
+                got = self.router.forward_bytes(req.op, req.session, req.body or None,
+                                                as_it_came)
+                if got is not None:
+                    return self._forwarded_reply(req, got, kind)
+                local = True  # no instance answers, and this one is alone: it answers
             payload = self.decode(req.op, req.body, req.content_type, req.params)
             model = parse_request(req.op, payload)
             result = self.dispatch(req.op, req.session, model, t0=req.t0,
-                                   instance=req.params.get("instance"), local=req.local)
-            body = codec.dump(result, kind)
+                                   instance=req.params.get("instance"), local=local)
+            body = self.encode(result, kind)
         except ServiceError as err:
             return self.error_reply(err, kind, req.transport, req.op)
         except Exception as exc:
@@ -232,6 +295,45 @@ class Gateway:
             return self.error_reply(crash, kind, req.transport, req.op)
         self.count(req.transport, req.op, 200)
         return Reply(200, body, kind, model=result)
+
+    def _as_it_came(self, req: Request, kind: str) -> str | None:
+        """The media type ``req`` goes to the session's owner in, as it came (its body's, or
+        ``kind`` without a body); None when it runs here, or cannot go as it came (a body
+        neither JSON nor msgpack, fields in query parameters: the validated request goes)."""
+        if (req.local or self.router is None
+                or not self.router.owned_elsewhere(req.op, req.session)):
+            return None
+        if req.body:
+            return codec.media_type(req.content_type)
+        return kind if OPERATIONS[req.op].request is None else None
+
+    def _forwarded_reply(self, req: Request, got: Forwarded, kind: str) -> Reply:
+        """The owner's answer as the reply, its bytes as they came when they are in
+        ``kind``."""
+        if not got.ok:
+            err = _owner_error(req.op, got)
+            self.count(req.transport, req.op, err.status, err.code)
+            body = got.payload if got.kind == kind else codec.dump(err.body(), kind)
+            return Reply(err.status, body, kind, error=err)
+        body = got.payload
+        if got.kind != kind:  # a body in one type, the answer asked in the other
+            body = codec.dump(_owner_answer(req.op, got), kind)
+        self.count(req.transport, req.op, 200)
+        return Reply(200, body, kind, decode=lambda: _owner_answer(req.op, got))
+
+    def encode(self, model: BaseModel, kind: str) -> bytes:
+        """``model`` as ``kind`` bytes; within a request each model is encoded once per type
+        (the reply and a hook's publication of it share the bytes)."""
+        cache: dict[tuple[int, str], tuple[BaseModel, bytes]] | None = getattr(
+            self._encoded, "cache", None)
+        if cache is None:
+            return codec.dump(model, kind)
+        hit = cache.get((id(model), kind))
+        if hit is not None and hit[0] is model:
+            return hit[1]
+        data = codec.dump(model, kind)
+        cache[(id(model), kind)] = (model, data)
+        return data
 
     def dispatch(self, op: str, session: str | None, req: BaseModel | None, *,
                  t0: float | None = None, instance: str | None = None, local: bool = False
@@ -272,3 +374,25 @@ class Gateway:
     def count(self, transport: str, op: str, status: int, code: str | None = None) -> None:
         if self.metrics is not None:
             self.metrics.observe_request(transport, op, status, code)
+
+
+def _owner_answer(op: str, got: Forwarded) -> BaseModel:
+    """The owner's answer to ``op`` decoded and validated (502 if it is malformed)."""
+    spec = OPERATIONS[op]
+    assert spec.response is not None
+    try:
+        return spec.response.model_validate(codec.load(got.payload, got.kind))
+    except (codec.DecodeError, ValidationError) as exc:
+        raise ServiceError(502, ErrorCode.BAD_GATEWAY, f"{op}: the owner's answer is "
+                           f"malformed: {exc}") from None
+
+
+def _owner_error(op: str, got: Forwarded) -> ServiceError:
+    """The owner's error reply as the error it names (its status, code, message, field)."""
+    try:
+        info = ErrorBody.model_validate(codec.load(got.payload, got.kind)).error
+    except (codec.DecodeError, ValidationError):
+        return ServiceError(502, ErrorCode.BAD_GATEWAY, f"{op}: the owner's error reply is "
+                            "malformed")
+    return ServiceError(info.status, info.code, info.message, info.field, list(info.errors),
+                        info.supported)

@@ -76,7 +76,7 @@ class Settings(BaseSettings):
     workers: int = Field(default=16, ge=1, description="threads running session work")
     torch_threads: int = Field(default=0, ge=0, description="torch intra-op threads (0: default)")
     fsync: bool = Field(default=True, description="fsync files and folders before acknowledging")
-    # the mapper (see agilegs.service.trainer)
+    # the mapper (see agilegs.service.sessions.trainer)
     mapper: bool = Field(default=True, description="train sessions' maps from their images")
     mapper_steps_per_view: int = Field(
         default=100, ge=0, description="mapper training steps per view with an image"

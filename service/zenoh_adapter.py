@@ -204,4 +204,4 @@ class ZenohAdapter:
         if self.session is None or self._closing:
             return
         self.session.put(keys.session_key(session, keys.DECISIONS),
-                         codec.dump(resp, codec.MSGPACK), encoding=codec.MSGPACK)
+                         self.gateway.encode(resp, codec.MSGPACK), encoding=codec.MSGPACK)

@@ -20,11 +20,19 @@ as the paper's main results table, plus latency, trajectory, redundancy and (whe
 ablation tables; PNG plots go next to it. A rerun with the same ``DIR`` skips the
 (scene, method, seed) runs whose file exists with the same settings.
 
+The run's state is a session's record (:class:`~agilegs.service.records.SessionRecord`: the
+pool with the pool indices as candidate ids, the acquired views, the selector's warm state)
+and changes as a session's does: every view, the initial ones included, is acquired with
+:func:`~agilegs.service.sessions.transitions.acquire`, which takes it out of the pool and moves
+the warm state on to the selection's.
+
 Ĥ (the accumulated information of the acquired views): recomputed at every event from all
-acquired views on the current map, Ĥ = λI + Σ_v diag Fisher(v), as FisherRF does: the map
-changes under training (and densification changes its Gaussian count), so an Ĥ accumulated
-on older maps would describe other Gaussians. It is computed only for the methods that read
-it (full_eig, agile, agile_plus); random, cover and fisherrf receive λI (they ignore Ĥ;
+acquired views on the current map, Ĥ = λI + Σ_v diag Fisher(v)
+(:func:`~agilegs.service.sessions.transitions.recompute_information`, as a session does for a
+map pushed to it), as FisherRF does: the map changes under training (and densification
+changes its Gaussian count), so an Ĥ accumulated on older maps would describe other Gaussians
+(so an acquisition leaves Ĥ to that recomputation). It is computed only for the methods that
+read it (full_eig, agile, agile_plus); random, cover and fisherrf receive λI (they ignore Ĥ;
 FisherRF rebuilds its own H_train inside its selection, as its code does). Its cost is
 recorded per event as ``information_ms``, apart from the selection latency, since every
 Fisher-based method pays it alike.
@@ -41,9 +49,10 @@ import logging
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -53,6 +62,15 @@ from agilegs.service.nbv.methods import get_method
 from agilegs.service.nbv.rasterize import render
 from agilegs.service.nbv.selectors import SelectConfig, select
 from agilegs.service.quality import lpips, lpips_available, psnr, ssim
+from agilegs.service.records import SessionRecord
+from agilegs.service.sessions.transitions import (
+    Limits,
+    acquire,
+    new_record,
+    pool_index,
+    recompute_information,
+    set_pool,
+)
 
 from .profiles import RESULTS_FORMAT, Profile
 from .redundancy import run_redundancy
@@ -60,7 +78,6 @@ from .scenes import BenchScene
 from .variants import Variant
 
 __all__ = [
-    "accumulated_information",
     "add_pool_view",
     "estimate_seconds",
     "evaluate",
@@ -104,20 +121,32 @@ def trajectory_stats(positions: Tensor, indices: Sequence[int]) -> dict[str, flo
     return {"path_length": float(steps.sum()), "mean_index_jump": sum(jumps) / len(jumps)}
 
 
-def accumulated_information(
-    gmap: Any,
-    cameras: Sequence[Any],
-    lam: float,
-    background: Tensor | None,
-) -> dict[str, Tensor]:
-    """Ĥ = λI + Σ_v diag Fisher(v) over ``cameras`` on the current map (every block)."""
-    h = init_information(gmap, lam)
-    with torch.no_grad():
-        for cam in cameras:
-            hv = fisher_diag(gmap, cam, background=background)
-            for k in h:
-                h[k].add_(hv[k].to(h[k].dtype))
-    return h
+def run_record(scene: BenchScene, gmap: Any, lam: float) -> SessionRecord:
+    """The state of one run as a session's record: the scene's camera, ``gmap``, Ĥ's λ and
+    the scene's background for every Fisher render, and the whole pool, candidate id = pool
+    index."""
+    intr = scene.intrinsics
+    d = scene.pool_size
+    rec = new_record(
+        f"bench-{scene.name}", {k: getattr(intr, k) for k in ("fx", "fy", "cx", "cy", "width",
+                                                              "height")}, gmap,
+        defaults={"config": {"fisher_background": [float(c) for c in scene.background]}},
+        information_config={"lambda": lam})
+    limits = Limits(max_pool_size=d, max_views=d, max_gaussians=max(len(gmap), 1),
+                    max_shortlist=d, max_image_pixels=intr.width * intr.height)
+    poses = scene.pool_poses.detach().cpu().numpy().astype(np.float64)
+    return set_pool(rec, poses, list(range(d)), limits, "pool", replace_pool=True)
+
+
+def _on(device: torch.device, state: Any) -> Any:
+    """A warm state with its tensors on ``device`` (the record keeps them on the CPU)."""
+    if isinstance(state, Tensor):
+        return state.to(device)
+    if isinstance(state, dict):
+        return {k: _on(device, v) for k, v in state.items()}
+    if isinstance(state, list):
+        return [_on(device, v) for v in state]
+    return state
 
 
 @torch.no_grad()
@@ -242,6 +271,10 @@ def run_progressive(
     if mapper.num_gaussians == 0:
         raise RuntimeError(f"scene {scene.name}: the initial views gave no Gaussians (no depth "
                            "and no initial points)")
+    rec = run_record(scene, mapper.gmap, profile.lam)
+    for i in initial:  # Ĥ is recomputed at every event (see the module docstring)
+        rec, _ = acquire(rec, rec.pool_poses[pool_index(rec, i, "initial")], candidate_id=i,
+                         update_information=False)
     acquired = list(initial)
     budget = min(profile.view_budget or d, d)
     bg = torch.tensor(scene.background, dtype=torch.float32, device=dev)
@@ -251,7 +284,6 @@ def run_progressive(
         seed=int(seed),
         fisher_background=tuple(float(c) for c in scene.background),  # type: ignore[arg-type]
     ))
-    state: dict[str, Any] | None = None
     events: list[dict[str, Any]] = []
     curve: list[dict[str, Any]] = []
     times = {"train_s": 0.0, "select_s": 0.0, "information_s": 0.0, "eval_s": 0.0}
@@ -284,15 +316,12 @@ def run_progressive(
         if profile.curve_every and event % profile.curve_every == 0:
             point_on_curve()
         gmap = mapper.gmap
-        taken = set(acquired)
-        remaining = [i for i in range(d) if i not in taken]
+        remaining = [int(i) for i in rec.pool_ids]
         t0 = time.perf_counter()
         uses_information = get_method(variant.method).uses_information
-        if uses_information:
-            cams = [scene.pool_camera(i).to(device=dev, dtype=gmap.dtype) for i in acquired]
-            h_acc = accumulated_information(gmap, cams, profile.lam, bg.to(gmap.dtype))
-        else:
-            h_acc = init_information(gmap, profile.lam)
+        h_acc = (recompute_information(rec, gmap) if uses_information
+                 else init_information(gmap, profile.lam))
+        rec = replace(rec, gmap=gmap, h_acc=h_acc)
         h_ms = (time.perf_counter() - t0) * 1e3
         cands = candidates_all[remaining].to(gmap.dtype)
         acq_poses = candidates_all[acquired].to(gmap.dtype)
@@ -321,12 +350,11 @@ def run_progressive(
             config=cfg,
             acquired=acq_poses,
             current_pose=acq_poses[-1] if embodied_k is not None else None,
-            state=state,
+            state=_on(dev, rec.warm_state),
             lam=profile.lam,
         )
         wall_ms = (time.perf_counter() - t0) * 1e3
         cpu_ms = (time.process_time() - c0) * 1e3
-        state = sel.state
         choice = remaining[sel.index]
         events.append({
             "event": event,
@@ -354,6 +382,8 @@ def run_progressive(
         times["information_s"] += h_ms / 1e3
         log.debug("%s seed %d event %d step %d: view %d in %.1f ms (+ %.1f ms for Ĥ)",
                   variant.key, seed, event, step, choice, sel.latency_ms["total"], h_ms)
+        rec, _ = acquire(rec, rec.pool_poses[sel.index], candidate_id=choice,
+                         update_information=False, next_state=sel.state)
         acquired.append(choice)
         add(choice, False)
         event += 1

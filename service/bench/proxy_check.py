@@ -31,15 +31,15 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from agilegs.service.nbv.camera import Camera
 from agilegs.service.nbv.candidates import scene_center_radius
 from agilegs.service.nbv.selectors import select
+from agilegs.service.nbv.upkeep import information_of_views
 
 from .latency import eig_percentile, spearman
 from .options import DEFAULT_CONFIGS
 from .options import add_proxy_arguments as add_arguments
 from .profiles import resolve_profile
-from .protocol import accumulated_information, run_progressive
+from .protocol import run_progressive
 from .scenes import load_bench_scene
 from .variants import Variant, parse_variant
 
@@ -77,8 +77,7 @@ def check_event(
     """Every configuration's figures on one event's inputs (see the module docstring)."""
     gmap, cands, acq = ctx["gmap"], ctx["candidates"], ctx["acquired"]
     intr, cfg0 = ctx["intrinsics"], ctx["config"]
-    cams = [Camera(c2w=p, intrinsics=intr) for p in acq]
-    h_acc = accumulated_information(gmap, cams, lam, ctx["background"])
+    h_acc = information_of_views(gmap, acq, intr, lam, ctx["background"])
     fr = select("full_eig", gmap, h_acc, cands, intr, config=cfg0, acquired=acq, lam=lam)
     phi = torch.tensor([fr.scores[i] for i in range(cands.shape[0])], dtype=torch.float64)
     centre, _ = scene_center_radius(gmap.means.detach())

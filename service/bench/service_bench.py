@@ -9,13 +9,17 @@ Starts ``agilegs serve`` in a subprocess on free loopback ports (or uses ``--url
    started server serving ``--ros2``; ``preset`` only), each timed by the client. Transport
    overhead = client round trip - the core's selection time (``latency_ms.total``); also
    shown: server time (``server_ms``) - core time, the part of the overhead spent inside the
-   server (decode, validate, lock, encode).
+   server (decode, validate, lock, encode), the core time itself, and the whole round trip.
    Two request shapes: the pool set beforehand (``preset``: a small body naming the
    session's 300 candidates) and the pool sent inside the select request (``inline``: 300
    poses in the body, persisted before the answer).
 2. **Load.** ``--clients`` clients, each on a session of its own, select and commit
    ``--selections`` times at once over HTTP msgpack; reports selections per second, errors,
    and checks that every acknowledged commit is in the session afterwards.
+
+With ``--instance ID`` (and ``--url`` / ``--zenoh`` of another instance of the same cluster)
+the sessions are created on instance ``ID``: every request then goes through the instance the
+benchmark talks to and is forwarded to the owner, and the overhead includes the forwarding.
 """
 
 from __future__ import annotations
@@ -36,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from agilegs.schemas.config import METHODS
+from agilegs.config.selection import METHODS
 from agilegs.service.data import bundled_scene
 from agilegs.service.launch import ServerProcess
 
@@ -64,6 +68,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--clients", type=int, default=8, help="concurrent clients in the load phase")
     a("--selections", type=int, default=10, help="select + commit per client")
     a("--load-method", default="agile", help="selection method of the load phase")
+    a("--instance", help="create the sessions on this instance of a cluster (requests to "
+      "--url's instance are then forwarded to it)")
     a("--json", dest="json_out", help="also write the results here")
 
 
@@ -107,7 +113,7 @@ def _time_selects(select: Callable[[], Any], n: int, warmup: int) -> dict[str, A
         select()
     gc.collect()
     gc.freeze()  # as a long-running robot process would: full collections skip the imports
-    rtt, server, core = [], [], []
+    rtt, server, core, whole = [], [], [], []
     for _ in range(n):
         t = time.perf_counter()
         r = select()
@@ -116,8 +122,9 @@ def _time_selects(select: Callable[[], Any], n: int, warmup: int) -> dict[str, A
         rtt.append(dt - total)
         server.append((r.server_ms or 0.0) - total)
         core.append(total)
+        whole.append(dt)
     return {"overhead_ms": _stats(rtt), "server_overhead_ms": _stats(server),
-            "core_ms": _stats(core), "requests": n}
+            "core_ms": _stats(core), "round_trip_ms": _stats(whole), "requests": n}
 
 
 def check_methods(args: argparse.Namespace) -> None:
@@ -144,7 +151,8 @@ def run(args: argparse.Namespace) -> int:
                                args=["--ros2", args.ros2]).start()
         url, zenoh_ep = server.url, server.zenoh_endpoint
     results: dict[str, Any] = {"pool": args.pool, "method": args.method,
-                               "gaussians": args.max_gaussians, "size": args.size}
+                               "gaussians": args.max_gaussians, "size": args.size,
+                               "instance": args.instance}
     clients: dict[str, Any] = {}
     try:
         clients["http-json"] = Client(url, token=args.token, encoding="json")
@@ -161,7 +169,7 @@ def run(args: argparse.Namespace) -> int:
         scene: dict[str, Any] = ({"gaussians": arrays} if arrays is not None else
                                  {"bounds": bounds, "init_gaussians": args.max_gaussians})
         sid = f"bench-{os.getpid()}"
-        c.create_session(intr, id=sid, pool=poses, **scene)
+        c.create_session(intr, id=sid, pool=poses, instance=args.instance, **scene)
         if zenoh_ep and args.ros2:
             clients["ros2"] = _Ros2Client(args.ros2, zenoh_ep, sid, args.token)
         results["overhead"] = {}
@@ -226,7 +234,7 @@ def _load(url: str, args: argparse.Namespace, intr: dict[str, Any], scene: dict[
     ids = [f"load-{os.getpid()}-{i}" for i in range(args.clients)]
     with Client(url, token=args.token) as c:
         for sid in ids:
-            c.create_session(intr, id=sid, pool=poses, **scene)
+            c.create_session(intr, id=sid, pool=poses, instance=args.instance, **scene)
     acked: dict[str, list[int]] = {sid: [] for sid in ids}
     errors: list[str] = []
     barrier = threading.Barrier(args.clients)
@@ -263,15 +271,18 @@ def _load(url: str, args: argparse.Namespace, intr: dict[str, Any], scene: dict[
 
 def _print(results: dict[str, Any]) -> None:
     out = sys.stdout
+    where = (f", sessions on instance {results['instance']} (forwarded)"
+             if results.get("instance") else "")
     out.write(f"\nagilegs bench service: select ({results['method']}) over a "
               f"{results['pool']}-candidate pool, {results['gaussians']} Gaussians, "
-              f"{results['size']}x{results['size']} px\n\n")
+              f"{results['size']}x{results['size']} px{where}\n\n")
     out.write(f"{'transport / pool':<24}{'overhead p50':>14}{'p99':>10}{'in server p50':>15}"
-              f"{'p99':>10}{'core p50':>11}\n")
+              f"{'p99':>10}{'core p50':>11}{'round trip p50':>16}\n")
     for name, r in results["overhead"].items():
         o, s, c = r["overhead_ms"], r["server_overhead_ms"], r["core_ms"]
+        w = r["round_trip_ms"]
         out.write(f"{name:<24}{o['p50']:>11.2f} ms{o['p99']:>7.2f} ms{s['p50']:>12.2f} ms"
-                  f"{s['p99']:>7.2f} ms{c['p50']:>8.2f} ms\n")
+                  f"{s['p99']:>7.2f} ms{c['p50']:>8.2f} ms{w['p50']:>13.2f} ms\n")
     ld = results["load"]
     out.write(f"\nload: {ld['clients']} clients x {ld['selections'] // max(ld['clients'], 1)} "
               f"select+commit ({ld['method']}), {ld['selections_per_s']:.1f} selections/s, "

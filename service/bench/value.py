@@ -44,7 +44,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from agilegs.schemas.config import FIELD_NAMES, SelectConfig
+from agilegs.config.selection import FIELD_NAMES, SelectConfig
 from agilegs.service.nbv.camera import Camera
 from agilegs.service.nbv.information import fisher_diag
 from agilegs.service.nbv.selectors import select

@@ -3,7 +3,7 @@ benchmark (``bench run``, ``bench latency``, ``bench proxy``).
 
 A variant key is ``<method>`` or ``<method>@<option>[+<option>...]``, for example
 ``agile@knearest``, ``agile_plus@n20``, ``agile_plus@exact`` or ``agile_plus@typical+cold``.
-The options (:data:`OPTIONS`) change the :class:`~agilegs.schemas.config.SelectConfig` the
+The options (:data:`OPTIONS`) change the :class:`~agilegs.config.selection.SelectConfig` the
 method selects with; ``n<N>`` sets the shortlist size N.
 """
 
@@ -15,16 +15,15 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
-from agilegs.schemas.config import (
+from agilegs.config.selection import (
     COVER_ZBUFFER,
     MIXED_ZBUFFER,
     POINT_ZBUFFER,
     PRESETS,
     SHORTLISTS,
     SelectConfig,
-    deep_merge,
-    validate_config,
 )
+from agilegs.config.types import deep_merge, validate_config
 
 from ..nbv.methods import method_names
 

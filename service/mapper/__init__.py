@@ -1,9 +1,9 @@
 """Incremental 3D Gaussian Splatting training: the mapper of a map session
 (:class:`~.mapper.Mapper`), its densification (:mod:`.densify`), its topology changes
 (:mod:`.topology`) and Gaussians from points and depth (:mod:`.points`). The settings are
-:class:`~agilegs.schemas.config.MapperConfig`."""
+:class:`~agilegs.config.mapper.MapperConfig`."""
 
-from agilegs.schemas.config import MapperConfig
+from agilegs.config.mapper import MapperConfig
 
 from .densify import Densification, plan_densification
 from .mapper import Mapper

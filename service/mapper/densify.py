@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from agilegs.schemas.config import MapperConfig
+from agilegs.config.mapper import MapperConfig
 from agilegs.service.nbv.rotations import quat_to_rotmat
 
 __all__ = ["Densification", "plan_densification"]

@@ -50,7 +50,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from agilegs.schemas.config import MapperConfig
+from agilegs.config.mapper import MapperConfig
 from agilegs.service.data.images import View
 from agilegs.service.nbv.camera import Camera
 from agilegs.service.nbv.gaussians import GaussianMap

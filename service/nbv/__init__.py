@@ -5,9 +5,11 @@ Public surface (imported lazily, so ``import agilegs.service.nbv`` stays cheap):
 - Gaussian maps and cameras: ``GaussianMap``, ``Camera``, ``Intrinsics``, ``look_at``.
 - Rendering: ``render`` -> ``RenderResult`` (rgb [H,W,3], alpha [H,W], depth [H,W]).
 - Information: ``fisher_diag``, ``init_information``, ``accumulate_information``,
-  ``expected_information_gain``, ``trace_surrogate``.
+  ``expected_information_gain``, ``trace_surrogate``; Hhat of a set of views
+  ``information_of_views`` and one view's ``view_information``.
 - Poses: ``se3_exp``, ``se3_log``, ``hat``, ``vee``.
-- Selection: ``select`` -> ``Selection``, ``SelectConfig`` (with ``AnchorConfig``,
+- Selection: ``select`` -> ``Selection`` (``select_validated`` for inputs validated already),
+  ``SelectConfig`` (with ``AnchorConfig``,
   ``ScoringConfig``), ``eig_scores``, ``greedy_ridge_leverage``; the methods are registered
   by name in :mod:`agilegs.service.nbv.methods`.
 """
@@ -34,12 +36,15 @@ _EXPORTS: dict[str, str] = {
     "accumulate_information": "information",
     "expected_information_gain": "information",
     "trace_surrogate": "information",
+    "information_of_views": "upkeep",
+    "view_information": "upkeep",
     "se3_exp": "se3",
     "se3_log": "se3",
     "hat": "se3",
     "vee": "se3",
     "greedy_ridge_leverage": "leverage",
     "select": "selectors",
+    "select_validated": "selectors",
     "Selection": "selectors",
     "SelectConfig": "selectors",
     "AnchorConfig": "selectors",

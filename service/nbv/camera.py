@@ -12,7 +12,7 @@ from dataclasses import dataclass, replace
 import torch
 from torch import Tensor
 
-from agilegs.schemas.geometry import ORTHONORMAL_ATOL
+from agilegs.config.geometry import ORTHONORMAL_ATOL
 
 from .errors import InputError
 
@@ -58,7 +58,7 @@ class Intrinsics:
 
 ORTHONORMAL_TOL = ORTHONORMAL_ATOL + 1e-5
 """Largest ``max |R^T R - I|`` :func:`check_pose` accepts: the wire's tolerance
-(:data:`agilegs.schemas.geometry.ORTHONORMAL_ATOL`) plus the rounding of such a pose to float32,
+(:data:`agilegs.config.geometry.ORTHONORMAL_ATOL`) plus the rounding of such a pose to float32,
 so that a pose the wire accepted is never refused here."""
 
 

@@ -42,7 +42,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from agilegs.schemas.config import FIELD_NAMES as FIELD_NAMES  # the parameter blocks
+from agilegs.config.selection import FIELD_NAMES as FIELD_NAMES  # the parameter blocks
 
 SH_C0 = 0.28209479177387814
 

@@ -2,9 +2,10 @@
 
 The methods (paper sections 3-5 and its baselines) are registered by name in
 :mod:`agilegs.service.nbv.methods`, one module each; all select on the same map, Hhat and
-pool. ``select`` validates its inputs, works out what every method shares (the eligible
-candidates, the pool's radius, the event counter of the warm state), runs the method and
-times it.
+pool. ``select`` validates its inputs (``select_validated`` is the same for a caller that
+validated them already, as the service does once per setting), works out what every method
+shares (the eligible candidates, the pool's radius, the event counter of the warm state),
+runs the method and times it.
 
 Embodied mode (``SelectConfig.embodied_k = K``): only the K candidates nearest the current
 view (``current`` index, which is itself excluded, or ``current_pose``) are eligible; nearest
@@ -29,13 +30,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from agilegs.schemas.config import (
-    SHORTLISTS,
-    AnchorConfig,
-    ScoringConfig,
-    SelectConfig,
-    validate_config,
-)
+from agilegs.config.selection import SHORTLISTS, AnchorConfig, ScoringConfig, SelectConfig
+from agilegs.config.types import validate_config
 
 from .camera import Intrinsics, check_pose
 from .candidates import pool_radius, scene_center_radius
@@ -56,6 +52,7 @@ __all__ = [
     "eig_scores",
     "eligible_candidates",
     "select",
+    "select_validated",
 ]
 
 METHODS: tuple[str, ...] = method_names()
@@ -78,6 +75,10 @@ class Selection:
         latency_ms: milliseconds per stage: anchor, scoring, leverage, rerank, total.
         state: warm-start state for the next call (the anchor, the event counter, ...).
         details: diagnostics (support sample count, psi evaluations, proxy psi of the pool).
+        chosen_information: the diagonal Fisher of the chosen view (per block of
+            ``config.fields``, rendered on ``config.fisher_background``) where the method
+            computed it while scoring (full_eig, agile_plus), else None: what acquiring the
+            view adds to Hhat, without another pass.
     """
 
     method: str
@@ -90,6 +91,7 @@ class Selection:
     latency_ms: dict[str, float]
     state: dict[str, Any]
     details: dict[str, Any] = field(default_factory=dict)
+    chosen_information: dict[str, Tensor] | None = None
 
 
 # ----------------------------------------------------------------------------- validation
@@ -230,13 +232,58 @@ def select(
             NaN poses, non-orthonormal rotations, h_acc not matching the map, embodied_k < 1.
     """
     t_start = time.perf_counter()
-    impl = get_method(method)
+    get_method(method)
     config = validate_config(SelectConfig, config if config is not None else SelectConfig())
     fields = tuple(config.fields) if config.fields is not None else FIELD_NAMES
     _validate(gmap, h_acc, candidates, intrinsics, acquired, current, current_pose, config,
               fields)
     if lam is not None and not (isinstance(lam, int | float) and math.isfinite(lam) and lam > 0):
         raise InputError("lam", f"lam must be a positive finite number, got {lam!r}")
+    return _select(method, gmap, h_acc, candidates, intrinsics, config, acquired, current,
+                   current_pose, state, lam, t_start)
+
+
+def select_validated(
+    method: str,
+    gmap: GaussianMap,
+    h_acc: Mapping[str, Tensor],
+    candidates: Tensor,
+    intrinsics: Intrinsics,
+    *,
+    config: SelectConfig,
+    acquired: Tensor | None = None,
+    current: int | None = None,
+    current_pose: Tensor | None = None,
+    state: dict[str, Any] | None = None,
+    lam: float | None = None,
+) -> Selection:
+    """:func:`select` on inputs its caller validated already: ``config`` a validated
+    :class:`SelectConfig`, and everything :func:`select` checks (a non-empty map, Hhat
+    positive and of the map's shapes, a non-empty pool of proper poses, ``current`` an index
+    into it, a current view in embodied mode, ``lam`` > 0). The service validates each of
+    them once, when it is set (a pool when it arrives, Hhat as it is kept up), and selects
+    through here. Raises :class:`~agilegs.service.nbv.errors.InputError` only when no
+    candidate is eligible."""
+    return _select(method, gmap, h_acc, candidates, intrinsics, config, acquired, current,
+                   current_pose, state, lam, time.perf_counter())
+
+
+def _select(
+    method: str,
+    gmap: GaussianMap,
+    h_acc: Mapping[str, Tensor],
+    candidates: Tensor,
+    intrinsics: Intrinsics,
+    config: SelectConfig,
+    acquired: Tensor | None,
+    current: int | None,
+    current_pose: Tensor | None,
+    state: dict[str, Any] | None,
+    lam: float | None,
+    t_start: float,
+) -> Selection:
+    impl = get_method(method)
+    fields = tuple(config.fields) if config.fields is not None else FIELD_NAMES
     state = dict(state or {})
     event = int(state.get("event", 0))
     dt = gmap.dtype
@@ -281,4 +328,5 @@ def select(
         latency_ms=lat,
         state={"event": event + 1, **res.state},
         details=res.details,
+        chosen_information=res.chosen_information,
     )

@@ -19,6 +19,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from agilegs.config.geometry import MAX_COORD
 from agilegs.schemas import models as m
 from agilegs.schemas.geometry import Intrinsics as WireIntrinsics
 from agilegs.schemas.geometry import Pose, PoseArrayList
@@ -57,8 +58,13 @@ def nbv_intrinsics(d: Mapping[str, Any]) -> Intrinsics:
 
 
 def pose_out(matrix: np.ndarray | Tensor) -> Pose:
+    """A pose [4, 4] for a reply. Its translation is clipped to the wire's bound
+    (:data:`~agilegs.config.geometry.MAX_COORD`): a pose computed in float32 near the bound
+    (an anchor started from a candidate there) may round past it."""
     a = matrix.detach().cpu().numpy() if isinstance(matrix, Tensor) else np.asarray(matrix)
-    return Pose.from_matrix(a.astype(np.float64), validate=False)
+    a = a.astype(np.float64)
+    a[:3, 3] = np.clip(a[:3, 3], -MAX_COORD, MAX_COORD)
+    return Pose.from_matrix(a, validate=False)
 
 
 def poses_array(poses: list[Pose]) -> np.ndarray:

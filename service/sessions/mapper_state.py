@@ -1,7 +1,8 @@
 """What a session's record says about its mapper: options, progress, steps owed.
 
 Pure functions of a :class:`~agilegs.service.store.SessionRecord` (no training here; the
-trainer in :mod:`agilegs.service.trainer` does that), shared by the sessions and the trainer.
+trainer in :mod:`agilegs.service.sessions.trainer` does that), shared by the sessions and the
+trainer.
 """
 
 from __future__ import annotations

@@ -20,7 +20,6 @@ from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 from pydantic import BaseModel, ValidationError
 
@@ -41,21 +40,22 @@ from ..errors import (
 )
 from ..errors import validation_error as _validation_error
 from ..integrity import Damage, FileProblem
-from ..nbv.information import init_information
 from ..settings import Settings
-from ..store import SessionRecord, SessionStore, StoreError
-from ..trainer import Trainer
+from ..store import SessionStore, StoreError
 from .convert import (
     empty_map,
     gaussians_from_depth,
     parse_frame,
     parse_gaussians,
+    poses_array,
     random_gaussians,
 )
 from .listing import damaged_error, damaged_summary
 from .mapper_state import initial_mapper_state, mapper_config
 from .selection import check_render_widths
 from .session import Session, SessionEnv
+from .trainer import Trainer
+from .transitions import Limits, integrate_frames, new_record, set_pool
 
 __all__ = ["HANDLERS", "Handler", "QueryParams", "SessionRegistry", "parse_request"]
 
@@ -147,8 +147,8 @@ class SessionRegistry:
         return len(self.sessions)
 
     def start_mapper(self) -> None:
-        """Start the background mapper (:mod:`agilegs.service.trainer`) for every session;
-        sessions with steps still owed (e.g. after a restart) resume training."""
+        """Start the background mapper (:mod:`agilegs.service.sessions.trainer`) for every
+        session; sessions with steps still owed (e.g. after a restart) resume training."""
         if self.trainer is None:
             self.trainer = Trainer(lambda: list(self.sessions.values()), self.settings,
                                    on_refused_write=self._refused_publication)
@@ -366,24 +366,17 @@ class SessionRegistry:
         except ValidationError as exc:
             raise _validation_error(exc, "body.mapper.config") from None
         now = time.time()
-        rec = SessionRecord(
-            id=sid, created_at=now, updated_at=now, version=1,
-            intrinsics=intr,
-            bounds=req.bounds.model_dump() if req.bounds else None,
-            defaults=defaults.model_dump(),
-            information_config=req.information.model_dump(by_alias=True),
-            gmap=gmap,
-            h_acc=init_information(gmap, req.information.lambda_),
-            pool_ids=np.zeros(0, dtype=np.int64), pool_poses=np.zeros((0, 4, 4)),
-            next_candidate_id=0, views=(), next_view_id=0,
-            mapper=initial_mapper_state(req.mapper),
-        )
-        draft = Session(rec, self.env)
+        rec = new_record(sid, intr, gmap, defaults=defaults.model_dump(),
+                         information_config=req.information.model_dump(by_alias=True),
+                         bounds=req.bounds.model_dump() if req.bounds else None,
+                         mapper=initial_mapper_state(req.mapper), now=now)
+        limits = Limits.of(settings)
         if req.pool is not None:
-            rec = draft.pool_changed(rec, req.pool, "body.pool", replace_pool=True)
+            rec = set_pool(rec, poses_array(req.pool.poses), req.pool.ids, limits, "body.pool",
+                           replace_pool=True, now=now)
         blobs: dict[str, bytes] = {}
         if frames:
-            rec, blobs, _ = draft.integrate_frames(rec, frames, "body.frames")
+            rec, blobs, _ = integrate_frames(rec, frames, "body.frames", limits, now=now)
         rec = replace(rec, version=1, updated_at=now)
         with self.lock:
             self._check_new_id(sid)
@@ -397,7 +390,7 @@ class SessionRegistry:
             self.sessions[sid] = s
             self.decisions.open(sid)
         if frames:
-            s.on_observation(list(rec.views))
+            s.on_observation(list(rec.views), frames)
         return s.info()
 
     def _check_new_id(self, sid: str) -> None:

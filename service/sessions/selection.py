@@ -1,31 +1,45 @@
-"""The select operation: the session's settings merged with the request's, the maths' choice,
-and, when asked, the chosen view acquired in the same atomic step."""
+"""The select operation as a function of the session's record: the session's settings merged
+with the request's (validated once, here), the maths' choice, and, when asked, the chosen view
+acquired (:func:`~agilegs.service.sessions.transitions.acquire`) in the same step; without
+commit, the selection is handed back as a
+:class:`~agilegs.service.sessions.transitions.PendingSelection` for the next acquisition."""
 
 from __future__ import annotations
 
 import math
 import time
-from typing import TYPE_CHECKING, Any
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
 from pydantic import ValidationError
+from torch import Tensor
 
+from agilegs.config.selection import SelectConfig
+from agilegs.config.types import deep_merge, validate_config
 from agilegs.schemas import models as m
-from agilegs.schemas.config import SelectConfig, deep_merge, patch_dict, validate_config
+from agilegs.schemas.config import patch_dict
 from agilegs.schemas.errors import ErrorCode
 
 from ..errors import conflict, invalid, too_large, validation_error
 from ..nbv.errors import InputError
-from ..nbv.selectors import select
-from ..store import SessionRecord, ViewRecord
-from .convert import finite_float, pose_out, poses_array, storable_state, view_out
+from ..nbv.selectors import Selection, select_validated
+from ..records import SessionRecord, ViewRecord
+from .convert import finite_float, pose_out, poses_array, view_out
+from .transitions import (
+    Limits,
+    PendingSelection,
+    acquire,
+    background_setting,
+    check_view_room,
+    intrinsics_of,
+    pool_index,
+    with_pool,
+)
 
-if TYPE_CHECKING:
-    from .session import Session
-
-__all__ = ["RENDER_WIDTHS", "TOP_LEVEL", "check_render_widths", "resolve_config", "run_select",
-           "same_pool"]
+__all__ = ["RENDER_WIDTHS", "TOP_LEVEL", "Selected", "check_render_widths", "resolve_config",
+           "select_response", "select_step"]
 
 TOP_LEVEL = ("shortlist_size", "shortlist", "embodied_k", "seed", "fields")
 """SelectConfig fields a select request carries at its top level."""
@@ -58,16 +72,6 @@ def check_render_widths(patch: dict[str, Any], field: str, max_pixels: int) -> N
                             f"max_image_pixels ({max_pixels})")
 
 
-def same_pool(rec: SessionRecord, pool: m.PoolIn) -> bool:
-    """Whether ``pool`` is the session's pool as it is: the same poses in the same order, and
-    the same ids or none (a robot that sends its candidates with every selection)."""
-    if len(pool.poses) != len(rec.pool_ids):
-        return False
-    if pool.ids is not None and not np.array_equal(np.asarray(pool.ids), rec.pool_ids):
-        return False
-    return bool(np.array_equal(poses_array(pool.poses), rec.pool_poses))
-
-
 def resolve_config(defaults: dict[str, Any], req: m.SelectRequest, top: dict[str, Any]
                    ) -> SelectConfig:
     """The session's config patch, the request's over it, then the top-level fields:
@@ -80,97 +84,127 @@ def resolve_config(defaults: dict[str, Any], req: m.SelectRequest, top: dict[str
                                rename={k: f"body.{k}" for k in TOP_LEVEL}) from None
 
 
-def run_select(s: Session, req: m.SelectRequest) -> m.SelectResponse:
-    """Choose the next view; with ``req.pool`` and / or ``req.commit``, the new pool and the
-    acquired view are persisted together, after the selection succeeded."""
-    with s.lock:
-        s.check_open()
-        t_core = time.perf_counter()
-        rec = s.record
-        dirty: list[str] = []
-        if req.pool is not None and not same_pool(rec, req.pool):
-            rec = s.pool_changed(rec, req.pool, "body.pool", replace_pool=True)
-            dirty.append("pool")
-        d = rec.defaults
-        method = req.method or d["method"]
-        size = req.shortlist_size or d["shortlist_size"]
-        embodied_k = req.embodied_k if req.embodied_k is not None else d["embodied_k"]
-        fields = req.fields if req.fields is not None else d["fields"]
-        if size > s.settings.max_shortlist:
-            raise invalid("body.shortlist_size",
-                          f"must be <= {s.settings.max_shortlist} (max_shortlist)")
-        if len(rec.pool_ids) == 0:
-            raise conflict("pool", "the candidate pool is empty: set it first",
-                           ErrorCode.EMPTY_POOL)
-        if len(rec.gmap) == 0:
-            raise conflict("gaussians", "the session has no Gaussians yet", ErrorCode.MAP_EMPTY)
-        check_render_widths(patch_dict(req.config), "body.config", s.settings.max_image_pixels)
-        config = resolve_config(d, req, {
-            "shortlist_size": size,
-            "shortlist": req.shortlist or d["shortlist"],
-            "embodied_k": embodied_k,
-            "seed": req.seed if req.seed is not None else d["seed"],
-            "fields": tuple(fields) if fields else None,
-        })
-        dt = rec.gmap.dtype
-        current = None
-        current_pose = None
-        if req.current_id is not None:
-            current = s.pool_index(rec, req.current_id, "body.current_id")
-        elif req.current_pose is not None:
-            current_pose = torch.from_numpy(req.current_pose.to_matrix()).to(dt)
-        elif embodied_k is not None:
-            if not rec.views:
-                raise conflict("body.embodied_k", "embodied mode needs the current view: "
-                               "give current_id or current_pose, or acquire a view first")
-            current_pose = torch.from_numpy(rec.views[-1].pose).to(dt)
-        acquired = (torch.from_numpy(np.stack([v.pose for v in rec.views])).to(dt)
-                    if rec.views else None)
-        try:
-            sel = select(
-                method, rec.gmap, rec.h_acc, torch.from_numpy(rec.pool_poses).to(dt),
-                s.intrinsics(rec), config=config, acquired=acquired, current=current,
-                current_pose=current_pose, state=rec.warm_state,
-                lam=float(rec.information_config["lambda"]),
-            )
-        except InputError as exc:
-            raise invalid(_ARGUMENT_FIELDS.get(exc.argument, "body"), str(exc)) from None
-        ids = rec.pool_ids
-        chosen = int(sel.index)
-        chosen_id = int(ids[chosen])
-        chosen_pose = rec.pool_poses[chosen]
-        committed = None
-        if req.commit:
-            s.check_view_room(rec, 1, "body.commit")
-            view = ViewRecord(id=rec.next_view_id, pose=chosen_pose, candidate_id=chosen_id,
-                              created_at=time.time())
-            h = s.accumulate(rec.h_acc, rec.gmap, [chosen_pose], rec)
-            rec = s.bump(rec, views=rec.views + (view,), next_view_id=view.id + 1,
-                         h_acc=h, warm_state=storable_state(sel.state),
-                         **s.without(rec, chosen))
-            dirty += ["information", "pool", "warm"]
-            committed = view_out(view)
-        if dirty:
-            rec = s.commit_record(rec, dirty)
-        scores = sel.scores
-        return m.SelectResponse.model_construct(
-            session=rec.id,
-            method=sel.method,
-            chosen=m.Candidate.model_construct(id=chosen_id, pose=pose_out(chosen_pose)),
-            shortlist=[
-                m.ScoredCandidate.model_construct(
-                    id=int(ids[i]), score=finite_float(scores[i]) if i in scores else None)
-                for i in sel.shortlist
-            ],
-            anchor=pose_out(sel.anchor_c2w) if sel.anchor_c2w is not None else None,
-            scores=[m.ScoredCandidate.model_construct(id=int(ids[i]), score=finite_float(v))
-                    for i, v in scores.items()],
-            eligible=ids[np.asarray(sel.eligible, dtype=np.int64)].tolist(),
-            psi_trace=[float(x) for x in sel.psi_trace if math.isfinite(x)],
-            latency_ms={k: float(v) for k, v in sel.latency_ms.items()},
-            core_ms=(time.perf_counter() - t_core) * 1e3,
-            server_ms=None,
-            committed=committed,
-            version=rec.version,
-            time=time.time(),
+@dataclass(frozen=True)
+class Selected:
+    """What a select step leaves.
+
+    Attributes:
+        record: the record after it (the one given when nothing changed).
+        selection: the maths' :class:`~agilegs.service.nbv.selectors.Selection`.
+        chosen_id: the chosen candidate's id.
+        chosen_pose: its pose [4, 4].
+        ids: the pool's ids the selection's indices refer to.
+        committed: the acquired view (with commit), else None.
+        pending: the selection for the next acquisition (without commit), else None.
+    """
+
+    record: SessionRecord
+    selection: Selection
+    chosen_id: int
+    chosen_pose: np.ndarray
+    ids: np.ndarray
+    committed: ViewRecord | None
+    pending: PendingSelection | None
+
+
+def _reusable(rec: SessionRecord, config: SelectConfig, sel: Selection
+              ) -> dict[str, Tensor] | None:
+    """The selection's Fisher of the chosen view if it is what Hhat adds for that view (every
+    block, the session's background), else None."""
+    info = sel.chosen_information
+    if info is None or set(info) != set(rec.h_acc):
+        return None
+    bg = config.fisher_background
+    return info if (None if bg is None else tuple(float(c) for c in bg)) == background_setting(
+        rec) else None
+
+
+def select_step(rec: SessionRecord, req: m.SelectRequest, limits: Limits, *,
+                now: float | None = None) -> Selected:
+    """Choose the next view; with ``req.pool`` the pool is replaced first (unless it is the
+    session's as it is), with ``req.commit`` the chosen candidate is acquired."""
+    if req.pool is not None:
+        rec = with_pool(rec, poses_array(req.pool.poses), req.pool.ids, limits, "body.pool")
+    d = rec.defaults
+    method = req.method or d["method"]
+    size = req.shortlist_size or d["shortlist_size"]
+    embodied_k = req.embodied_k if req.embodied_k is not None else d["embodied_k"]
+    fields = req.fields if req.fields is not None else d["fields"]
+    if size > limits.max_shortlist:
+        raise invalid("body.shortlist_size",
+                      f"must be <= {limits.max_shortlist} (max_shortlist)")
+    if len(rec.pool_ids) == 0:
+        raise conflict("pool", "the candidate pool is empty: set it first", ErrorCode.EMPTY_POOL)
+    if len(rec.gmap) == 0:
+        raise conflict("gaussians", "the session has no Gaussians yet", ErrorCode.MAP_EMPTY)
+    check_render_widths(patch_dict(req.config), "body.config", limits.max_image_pixels)
+    config = resolve_config(d, req, {
+        "shortlist_size": size,
+        "shortlist": req.shortlist or d["shortlist"],
+        "embodied_k": embodied_k,
+        "seed": req.seed if req.seed is not None else d["seed"],
+        "fields": tuple(fields) if fields else None,
+    })
+    dt = rec.gmap.dtype
+    current = None
+    current_pose = None
+    if req.current_id is not None:
+        current = pool_index(rec, req.current_id, "body.current_id")
+    elif req.current_pose is not None:
+        current_pose = torch.from_numpy(req.current_pose.to_matrix()).to(dt)
+    elif embodied_k is not None:
+        if not rec.views:
+            raise conflict("body.embodied_k", "embodied mode needs the current view: "
+                           "give current_id or current_pose, or acquire a view first")
+        current_pose = torch.from_numpy(rec.views[-1].pose).to(dt)
+    acquired = (torch.from_numpy(np.stack([v.pose for v in rec.views])).to(dt)
+                if rec.views else None)
+    try:
+        sel = select_validated(
+            method, rec.gmap, rec.h_acc, torch.from_numpy(rec.pool_poses).to(dt),
+            intrinsics_of(rec), config=config, acquired=acquired, current=current,
+            current_pose=current_pose, state=rec.warm_state,
+            lam=float(rec.information_config["lambda"]),
         )
+    except InputError as exc:
+        raise invalid(_ARGUMENT_FIELDS.get(exc.argument, "body"), str(exc)) from None
+    ids = rec.pool_ids
+    chosen_id = int(ids[sel.index])
+    chosen_pose = rec.pool_poses[sel.index]
+    information = _reusable(rec, config, sel)
+    if not req.commit:
+        pending = PendingSelection(next_state=sel.state, candidate_id=chosen_id,
+                                   pose=chosen_pose, gmap=rec.gmap, information=information)
+        return Selected(rec, sel, chosen_id, chosen_pose, ids, None, pending)
+    check_view_room(rec, 1, "body.commit", limits)
+    rec, view = acquire(rec, chosen_pose, candidate_id=chosen_id, h_view=information,
+                        next_state=sel.state, now=now)
+    return Selected(rec, sel, chosen_id, chosen_pose, ids, view, None)
+
+
+def select_response(rec: SessionRecord, out: Selected, t_core: float) -> m.SelectResponse:
+    """The decision of a select step (``rec``: the record as persisted); ``core_ms`` runs from
+    ``t_core`` (``time.perf_counter()``) to now."""
+    sel, ids = out.selection, out.ids
+    scores = sel.scores
+    return m.SelectResponse.model_construct(
+        session=rec.id,
+        method=sel.method,
+        chosen=m.Candidate.model_construct(id=out.chosen_id, pose=pose_out(out.chosen_pose)),
+        shortlist=[
+            m.ScoredCandidate.model_construct(
+                id=int(ids[i]), score=finite_float(scores[i]) if i in scores else None)
+            for i in sel.shortlist
+        ],
+        anchor=pose_out(sel.anchor_c2w) if sel.anchor_c2w is not None else None,
+        scores=[m.ScoredCandidate.model_construct(id=int(ids[i]), score=finite_float(v))
+                for i, v in scores.items()],
+        eligible=ids[np.asarray(sel.eligible, dtype=np.int64)].tolist(),
+        psi_trace=[float(x) for x in sel.psi_trace if math.isfinite(x)],
+        latency_ms={k: float(v) for k, v in sel.latency_ms.items()},
+        core_ms=(time.perf_counter() - t_core) * 1e3,
+        server_ms=None,
+        committed=view_out(out.committed) if out.committed is not None else None,
+        version=rec.version,
+        time=time.time(),
+    )

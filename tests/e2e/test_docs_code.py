@@ -125,10 +125,21 @@ HOW: dict[tuple[str, str], How] = {
      "--width 128 --height 128 \\"): BENCH,
     ("docs/benchmarks.md", "for s in boot bob fish koala penguin skull spot stanford_bunny "
      "teapot violin; do"): BENCH,
-    ("docs/benchmarks.md", "agilegs bench render --scene $S/plant/plant.splat --sizes 64,128 "
-     "--gaussians 3000,20000 \\"): BENCH,
+    ("docs/benchmarks.md", "agilegs bench latency --scene $S/plant/plant.splat --max-gaussians "
+     "1000000 --width 512 \\"): BENCH,
+    ("docs/benchmarks.md", "agilegs bench render --scene $S/plant/plant.splat --sizes 128,256 "
+     "--gaussians 20000,100000 \\"): BENCH,
     ("docs/benchmarks.md", "agilegs bench service --pool 300"):
         How("parse", "a benchmark of minutes (its small run: tests/e2e/test_bench_service.py)"),
+    ("docs/benchmarks.md", "git worktree add /tmp/old e66334a && (cd /tmp/old && python3 -m "
+     "venv .venv && . .venv/bin/activate \\"):
+        How("skip", "builds an earlier commit in a worktree with its own install, then four "
+                    "servers and benchmarks of tens of minutes against them (the same "
+                    "benchmark, small: tests/e2e/test_bench_service.py)"),
+    ("docs/benchmarks.md", "for round in 1 2 3; do for dir in /tmp/old .; do (cd $dir && "
+     ".venv/bin/agilegs bench latency \\"):
+        How("skip", "runs in the earlier commit's worktree of the block above (the same "
+                    "benchmark, small: tests/bench/test_latency_bench.py)"),
     ("docs/benchmarks.md", "agilegs serve --no-zenoh --port 8000 --state-dir /tmp/fuzz-state   "
      "# with the limits below"):
         How("parse", "a server in one terminal and a fuzzing run of minutes in another (the "

@@ -1,6 +1,7 @@
-"""The house rules, read from the code: no import cycles (function-level imports included),
-the maths has no transport in it, the transports have no maths, the wire contract and the
-client need no torch, and files stay small."""
+"""The house rules, read from the code: no import cycles (function-level and type-only imports
+included, between modules and between folders), the maths has no transport, store, sessions
+or wire in it, the transports have no maths, the wire contract and the client need no torch
+and no server, the settings depend on nothing of ours, and files stay small."""
 
 from __future__ import annotations
 
@@ -9,7 +10,8 @@ from pathlib import Path
 
 from conftest import ROOT
 
-PACKAGES = {"schemas": "agilegs.schemas", "client": "agilegs.client", "service": "agilegs.service"}
+PACKAGES = {"config": "agilegs.config", "schemas": "agilegs.schemas", "client": "agilegs.client",
+            "service": "agilegs.service"}
 
 
 def _modules() -> dict[str, Path]:
@@ -25,16 +27,17 @@ def _modules() -> dict[str, Path]:
 MODULES = _modules()
 
 
-def _imports(name: str, path: Path) -> set[str]:
+def _imports(name: str, path: Path, type_only: bool = False) -> set[str]:
     """Every agilegs module ``name`` imports, at any depth of its code (TYPE_CHECKING blocks
-    left out: they import nothing at run time)."""
+    left out, as they import nothing at run time, unless ``type_only``)."""
     tree = ast.parse(path.read_text())
     is_pkg = path.name == "__init__.py"
     base = name.split(".") if is_pkg else name.split(".")[:-1]
     found: set[str] = set()
 
     def visit(node: ast.AST) -> None:
-        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+        if (not type_only and isinstance(node, ast.If)
+                and "TYPE_CHECKING" in ast.unparse(node.test)):
             for child in node.orelse:
                 visit(child)
             return
@@ -57,16 +60,17 @@ def _imports(name: str, path: Path) -> set[str]:
 
 
 GRAPH = {name: _imports(name, path) for name, path in MODULES.items()}
+TYPED_GRAPH = {name: _imports(name, path, type_only=True) for name, path in MODULES.items()}
 
 
-def test_no_import_cycles() -> None:
+def _check_acyclic(graph: dict[str, set[str]]) -> None:
     state: dict[str, int] = {}
     stack: list[str] = []
 
     def dfs(n: str) -> None:
         state[n] = 1
         stack.append(n)
-        for d in sorted(GRAPH[n]):
+        for d in sorted(graph.get(n, ())):
             if state.get(d) == 1:
                 cycle = stack[stack.index(d):] + [d]
                 raise AssertionError("import cycle: " + " -> ".join(cycle))
@@ -75,9 +79,70 @@ def test_no_import_cycles() -> None:
         stack.pop()
         state[n] = 2
 
-    for n in sorted(GRAPH):
+    for n in sorted(graph):
         if n not in state:
             dfs(n)
+
+
+def test_no_import_cycles() -> None:
+    _check_acyclic(GRAPH)
+
+
+def test_no_import_cycles_type_only_imports_included() -> None:
+    _check_acyclic(TYPED_GRAPH)
+
+
+def _folder(name: str) -> str:
+    """The node of ``name`` in the folder graph: a subpackage of the service (sessions, nbv
+    with its own subfolders, mapper, bench, ...) as one node, a top-level module of the
+    service as itself, every other package (schemas, client, config) as one node."""
+    parts = name.split(".")
+    if parts[1] != "service":
+        return ".".join(parts[:2])
+    sub = ".".join(parts[:3])
+    return sub if sub in MODULES and MODULES[sub].name == "__init__.py" else name
+
+
+def test_no_folder_cycles() -> None:
+    folders: dict[str, set[str]] = {}
+    for name, deps in TYPED_GRAPH.items():
+        node = _folder(name)
+        folders.setdefault(node, set()).update(
+            _folder(d) for d in deps if _folder(d) != node)
+    _check_acyclic(folders)
+
+
+def _reaches(name: str, prefixes: tuple[str, ...]) -> set[str]:
+    return {d for d in TYPED_GRAPH[name] if d.startswith(prefixes)}
+
+
+MATHS = "agilegs.service.nbv"
+TRANSPORTS = tuple(f"agilegs.service.{m}" for m in (
+    "gateway", "http_app", "http_routes", "http_openapi", "http_decisions", "zenoh_adapter",
+    "cluster", "server", "serve", "launch", "ros2"))
+STORE = tuple(f"agilegs.service.{m}" for m in (
+    "store", "store_read", "store_tool", "records", "integrity", "state_dir"))
+
+
+def test_no_forbidden_arrow() -> None:
+    """maths -> transports, store, sessions, wire; wire -> maths (or any of the service);
+    client -> service (or torch); settings -> anything of ours (or torch)."""
+    forbidden = {
+        MATHS: TRANSPORTS + STORE + ("agilegs.service.sessions", "agilegs.schemas"),
+        "agilegs.schemas": ("agilegs.service", "agilegs.client"),
+        "agilegs.client": ("agilegs.service",),
+        "agilegs.config": ("agilegs.service", "agilegs.schemas", "agilegs.client"),
+    }
+    seen = set()
+    for name in MODULES:
+        for src, bad in forbidden.items():
+            if name == src or name.startswith(src + "."):
+                seen.add(src)
+                assert not _reaches(name, bad), (name, _reaches(name, bad))
+    assert seen == set(forbidden)
+    for name, path in MODULES.items():
+        if name.startswith(("agilegs.client", "agilegs.config", "agilegs.schemas")):
+            assert "torch" not in _third_party(path), name
 
 
 def _third_party(path: Path) -> set[str]:

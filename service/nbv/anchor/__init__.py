@@ -11,12 +11,18 @@ pool's envelope (:mod:`.envelope`). Two psi behind one option (``AnchorConfig.ps
   at reduced resolution, differentiated by autograd w.r.t. the twist: faithful, but seconds per
   step on a CPU and rough (the rasterizer's hard cut-offs).
 
-The settings are :class:`~agilegs.schemas.config.AnchorConfig`.
+The settings are :class:`~agilegs.config.selection.AnchorConfig`.
 """
 
-from agilegs.schemas.config import COVER_ZBUFFER, MIXED_ZBUFFER, POINT_ZBUFFER, AnchorConfig
+from agilegs.config.selection import COVER_ZBUFFER, MIXED_ZBUFFER, POINT_ZBUFFER, AnchorConfig
 
-from .ascent import AnchorResult, ascend, exact_psi_fn, optimize_anchor
+from .ascent import (
+    AnchorResult,
+    ascend,
+    exact_psi_fn,
+    optimize_anchor,
+    optimize_anchor_validated,
+)
 from .envelope import PoolEnvelope
 from .fitting import (
     FittedRates,
@@ -42,6 +48,7 @@ __all__ = [
     "information_weights",
     "observation_rates",
     "optimize_anchor",
+    "optimize_anchor_validated",
     "pick_occluders",
     "prior_floor",
     "typical_fisher_from_h_acc",

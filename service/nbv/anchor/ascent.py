@@ -22,7 +22,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from agilegs.schemas.config import AnchorConfig, validate_config
+from agilegs.config.selection import AnchorConfig
+from agilegs.config.types import validate_config
 
 from ..camera import Camera, Intrinsics
 from ..candidates import pool_radius, scene_center_radius
@@ -40,7 +41,8 @@ from .proxy import ProxyPsi, pick_occluders
 from .unexplored import unexplored_space
 from .visibility import OpacityMaps
 
-__all__ = ["AnchorResult", "ascend", "distinct_best", "exact_psi_fn", "optimize_anchor"]
+__all__ = ["AnchorResult", "ascend", "distinct_best", "exact_psi_fn", "optimize_anchor",
+           "optimize_anchor_validated"]
 
 
 @dataclass
@@ -186,7 +188,34 @@ def optimize_anchor(
     lam: float | None = None,
     background: Tensor | None = None,
 ) -> AnchorResult:
-    """Find the anchor T* = argmax psi(T) (see the module docstring).
+    """Find the anchor T* = argmax psi(T): :func:`optimize_anchor_validated` (same arguments)
+    once ``config`` is validated (a ``ValueError`` naming the field)."""
+    return optimize_anchor_validated(
+        gmap, h_acc, candidates, intrinsics, config=validate_config(AnchorConfig, config),
+        fields=fields, num_acquired=num_acquired, envelope=envelope, warm_c2w=warm_c2w,
+        typical=typical, generator=generator, acquired=acquired, lam=lam, background=background,
+    )
+
+
+def optimize_anchor_validated(
+    gmap: GaussianMap,
+    h_acc: dict[str, Tensor],
+    candidates: Tensor,
+    intrinsics: Intrinsics,
+    *,
+    config: AnchorConfig,
+    fields: tuple[str, ...] = FIELD_NAMES,
+    num_acquired: int = 1,
+    envelope: PoolEnvelope | None = None,
+    warm_c2w: Tensor | None = None,
+    typical: dict[str, Tensor] | None = None,
+    generator: torch.Generator | None = None,
+    acquired: Tensor | None = None,
+    lam: float | None = None,
+    background: Tensor | None = None,
+) -> AnchorResult:
+    """Find the anchor T* = argmax psi(T) (see the module docstring), with ``config``
+    validated by the caller (:func:`optimize_anchor` validates it).
 
     Args:
         gmap: the current map.
@@ -206,7 +235,6 @@ def optimize_anchor(
         background: the background colour [3] Hhat's Fisher was rendered with (the exact
             psi renders with it too; None: black).
     """
-    config = validate_config(AnchorConfig, config)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     dt = gmap.dtype

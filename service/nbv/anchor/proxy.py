@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from agilegs.schemas.config import POINT_ZBUFFER
+from agilegs.config.selection import POINT_ZBUFFER
 
 from ..camera import Intrinsics
 from ..gaussians import GaussianMap

@@ -10,8 +10,8 @@
 
 To add a method: write a module here with a class that has ``name``, ``uses_information`` and
 ``__call__(context) -> MethodResult``, ``register`` an instance,
-add its module to :data:`MODULES` and its name to the wire contract's ``Method``
-(:mod:`agilegs.schemas.config`).
+add its module to :data:`MODULES` and its name to ``Method`` in
+:mod:`agilegs.config.selection` (the settings the maths and the wire contract share).
 """
 
 import importlib

@@ -20,14 +20,14 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ..anchor import PoolEnvelope, optimize_anchor, typical_fisher_from_views
+from ..anchor import PoolEnvelope, optimize_anchor_validated, typical_fisher_from_views
 from ..camera import Camera
 from ..coverage import coverage_matrix, jl_projection, support_samples
-from ..information import eig_scores, fisher_diag
+from ..information import fisher_diag
 from ..leverage import greedy_ridge_leverage_gains, online_ridge_leverage, topnorm_shortlist
 from ..se3 import pose_distance
 from .base import MethodResult, SelectionContext, register, timed
-from .common import argmax_first
+from .common import argmax_first, eig_scores_keeping_best
 
 
 def _anchor(ctx: SelectionContext, lat: dict[str, float], out: dict[str, Any]) -> Tensor:
@@ -65,7 +65,7 @@ def _anchor(ctx: SelectionContext, lat: dict[str, float], out: dict[str, Any]) -
             out["state"]["typical_fisher"] = typical
         else:
             typical = None
-        res = optimize_anchor(
+        res = optimize_anchor_validated(
             ctx.gmap,
             dict(ctx.h_acc),
             ctx.eligible_poses,
@@ -238,11 +238,13 @@ class AgileMethod:
         anchor_c2w = _anchor(ctx, lat, out)
         picked, scores = shortlist(ctx, anchor_c2w, lat, out["details"], out.get("modes"))
         index = picked[0]
+        chosen: dict[str, Tensor] | None = None
         if self.rerank:
             with timed(lat, "rerank"):
                 sl = torch.as_tensor(picked, dtype=torch.long)
-                phi = eig_scores(ctx.gmap, ctx.h_acc, ctx.pool[sl], ctx.intrinsics,
-                                 fields=ctx.fields, background=ctx.background)
+                phi, chosen = eig_scores_keeping_best(
+                    ctx.gmap, ctx.h_acc, ctx.pool[sl], ctx.intrinsics,
+                    fields=ctx.fields, background=ctx.background)
             out["details"]["shortlist_scores"] = scores
             scores = {v: float(p) for v, p in zip(picked, phi)}
             index = picked[argmax_first(phi)]
@@ -255,6 +257,7 @@ class AgileMethod:
             latency_ms=lat,
             state=out["state"],
             details=out["details"],
+            chosen_information=chosen,
         )
 
 

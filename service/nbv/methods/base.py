@@ -17,7 +17,7 @@ from typing import Any, Protocol
 import torch
 from torch import Tensor
 
-from agilegs.schemas.config import SelectConfig
+from agilegs.config.selection import SelectConfig
 
 from ..camera import Intrinsics
 from ..gaussians import GaussianMap
@@ -110,6 +110,9 @@ class MethodResult:
         latency_ms: milliseconds per stage of :data:`STAGES` (the total is added by select).
         state: entries of the warm state for the next selection.
         details: diagnostics.
+        chosen_information: the diagonal Fisher of the chosen view per block of
+            ``context.fields``, rendered on ``context.background``, where the method
+            computed it while scoring (else None).
     """
 
     index: int
@@ -120,6 +123,7 @@ class MethodResult:
     latency_ms: dict[str, float] = field(default_factory=dict)
     state: dict[str, Any] = field(default_factory=dict)
     details: dict[str, Any] = field(default_factory=dict)
+    chosen_information: dict[str, Tensor] | None = None
 
 
 class SelectionMethod(Protocol):

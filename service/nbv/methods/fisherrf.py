@@ -42,7 +42,7 @@ from collections.abc import Iterable
 import torch
 from torch import Tensor
 
-from agilegs.schemas.config import FISHERRF_FIELDS
+from agilegs.config.selection import FISHERRF_FIELDS
 
 from ..backend import Backend, resolve
 from ..camera import Camera

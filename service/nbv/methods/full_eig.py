@@ -4,9 +4,8 @@ approximates: AGILE-GS+ reranks its shortlist by this same score."""
 
 from __future__ import annotations
 
-from ..information import eig_scores
 from .base import MethodResult, SelectionContext, register, timed
-from .common import argmax_first
+from .common import argmax_first, eig_scores_keeping_best
 
 
 class FullEIGMethod:
@@ -16,10 +15,12 @@ class FullEIGMethod:
     def __call__(self, ctx: SelectionContext) -> MethodResult:
         lat: dict[str, float] = {}
         with timed(lat, "scoring"):
-            phi = eig_scores(ctx.gmap, ctx.h_acc, ctx.eligible_poses, ctx.intrinsics,
-                             fields=ctx.fields, background=ctx.background)
+            phi, chosen = eig_scores_keeping_best(
+                ctx.gmap, ctx.h_acc, ctx.eligible_poses, ctx.intrinsics,
+                fields=ctx.fields, background=ctx.background)
         scores = {v: float(p) for v, p in zip(ctx.eligible, phi)}
-        return MethodResult(index=ctx.eligible[argmax_first(phi)], scores=scores, latency_ms=lat)
+        return MethodResult(index=ctx.eligible[argmax_first(phi)], scores=scores, latency_ms=lat,
+                            chosen_information=chosen)
 
 
 register(FullEIGMethod())
