@@ -18,7 +18,7 @@ import pytest
 from conftest import ROOT, ServerProcess
 
 #: what a wheel is built from (README, pyproject and the three packages' folders)
-SOURCES = ("pyproject.toml", "README.md", "schemas", "client", "service")
+SOURCES = ("pyproject.toml", "README.md", "config", "schemas", "client", "service")
 
 ROBOT = """
 import sys
