@@ -119,6 +119,8 @@ HOW: dict[tuple[str, str], How] = {
     ("docs/benchmarks.md", "S=service/data/scenes"): BENCH,
     ("docs/benchmarks.md", "agilegs bench run --scene $S/plant --scene $S/boot --scene "
      "$S/koala --scene $S/floor \\"): BENCH,
+    ("docs/benchmarks.md", "agilegs bench run $(for s in plant boot bob fish koala penguin floor "
+     "skull spot stanford_bunny \\"): BENCH,
     ("docs/benchmarks.md", "agilegs bench value --scene $S/boot --scene $S/plant --scene "
      "$S/floor --horizon 100 \\"): BENCH,
     ("docs/benchmarks.md", "agilegs bench latency --scene $S/plant/plant.splat --pool 200 "
