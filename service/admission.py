@@ -9,8 +9,11 @@ Every request goes through :class:`Admission` on its way to a worker thread
   session or another.
 - **Fair queueing.** A session's compute requests run one at a time: the next waits in the
   session's queue without holding a worker thread, so one session never occupies more than
-  one. A session has at most ``max_session_queue`` compute requests running or waiting; one
-  more is refused at once with 429 and ``Retry-After``. All sessions together
+  one. A request admitted while another of its session's is queued or running runs on the
+  background threads, whose OS priority is lower (``background_nice``): a session that
+  keeps compute queued cannot starve the others of CPU. A session has at most
+  ``max_session_queue`` compute requests running or waiting; one more is refused at once
+  with 429 and ``Retry-After``. All sessions together
   have at most ``max_queued``; beyond, 503 with ``Retry-After`` (and ``/readyz`` says the
   server is saturated).
 - **Deadlines.** Each request carries a :class:`Ticket`: its deadline (``request_deadline``,
@@ -125,6 +128,12 @@ class Admission:
             self.compute += 1
             if session is not None:
                 self._per_session[session] = self._per_session.get(session, 0) + 1
+
+    def queued(self, session: str) -> int:
+        """Compute requests of ``session`` running or waiting (this one included once it
+        was admitted)."""
+        with self._lock:
+            return self._per_session.get(session, 0)
 
     def leave(self, op: str, session: str | None) -> None:
         if op in READ_OPS:

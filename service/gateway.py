@@ -41,6 +41,7 @@ from __future__ import annotations
 import hashlib
 import hmac
 import logging
+import os
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -190,6 +191,10 @@ class Gateway:
         self.settings = settings
         self.metrics = metrics
         self.executor = ThreadPoolExecutor(settings.workers, thread_name_prefix="agilegs")
+        # a session that keeps more compute queued is served at a lower OS priority
+        self.background_executor = ThreadPoolExecutor(
+            settings.workers, thread_name_prefix="agilegs-bg",
+            initializer=_lower_priority, initargs=(settings.background_nice,))
         self.read_executor = ThreadPoolExecutor(settings.read_workers,
                                                 thread_name_prefix="agilegs-read")
         self.admission = Admission(settings)
@@ -201,6 +206,7 @@ class Gateway:
 
     def close(self) -> None:
         self.executor.shutdown(wait=True, cancel_futures=True)
+        self.background_executor.shutdown(wait=True, cancel_futures=True)
         self.read_executor.shutdown(wait=True, cancel_futures=True)
 
     def ticket(self, req: Request) -> Ticket:
@@ -229,6 +235,10 @@ class Gateway:
             return _done(self.error_reply(err, kind, req.transport, req.op))
         out: Future[Reply] = Future()
         read = req.op in READ_OPS
+        # admitted behind another of its session's: a session keeping several queued is
+        # served on the lower-priority threads, so that it cannot starve the others' CPU
+        busy = (not read and req.session is not None
+                and self.admission.queued(req.session) > 1)
 
         def job() -> None:
             try:
@@ -247,7 +257,9 @@ class Gateway:
 
         def start() -> None:
             try:
-                (self.read_executor if read else self.executor).submit(job)
+                pool = (self.read_executor if read else
+                        self.background_executor if busy else self.executor)
+                pool.submit(job)
             except RuntimeError:  # the executor is shut down: the server is stopping
                 self.admission.leave(req.op, req.session)
                 stopping = ServiceError(503, ErrorCode.UNAVAILABLE, "the server is stopping")
@@ -467,6 +479,18 @@ class Gateway:
     def count(self, transport: str, op: str, status: int, code: str | None = None) -> None:
         if self.metrics is not None:
             self.metrics.observe_request(transport, op, status, code)
+
+
+def _lower_priority(nice: int) -> None:
+    """Lower this worker thread's OS scheduling priority by ``nice`` (Linux: per thread;
+    elsewhere, or refused, nothing)."""
+    if nice <= 0 or not hasattr(os, "setpriority"):
+        return
+    try:
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + nice)
+    except OSError:
+        log.debug("could not lower the priority of a background worker", exc_info=True)
 
 
 def _base_type(content_type: str | None) -> str:

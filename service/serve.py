@@ -102,6 +102,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--log-level", help="log level (AGILEGS_LOG_LEVEL, default info)")
     # what one request may cost (see agilegs.service.admission)
     a("--read-workers", type=int, help="threads running reads (AGILEGS_READ_WORKERS, 8)")
+    a("--background-nice", type=int, help="lower OS priority of a session keeping compute "
+                                          "queued (AGILEGS_BACKGROUND_NICE, 10)")
     a("--max-body-items", type=int,
       help="most values in a JSON / msgpack body (AGILEGS_MAX_BODY_ITEMS)")
     a("--max-request-decoded-bytes", type=int,
@@ -141,7 +143,7 @@ _FIELDS = ("host", "port", "state_dir", "http", "zenoh", "zenoh_mode", "instance
            "forward_timeout", "workers", "torch_threads", "max_body_bytes",
            "max_pool_size", "max_image_pixels", "max_sessions", "max_gaussians", "max_views",
            "max_shortlist", "max_poll_wait", "decision_log", "fsync", "mapper",
-           "mapper_steps_per_view", "mapper_burst", "log_level", "read_workers",
+           "mapper_steps_per_view", "mapper_burst", "log_level", "read_workers", "background_nice",
            "max_body_items", "max_request_decoded_bytes", "max_inflight_decoded_bytes",
            "max_select_seconds", "max_select_bytes", "max_session_queue", "max_queued",
            "request_deadline", "zenoh_tls_certificate", "zenoh_tls_private_key",

@@ -125,6 +125,9 @@ class Settings(BaseSettings):
                                                        "selects)")
     read_workers: int = Field(default=8, ge=1, description="threads running reads (never "
                                                            "behind compute)")
+    background_nice: int = Field(
+        default=10, ge=0, le=19, description="how much lower the OS priority (nice) of the "
+        "threads serving a session that keeps compute queued is (0: the same)")
     torch_threads: int = Field(default=0, ge=0, description="torch intra-op threads (0: default)")
     fsync: bool = Field(default=True, description="fsync files and folders before acknowledging")
     # the mapper (see agilegs.service.sessions.trainer)

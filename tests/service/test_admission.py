@@ -7,6 +7,7 @@ from __future__ import annotations
 import base64
 import io
 import json
+import os
 import threading
 import time
 import uuid
@@ -291,6 +292,12 @@ def test_reads_and_other_sessions_never_wait_behind_a_held_session(api_factory: 
         for t in threads:
             t.join()
     assert replies == [504, 504]  # gave up waiting for the lock at their deadline
+    # the second, admitted behind the first, ran on a lower-priority thread
+    bg = [t for t in threading.enumerate() if t.name.startswith("agilegs-bg")]
+    assert bg, [t.name for t in threading.enumerate()]
+    if hasattr(os, "getpriority"):
+        base = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+        assert os.getpriority(os.PRIO_PROCESS, bg[0].native_id) >= min(base + 10, 19)
     with api.http(timeout=30) as h:
         assert h.get("/readyz").json() == {"ready": True}
     assert session.lock.acquire(timeout=1)
