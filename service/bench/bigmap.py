@@ -4,7 +4,7 @@ Densifies a scene (default: the plant, 113k Gaussians) to ``--gaussians`` as
 ``agilegs bench latency`` does (:func:`agilegs.service.bench.latency.densified`), writes it
 as a ``.splat`` in a temporary folder, starts ``agilegs serve`` (HTTP only, one torch thread,
 the mapper off, the default limits unless ``--env`` sets others), creates a session with a
-``--size``² camera, uploads the splat (``set_gaussians``, the raw file), sets a pool of
+``--size``² camera (and one placeholder Gaussian), uploads the splat (``set_gaussians``, the raw file), sets a pool of
 ``--pool`` candidates on a sphere around the map, commits ``--views`` of them, then selects
 once with every method. For each step it prints the server's answer (or the refusal: its
 status, the limit it names and the estimate), the round trip, and the server process's
@@ -147,8 +147,12 @@ def run(args: argparse.Namespace) -> int:
                     return r
 
                 sid = "bigmap"
-                step("create_session", "POST", "/v1/sessions",
-                     json={"id": sid, "intrinsics": intr})
+                bounds = {"min": (centre - reach).tolist(), "max": (centre + reach).tolist()}
+                r = step("create_session", "POST", "/v1/sessions",
+                         json={"id": sid, "intrinsics": intr, "bounds": bounds,
+                               "init_gaussians": 1})
+                if r.status_code != 200:
+                    raise SystemExit(f"create_session refused: {r.text[:300]}")
                 r = step("set_gaussians", "PUT", f"/v1/sessions/{sid}/gaussians",
                          content=splat.read_bytes(), params={"format": "splat"},
                          headers={"content-type": "application/octet-stream"})
