@@ -50,7 +50,7 @@ from .errors import ServiceError
 from .settings import Settings
 
 __all__ = ["READ_OPS", "Admission", "Ticket", "count_values", "decoded_bytes",
-           "request_decoded_bytes"]
+           "parse_deadline_ms", "request_decoded_bytes"]
 
 log = logging.getLogger(__name__)
 
@@ -91,6 +91,21 @@ class Ticket:
             raise ServiceError(504, ErrorCode.DEADLINE_EXCEEDED,
                                f"the request was cancelled: {self.reason}; nothing was changed",
                                "header.x-deadline-ms", limit="request_deadline")
+
+
+def parse_deadline_ms(text: str | None, field: str) -> float | None:
+    """A client's deadline in milliseconds from ``text`` (None: none given); 400 naming
+    ``field`` when it is not a number >= 0."""
+    if text is None:
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not (value >= 0 and math.isfinite(value)):
+        raise ServiceError(400, ErrorCode.BAD_REQUEST,
+                           f"{field}: must be a number of milliseconds >= 0", field)
+    return value
 
 
 class Admission:

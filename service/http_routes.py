@@ -26,7 +26,7 @@ from agilegs.schemas.errors import ErrorCode
 from agilegs.schemas.models import SESSION_ID_PATTERN
 from agilegs.schemas.ops import OPERATIONS, Operation
 
-from .admission import Ticket
+from .admission import Ticket, parse_deadline_ms
 from .errors import ServiceError
 from .gateway import Gateway, Reply
 from .gateway import Request as GatewayRequest
@@ -106,17 +106,7 @@ async def _on_disconnect(request: Request, ticket: Ticket) -> None:
 
 def deadline_header(request: Request) -> float | None:
     """The ``X-Deadline-Ms`` header as milliseconds (400 when it is not a number >= 0)."""
-    text = request.headers.get("x-deadline-ms")
-    if text is None:
-        return None
-    try:
-        value = float(text)
-    except ValueError:
-        value = -1.0
-    if not (value >= 0 and math.isfinite(value)):
-        raise ServiceError(400, ErrorCode.BAD_REQUEST, "X-Deadline-Ms must be a number of "
-                           "milliseconds >= 0", "header.x-deadline-ms")
-    return value
+    return parse_deadline_ms(request.headers.get("x-deadline-ms"), "header.x-deadline-ms")
 
 
 def build_router(gateway: Gateway) -> APIRouter:

@@ -22,7 +22,6 @@ each owned session's queryable and subscribers) is :mod:`agilegs.service.cluster
 from __future__ import annotations
 
 import logging
-import math
 import queue
 import threading
 import time
@@ -30,9 +29,9 @@ from typing import Any
 
 from agilegs.client.zenoh_rpc import open_session
 from agilegs.schemas import codec, keys
-from agilegs.schemas.errors import ErrorCode
 from agilegs.schemas.models import SelectResponse
 
+from .admission import parse_deadline_ms
 from .cluster import ClusterNode
 from .errors import ServiceError
 from .gateway import Gateway, Reply, Request
@@ -163,16 +162,7 @@ class ZenohAdapter:
         params = {}
         if op == "create_session" and query.parameters.get("instance") is not None:
             params["instance"] = query.parameters.get("instance")
-        deadline = query.parameters.get("deadline_ms")
-        deadline_ms = None
-        if deadline is not None:
-            try:
-                deadline_ms = float(deadline)
-            except ValueError:
-                deadline_ms = -1.0
-            if not (deadline_ms >= 0 and math.isfinite(deadline_ms)):
-                raise ServiceError(400, ErrorCode.BAD_REQUEST, "the deadline_ms parameter "
-                                   "must be a number of milliseconds >= 0", "query.deadline_ms")
+        deadline_ms = parse_deadline_ms(query.parameters.get("deadline_ms"), "query.deadline_ms")
         return Request(
             op=op, session=session,
             body=query.payload.to_bytes() if query.payload is not None else b"",

@@ -1,15 +1,16 @@
 """``agilegs bench bigmap``: a server holding a session of a million Gaussians.
 
-Densifies a scene (default: the plant, 113k Gaussians) to ``--gaussians`` as
-``agilegs bench latency`` does (:func:`agilegs.service.bench.latency.densified`), writes it
-as a ``.splat`` in a temporary folder, starts ``agilegs serve`` (HTTP only, one torch thread,
-the mapper off, the default limits unless ``--env`` sets others), creates a session with a
-``--size``² camera (and one placeholder Gaussian), uploads the splat (``set_gaussians``, the raw file), sets a pool of
-``--pool`` candidates on a sphere around the map, commits ``--views`` of them, then selects
-once with every method. For each step it prints the server's answer (or the refusal: its
-status, the limit it names and the estimate), the round trip, and the server process's
-resident memory: before the step and its peak during the step (``/proc/<pid>/status``:
-VmRSS, and VmHWM reset before each step through ``/proc/<pid>/clear_refs``).
+Densifies a scene (default: the plant, 113k Gaussians) to ``--gaussians`` as ``agilegs bench
+latency`` does (:func:`agilegs.service.bench.latency.densified`), writes it as a ``.splat``
+in a temporary folder, starts ``agilegs serve`` (HTTP only, one torch thread, the mapper
+off, the default limits unless ``--env`` sets others), creates a session with a ``--size``²
+camera (and one placeholder Gaussian), uploads the splat (``set_gaussians``, the raw file),
+sets a pool of ``--pool`` candidates on a sphere around the map, commits ``--views`` of
+them, then selects once with every method. For each step it prints the server's answer (or
+the refusal: its status, the limit it names and the estimate), the round trip, and the
+server process's resident memory: before the step and its peak during the step
+(``/proc/<pid>/status``: VmRSS, and VmHWM reset before each step through
+``/proc/<pid>/clear_refs``).
 """
 
 from __future__ import annotations
