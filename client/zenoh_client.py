@@ -120,7 +120,7 @@ class ZenohClient(SyncOperations):
         if parameters is None:
             # the server gives up on the work once this client stops waiting for it
             params = {**(call.params or {}), "deadline_ms": f"{self.timeout * 1e3:.0f}"}
-            parameters = "&".join(f"{k}={v}" for k, v in params.items())
+            parameters = ";".join(f"{k}={v}" for k, v in params.items())
         key = self._key(call)
         payload = codec.dump(call.body, codec.MSGPACK) if call.body is not None else None
         try:
