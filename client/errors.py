@@ -17,13 +17,16 @@
         ├── PayloadTooLargeError       413  a body over the server's max_body_bytes
         ├── ValidationError            422  a malformed or out-of-range value
         │   └── LimitExceededError          a value over a server limit (pool, pixels, ...)
-        ├── TooManyError               429  a count limit (sessions, views, a pool extended)
+        ├── TooManyError               429  a count limit (sessions, views, a pool extended,
+        │                                   compute requests queued on one session)
         └── ServerError                5xx  a server fault
             └── InsufficientStorageError  507  the server's disk is full (nothing changed)
 
 An :class:`APIError` carries the error body's ``status``, ``code``, ``message``, ``field``
-(the path of the offending input, e.g. ``body.poses[3].matrix``) and ``errors`` (every
-problem found). HTTP error responses and Zenoh error replies carry the same body, so the
+(the path of the offending input, e.g. ``body.poses[3].matrix``), ``errors`` (every
+problem found), and where the server sets them ``limit`` (the setting a refusal is about),
+``retry_after`` (seconds, on 429 / 503) and ``estimate`` (a select refused on its cost).
+HTTP error responses and Zenoh error replies carry the same body, so the
 same exception comes out of :class:`Client`, :class:`AsyncClient` and :class:`ZenohClient`.
 Backend exceptions (httpx, zenoh) are chained as ``__cause__``.
 """
@@ -83,6 +86,10 @@ class APIError(AgileGSError):
         message: str,
         field: str | None = None,
         errors: list[ErrorItem] | None = None,
+        *,
+        limit: str | None = None,
+        retry_after: float | None = None,
+        estimate: dict[str, float] | None = None,
     ) -> None:
         where = f" [{field}]" if field and not message.startswith(field) else ""
         super().__init__(f"{status} {code}: {message}{where}")
@@ -91,6 +98,9 @@ class APIError(AgileGSError):
         self.message = message
         self.field = field
         self.errors = errors or []
+        self.limit = limit  # the server setting a refusal is about
+        self.retry_after = retry_after  # seconds before a refusal for load may go through
+        self.estimate = estimate  # the up-front estimate a select was refused on
 
 
 class BadRequestError(APIError):
@@ -186,4 +196,5 @@ def error_from_body(status: int | None, body: bytes, kind: str | None) -> APIErr
         cls = SessionDamagedError
     elif info.code == "limit_exceeded" and st == 422:
         cls = LimitExceededError
-    return cls(st, info.code, info.message, info.field, list(info.errors))
+    return cls(st, info.code, info.message, info.field, list(info.errors), limit=info.limit,
+               retry_after=info.retry_after, estimate=info.estimate)

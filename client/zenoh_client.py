@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
 from pydantic import BaseModel
@@ -34,7 +35,7 @@ from .errors import (
     TransportError,
     error_from_body,
 )
-from .zenoh_rpc import first_answer, open_session
+from .zenoh_rpc import credentials, first_answer, open_session
 
 __all__ = ["ZenohClient"]
 
@@ -46,10 +47,16 @@ class ZenohClient(SyncOperations):
         connect: endpoints of the server (its ``--zenoh-listen``) or of a router.
         listen: endpoints this peer listens on (none by default).
         token: bearer token, sent as the attachment ``Bearer <token>``.
-        timeout: seconds to wait for a reply.
+        timeout: seconds to wait for a reply (sent as the query's ``deadline_ms``: the
+            server cancels work this client no longer waits for).
         wait: seconds to wait at start for the server to answer ``health`` (0: do not wait).
         mode: zenoh mode, ``"peer"`` or ``"client"`` (through a router, or through one
             server instance that is a peer: it routes to the other instances).
+        user, password: Zenoh credentials, for a server or router that authenticates its
+            peers (``AGILEGS_ZENOH_USERS_FILE``).
+        tls_root_ca: PEM CA certificate verifying a ``tls/...`` endpoint.
+        tls_certificate, tls_private_key: this client's PEM certificate and key, for a
+            server with mutual TLS (``AGILEGS_ZENOH_MTLS``).
     """
 
     def __init__(
@@ -61,6 +68,11 @@ class ZenohClient(SyncOperations):
         timeout: float = 120.0,
         wait: float = 10.0,
         mode: str = "peer",
+        user: str | None = None,
+        password: str | None = None,
+        tls_root_ca: str | Path | None = None,
+        tls_certificate: str | Path | None = None,
+        tls_private_key: str | Path | None = None,
     ) -> None:
         try:
             import zenoh
@@ -71,8 +83,10 @@ class ZenohClient(SyncOperations):
         self._attachment = f"Bearer {token}".encode() if token else None
         self._session: Any = None
         try:
-            self._session = open_session(listen, connect, mode)
-        except zenoh.ZError as exc:
+            extra = credentials(user=user, password=password, root_ca=tls_root_ca,
+                                certificate=tls_certificate, private_key=tls_private_key)
+            self._session = open_session(listen, connect, mode, extra)
+        except (zenoh.ZError, ValueError) as exc:
             raise TransportError(f"cannot open a Zenoh session: {exc}") from exc
         self._subscribers: list[Any] = []
         if wait > 0:
@@ -103,8 +117,10 @@ class ZenohClient(SyncOperations):
             raise ValidationError(422, "invalid", str(exc), "session") from None
 
     def _send(self, call: Call, parameters: str | None = None) -> BaseModel:
-        if parameters is None and call.params:
-            parameters = "&".join(f"{k}={v}" for k, v in call.params.items())
+        if parameters is None:
+            # the server gives up on the work once this client stops waiting for it
+            params = {**(call.params or {}), "deadline_ms": f"{self.timeout * 1e3:.0f}"}
+            parameters = ";".join(f"{k}={v}" for k, v in params.items())
         key = self._key(call)
         payload = codec.dump(call.body, codec.MSGPACK) if call.body is not None else None
         try:

@@ -8,20 +8,24 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from agilegs.schemas import codec
 
-__all__ = ["Answer", "first_answer", "open_session", "query", "session_config"]
+__all__ = ["Answer", "credentials", "first_answer", "open_session", "query", "session_config"]
 
 
 def session_config(
-    listen: Sequence[str] = (), connect: Sequence[str] = (), mode: str = "peer"
+    listen: Sequence[str] = (), connect: Sequence[str] = (), mode: str = "peer",
+    extra: Mapping[str, Any] | None = None,
 ) -> Any:
     """A ``zenoh.Config``: ``mode`` (peer by default), explicit listen / connect endpoints,
-    multicast and gossip scouting off (peers meet only through the endpoints given)."""
+    multicast and gossip scouting off (peers meet only through the endpoints given), and the
+    ``extra`` settings (a Zenoh config path such as ``transport/auth/usrpwd/user`` -> its
+    value, e.g. :func:`credentials`)."""
     import zenoh
 
     conf = zenoh.Config()
@@ -30,15 +34,40 @@ def session_config(
     conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("scouting/gossip/enabled", "false")
+    for path, value in (extra or {}).items():
+        conf.insert_json5(path, json.dumps(value))
     return conf
 
 
-def open_session(listen: Sequence[str] = (), connect: Sequence[str] = (), mode: str = "peer"
-                 ) -> Any:
+def credentials(*, user: str | None = None, password: str | None = None,
+                root_ca: str | Path | None = None, certificate: str | Path | None = None,
+                private_key: str | Path | None = None) -> dict[str, Any]:
+    """The Zenoh settings a peer connects with: a username and password (Zenoh's usrpwd
+    authentication), the CA certificate that verifies a ``tls/`` endpoint, and its own
+    certificate and key for mutual TLS (PEM files)."""
+    out: dict[str, Any] = {}
+    if (user is None) != (password is None):
+        raise ValueError("a Zenoh user needs its password, and a password its user")
+    if (certificate is None) != (private_key is None):
+        raise ValueError("a TLS certificate needs its private key, and a key its certificate")
+    if user is not None:
+        out["transport/auth/usrpwd/user"] = user
+        out["transport/auth/usrpwd/password"] = password
+    if root_ca is not None:
+        out["transport/link/tls/root_ca_certificate"] = str(root_ca)
+    if certificate is not None:
+        out["transport/link/tls/connect_certificate"] = str(certificate)
+        out["transport/link/tls/connect_private_key"] = str(private_key)
+        out["transport/link/tls/enable_mtls"] = True  # present it
+    return out
+
+
+def open_session(listen: Sequence[str] = (), connect: Sequence[str] = (), mode: str = "peer",
+                 extra: Mapping[str, Any] | None = None) -> Any:
     """An open ``zenoh.Session`` with :func:`session_config` (close it when done)."""
     import zenoh
 
-    return zenoh.open(session_config(listen, connect, mode))
+    return zenoh.open(session_config(listen, connect, mode, extra))
 
 
 @dataclass(frozen=True)

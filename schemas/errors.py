@@ -4,7 +4,11 @@
 "errors": [{"field": ..., "message": ...}, ...]}}``
 
 ``supported`` lists what the server takes instead where that is the problem: the methods of
-a route (405), the media types it produces (406) or reads (415).
+a route (405), the media types it produces (406) or reads (415). ``limit`` names the server
+setting a refusal is about (``max_select_seconds``, ``max_request_decoded_bytes``...),
+``retry_after`` says in how many seconds a refusal for load (429, 503) may go through (also
+the HTTP ``Retry-After`` header), and ``estimate`` carries the up-front estimate a select was
+refused on (``peak_bytes``, ``seconds``).
 
 ``field`` names the offending input as a path: ``body`` (the request body, over either
 transport), ``path.session``, ``query.<name>``, ``header.<name>``, followed by attribute
@@ -26,17 +30,23 @@ code                      status  meaning
 ``session_damaged``       409     the session's files on disk do not check out (see its ``damage``)
 ``empty_pool``            409     a selection on an empty candidate pool
 ``map_empty``             409     a selection on a session without Gaussians
-``payload_too_large``     413     body over the ``max_body_bytes`` setting
+``payload_too_large``     413     body over the ``max_body_bytes`` setting, a body of more
+                                  than ``max_body_items`` values, or images whose decoded
+                                  pixels exceed ``max_request_decoded_bytes``
 ``limit_exceeded``        422     a value over a server limit (pool size, pixels, ...)
 ``unsupported_media``     415     Content-Type is neither JSON nor msgpack
 ``invalid``               422     a value is malformed or out of range (the field says which)
 ``too_many``              429     a count limit was reached (sessions, views per session,
-                                  candidates when extending the pool)
+                                  candidates when extending the pool, compute requests
+                                  queued on one session: ``max_session_queue``)
 ``internal``              500     a server bug (bad input never yields it)
 ``insufficient_storage``  507     the state folder is full: the change was not made
 ``bad_gateway``           502     scale-out: the owning instance's answer was unusable
-``unavailable``           503     the server is shutting down or a dependency is missing
+``unavailable``           503     the server is shutting down, a dependency is missing, or
+                                  it is saturated (``retry_after`` says when to try again)
 ``gateway_timeout``       504     scale-out: the owning instance did not answer in time
+``deadline_exceeded``     504     the request's deadline passed (or its client went away)
+                                  before it finished; nothing was changed
 ========================  ======  ====================================================
 """
 
@@ -73,6 +83,7 @@ class ErrorCode(StrEnum):
     BAD_GATEWAY = "bad_gateway"
     UNAVAILABLE = "unavailable"
     GATEWAY_TIMEOUT = "gateway_timeout"
+    DEADLINE_EXCEEDED = "deadline_exceeded"
 
 
 ERROR_STATUS: dict[ErrorCode, int] = {
@@ -97,6 +108,7 @@ ERROR_STATUS: dict[ErrorCode, int] = {
     ErrorCode.BAD_GATEWAY: 502,
     ErrorCode.UNAVAILABLE: 503,
     ErrorCode.GATEWAY_TIMEOUT: 504,
+    ErrorCode.DEADLINE_EXCEEDED: 504,
 }
 """The HTTP status that goes with each code."""
 
@@ -130,6 +142,14 @@ class ErrorInfo(BaseModel):
         "the Allow header), the media types it produces (406) or reads (415, also in the "
         "Accept header)",
     )
+    limit: str | None = Field(default=None, description="the server setting the refusal "
+                              "is about (e.g. max_select_seconds)")
+    retry_after: float | None = Field(default=None, description="seconds after which a "
+                                      "request refused for load may go through (429, 503; "
+                                      "also the Retry-After header)")
+    estimate: dict[str, float] | None = Field(
+        default=None, description="the up-front estimate a request was refused on "
+        "(peak_bytes, seconds)")
 
 
 class ErrorBody(BaseModel):

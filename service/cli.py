@@ -31,6 +31,8 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("bench", "latency"), "agilegs.service.bench.latency", "selection latency of every method"),
     (("bench", "run"), "agilegs.service.bench.run_cli", "the paper's progressive protocol"),
     (("bench", "service"), "agilegs.service.bench.service_bench", "transport overhead"),
+    (("bench", "bigmap"), "agilegs.service.bench.bigmap",
+     "a server holding a session of a million Gaussians: memory and time per method"),
     (("bench", "value"), "agilegs.service.bench.value",
      "what each candidate is worth, and which scores predict it"),
     (("bench", "proxy"), "agilegs.service.bench.proxy_check",
@@ -39,7 +41,7 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
 
 GROUPS: dict[str, str] = {
     "store": "check or repair a server's state folder, offline",
-    "bench": "the benchmarks: render, latency, run, service, value, proxy",
+    "bench": "the benchmarks: render, latency, run, service, bigmap, value, proxy",
 }
 """The help of each command that groups subcommands."""
 

@@ -42,6 +42,10 @@ class ServiceError(Exception):
         field: str | None = None,
         errors: list[ErrorItem] | None = None,
         supported: list[str] | None = None,
+        *,
+        limit: str | None = None,
+        retry_after: float | None = None,
+        estimate: dict[str, float] | None = None,
     ) -> None:
         super().__init__(message)
         self.status = status
@@ -50,6 +54,9 @@ class ServiceError(Exception):
         self.field = field
         self.errors = errors if errors is not None else [ErrorItem(field=field, message=message)]
         self.supported = supported
+        self.limit = limit
+        self.retry_after = retry_after
+        self.estimate = estimate
 
     @classmethod
     def of(cls, code: ErrorCode, message: str, field: str | None = None) -> ServiceError:
@@ -65,6 +72,9 @@ class ServiceError(Exception):
                 field=self.field,
                 errors=self.errors,
                 supported=self.supported,
+                limit=self.limit,
+                retry_after=self.retry_after,
+                estimate=self.estimate,
             )
         )
 

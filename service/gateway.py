@@ -5,9 +5,12 @@ content type, accept, credentials, query parameters) and hands it to :meth:`Gate
 which does, once for every transport:
 
 1. authentication (bearer token, compared in constant time),
-2. content negotiation (406) and the body size limit (413),
+2. content negotiation (406), the body size limit and, before parsing, the count of its
+   values (413),
 3. decoding (JSON or msgpack by content type, 415 / 400; a raw .ply / .splat upload),
-4. validation against the operation's request model (422 naming every field),
+4. validation against the operation's request model (422 naming every field), and the
+   decoded size of its images reserved against the memory budgets (413 / 503, see
+   :mod:`agilegs.service.admission`),
 5. dispatch: here (:meth:`SessionRegistry.execute
    <agilegs.service.sessions.registry.SessionRegistry.execute>`), or through the
    :attr:`Gateway.router` to the instance that owns the session,
@@ -21,6 +24,12 @@ body is JSON or msgpack (or it has none): the request's bytes are forwarded as t
 the owner's answer is passed back as it came (:meth:`Router.forward_bytes`); the owner decodes
 and validates it.
 
+Requests reach a worker through :meth:`Gateway.submit`, which admits them first (per-session
+and server-wide queue limits, 429 / 503) and runs reads and compute on separate threads; the
+request's :class:`~agilegs.service.admission.Ticket` (its deadline, or its client gone) is
+checked between the steps and inside long computations, and a cancelled request stops there
+(504 ``deadline_exceeded``) having changed nothing.
+
 It returns a :class:`Reply` (status, bytes, media type); a write refused for lack of space
 is answered 507 ``insufficient_storage`` (and counted), a bug in a handler is logged and
 answered 500. The HTTP routes (:mod:`agilegs.service.http_routes`) and the Zenoh queryables
@@ -32,10 +41,11 @@ from __future__ import annotations
 import hashlib
 import hmac
 import logging
+import os
 import threading
 import time
 from collections.abc import Callable, Mapping
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -46,6 +56,7 @@ from agilegs.schemas.errors import ErrorBody, ErrorCode
 from agilegs.schemas.models import SelectResponse
 from agilegs.schemas.ops import OPERATIONS
 
+from .admission import READ_OPS, Admission, Ticket, count_values, request_decoded_bytes
 from .errors import ServiceError, insufficient_storage, invalid, is_disk_full
 from .metrics import Metrics
 from .sessions.registry import QueryParams, SessionRegistry, parse_request
@@ -83,6 +94,9 @@ class Request:
         t0: ``time.perf_counter()`` at arrival (a selection's ``server_ms``).
         authenticated: the transport checked the credentials already.
         local: run it here whatever the cluster holds (queries on this instance's keys).
+        deadline_ms: the client's own deadline in ms from arrival (HTTP ``X-Deadline-Ms``,
+            Zenoh ``deadline_ms`` parameter); the server's ``request_deadline`` caps it.
+        ticket: its deadline and cancellation (set by :meth:`Gateway.submit`, or here).
     """
 
     op: str
@@ -97,6 +111,8 @@ class Request:
     t0: float = field(default_factory=time.perf_counter)
     authenticated: bool = False
     local: bool = False
+    deadline_ms: float | None = None
+    ticket: Ticket | None = None
 
 
 class Reply:
@@ -175,6 +191,13 @@ class Gateway:
         self.settings = settings
         self.metrics = metrics
         self.executor = ThreadPoolExecutor(settings.workers, thread_name_prefix="agilegs")
+        # a session that keeps more compute queued is served at a lower OS priority
+        self.background_executor = ThreadPoolExecutor(
+            settings.workers, thread_name_prefix="agilegs-bg",
+            initializer=_lower_priority, initargs=(settings.background_nice,))
+        self.read_executor = ThreadPoolExecutor(settings.read_workers,
+                                                thread_name_prefix="agilegs-read")
+        self.admission = Admission(settings)
         token = settings.token_value()
         self._digest = hashlib.sha256(token.encode()).digest() if token else None
         self.router: Router | None = None
@@ -183,6 +206,72 @@ class Gateway:
 
     def close(self) -> None:
         self.executor.shutdown(wait=True, cancel_futures=True)
+        self.background_executor.shutdown(wait=True, cancel_futures=True)
+        self.read_executor.shutdown(wait=True, cancel_futures=True)
+
+    def ticket(self, req: Request) -> Ticket:
+        """``req``'s ticket: its deadline is ``request_deadline`` s after arrival, or the
+        client's ``deadline_ms`` when sooner."""
+        if req.ticket is None:
+            limit = self.settings.request_deadline
+            if req.deadline_ms is not None and req.deadline_ms >= 0:
+                limit = min(limit, req.deadline_ms / 1e3)
+            req.ticket = Ticket(time.monotonic() - (time.perf_counter() - req.t0) + limit)
+        return req.ticket
+
+    def submit(self, req: Request, run: Callable[[Request], Reply] | None = None
+               ) -> Future[Reply]:
+        """Admit ``req`` and run it (``run``, default :meth:`handle`) on a worker: reads on
+        the read threads at once; compute on the compute threads, one at a time per session
+        (the next one waits in the session's queue, holding no thread, until the previous
+        one ends). A refusal (429, 503, the server stopping) is a finished future of the
+        error reply, and ``run`` is not called."""
+        run = run or self.handle
+        self.ticket(req)
+        kind = codec.negotiate(req.accept) or codec.JSON
+        try:
+            self.admission.enter(req.op, req.session)
+        except ServiceError as err:
+            return _done(self.error_reply(err, kind, req.transport, req.op))
+        out: Future[Reply] = Future()
+        read = req.op in READ_OPS
+        # admitted behind another of its session's: a session keeping several queued is
+        # served on the lower-priority threads, so that it cannot starve the others' CPU
+        busy = (not read and req.session is not None
+                and self.admission.queued(req.session) > 1)
+
+        def job() -> None:
+            try:
+                with self.admission.running_compute(req.op):
+                    reply = run(req)
+            except BaseException as exc:  # run never raises; if it did, the caller hears
+                out.set_exception(exc)
+            else:
+                out.set_result(reply)
+            finally:
+                self.admission.leave(req.op, req.session)
+                if not read and req.session is not None:
+                    nxt = self.admission.next_of(req.session)
+                    if nxt is not None:
+                        nxt()
+
+        def start() -> None:
+            try:
+                pool = (self.read_executor if read else
+                        self.background_executor if busy else self.executor)
+                pool.submit(job)
+            except RuntimeError:  # the executor is shut down: the server is stopping
+                self.admission.leave(req.op, req.session)
+                stopping = ServiceError(503, ErrorCode.UNAVAILABLE, "the server is stopping")
+                out.set_result(self.error_reply(stopping, kind, req.transport, req.op))
+                if not read and req.session is not None:
+                    nxt = self.admission.next_of(req.session)
+                    if nxt is not None:
+                        nxt()
+
+        if read or req.session is None or self.admission.start_or_queue(req.session, start):
+            start()
+        return out
 
     # ------------------------------------------------------------------ the steps
     def authenticate(self, credentials: bytes | None, field: str = "header.authorization"
@@ -224,10 +313,13 @@ class Gateway:
             return None
         if spec.query and not body:  # HTTP: the fields are query parameters
             return QueryParams(params)
-        base = (content_type or "").split(";", 1)[0].strip().lower()
+        base = _base_type(content_type)
         if op == "set_gaussians" and params.get("format") not in (None, "ply", "splat"):
             raise invalid("query.format", "query.format: must be 'ply' or 'splat'")
-        if op == "set_gaussians" and base in RAW_TYPES and body:
+        if op == "set_gaussians" and base in RAW_TYPES:
+            if not body:
+                raise invalid("body", f"body: the {base} body is empty (a .ply or .splat "
+                                      "file is required)")
             fmt = params.get("format") or ("ply" if body[:4] == b"ply\n" else "splat")
             return {"format": fmt, "data": body}
         kind = codec.media_type(content_type)
@@ -247,14 +339,18 @@ class Gateway:
     def handle(self, req: Request) -> Reply:
         """Run ``req`` through every step; never raises."""
         self._encoded.cache = {}
+        self._encoded.ticket = self.ticket(req)
         try:
             return self._handle(req)
         finally:
             self._encoded.cache = None
+            self._encoded.ticket = None
 
     def _handle(self, req: Request) -> Reply:
         kind = codec.negotiate(req.accept) or codec.JSON
+        ticket = self.ticket(req)
         try:
+            ticket.check()
             spec = OPERATIONS.get(req.op)
             if spec is None or (spec.scope == "session") != (req.session is not None):
                 where = "a session operation" if req.session is not None else "a service operation"
@@ -266,6 +362,10 @@ class Gateway:
             kind = self.negotiate(req.accept)
             if req.body is not None:
                 self.check_size(len(req.body))
+                if req.body and not (req.op == "set_gaussians" and _base_type(
+                        req.content_type) in RAW_TYPES):
+                    count_values(req.body, codec.media_type(req.content_type) or codec.JSON,
+                                 self.settings.max_body_items)
             local = req.local
             as_it_came = self._as_it_came(req, kind)
             if as_it_came is not None:
@@ -277,8 +377,11 @@ class Gateway:
                 local = True  # no instance answers, and this one is alone: it answers
             payload = self.decode(req.op, req.body, req.content_type, req.params)
             model = parse_request(req.op, payload)
-            result = self.dispatch(req.op, req.session, model, t0=req.t0,
-                                   instance=req.params.get("instance"), local=local)
+            del payload
+            ticket.check()
+            with self.admission.decoded(request_decoded_bytes(req.op, model)):
+                result = self.dispatch(req.op, req.session, model, t0=req.t0,
+                                       instance=req.params.get("instance"), local=local)
             body = self.encode(result, kind)
         except ServiceError as err:
             return self.error_reply(err, kind, req.transport, req.op)
@@ -352,7 +455,9 @@ class Gateway:
     def execute(self, op: str, session: str | None, req: BaseModel | None, *,
                 t0: float | None = None) -> BaseModel:
         """Run it here; a selection gets its ``server_ms``, is counted and goes to the hooks."""
-        result = self.registry.execute(op, session, req)
+        ticket: Ticket | None = getattr(self._encoded, "ticket", None)
+        result = self.registry.execute(op, session, req,
+                                       check=ticket.check if ticket is not None else None)
         if isinstance(result, SelectResponse):
             if t0 is not None:
                 result.server_ms = (time.perf_counter() - t0) * 1e3
@@ -376,6 +481,28 @@ class Gateway:
             self.metrics.observe_request(transport, op, status, code)
 
 
+def _lower_priority(nice: int) -> None:
+    """Lower this worker thread's OS scheduling priority by ``nice`` (Linux: per thread;
+    elsewhere, or refused, nothing)."""
+    if nice <= 0 or not hasattr(os, "setpriority"):
+        return
+    try:
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + nice)
+    except OSError:
+        log.debug("could not lower the priority of a background worker", exc_info=True)
+
+
+def _base_type(content_type: str | None) -> str:
+    return (content_type or "").split(";", 1)[0].strip().lower()
+
+
+def _done(reply: Reply) -> Future[Reply]:
+    fut: Future[Reply] = Future()
+    fut.set_result(reply)
+    return fut
+
+
 def _owner_answer(op: str, got: Forwarded) -> BaseModel:
     """The owner's answer to ``op`` decoded and validated (502 if it is malformed)."""
     spec = OPERATIONS[op]
@@ -395,4 +522,5 @@ def _owner_error(op: str, got: Forwarded) -> ServiceError:
         return ServiceError(502, ErrorCode.BAD_GATEWAY, f"{op}: the owner's error reply is "
                             "malformed")
     return ServiceError(info.status, info.code, info.message, info.field, list(info.errors),
-                        info.supported)
+                        info.supported, limit=info.limit, retry_after=info.retry_after,
+                        estimate=info.estimate)

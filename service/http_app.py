@@ -2,9 +2,11 @@
 
 Every operation of :data:`agilegs.schemas.ops.OPERATIONS` is one route (see
 :mod:`agilegs.service.http_routes`); bodies are JSON or msgpack by Content-Type, responses by
-Accept. ``/healthz`` and ``/metrics`` answer on the event loop. Errors, whatever raised them,
-are the :class:`~agilegs.schemas.errors.ErrorBody` of :mod:`agilegs.schemas.errors`. The
-app's lifespan starts (unless told otherwise) and stops the
+Accept. ``/healthz`` (liveness), ``/readyz`` (readiness: 503 with the reason while the
+server is saturated, :meth:`Admission.saturation
+<agilegs.service.admission.Admission.saturation>`) and ``/metrics`` answer on the event
+loop. Errors, whatever raised them, are the :class:`~agilegs.schemas.errors.ErrorBody` of
+:mod:`agilegs.schemas.errors`. The app's lifespan starts (unless told otherwise) and stops the
 :class:`~agilegs.service.server.Server` it serves.
 
 ``/`` redirects to ``/docs``. The OpenAPI pages (``/docs``: Swagger UI, ``/redoc``) load their
@@ -150,6 +152,16 @@ def create_app(settings: Settings, server: Server | None = None, *, start: bool 
              responses={200: {"content": {CONTENT_TYPE_LATEST: {"schema": {"type": "string"}}}}})
     async def get_metrics() -> Response:
         return Response(server.metrics.render(), media_type=CONTENT_TYPE_LATEST)
+
+    @app.get("/readyz", tags=["service"], summary="Readiness: 503 with the reason while the "
+             "server is saturated", response_class=Response)
+    async def readyz() -> Response:
+        # on the event loop, like /healthz (liveness): answers while every worker is busy
+        reason = gateway.admission.saturation()
+        if reason is None:
+            return Response(codec.dump({"ready": True}, codec.JSON), media_type=codec.JSON)
+        return Response(codec.dump({"ready": False, "reason": reason}, codec.JSON),
+                        status_code=503, media_type=codec.JSON, headers={"Retry-After": "1"})
 
     app.openapi = lambda: build_openapi(app, settings)  # type: ignore[method-assign]
     if settings.token_value() is not None:

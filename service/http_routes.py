@@ -2,15 +2,18 @@
 the gateway.
 
 Each route checks that the response type is acceptable (406) and reads the body, refusing
-more than ``max_body_bytes`` (413) before it has all arrived; then a worker thread runs the
-gateway's pipeline on it (:meth:`Gateway.handle <agilegs.service.gateway.Gateway.handle>`).
-``/healthz`` answers on the event loop, never behind session work. The decisions feed's
-long poll and event stream are :mod:`agilegs.service.http_decisions`.
+more than ``max_body_bytes`` (413) before it has all arrived; then the gateway admits it and
+a worker thread runs its pipeline (:meth:`Gateway.submit
+<agilegs.service.gateway.Gateway.submit>`). The ``X-Deadline-Ms`` header shortens the
+request's deadline; a client that disconnects before the answer cancels its request at the
+next stage boundary. ``/healthz`` answers on the event loop, never behind session work. The
+decisions feed's long poll and event stream are :mod:`agilegs.service.http_decisions`.
 """
 
 from __future__ import annotations
 
 import asyncio
+import math
 import time
 from collections.abc import Awaitable, Callable
 from typing import Annotated
@@ -23,6 +26,7 @@ from agilegs.schemas.errors import ErrorCode
 from agilegs.schemas.models import SESSION_ID_PATTERN
 from agilegs.schemas.ops import OPERATIONS, Operation
 
+from .admission import Ticket, parse_deadline_ms
 from .errors import ServiceError
 from .gateway import Gateway, Reply
 from .gateway import Request as GatewayRequest
@@ -39,10 +43,13 @@ SessionPath = Annotated[
 
 def response(reply: Reply) -> Response:
     """The HTTP response of a gateway reply, with the headers its status calls for
-    (RFC 9110): ``WWW-Authenticate`` on 401, ``Allow`` on 405, ``Accept`` on 415."""
+    (RFC 9110): ``WWW-Authenticate`` on 401, ``Allow`` on 405, ``Accept`` on 415,
+    ``Retry-After`` on a refusal for load."""
     headers = {}
     if reply.status == 401:
         headers["WWW-Authenticate"] = "Bearer"
+    if reply.error is not None and reply.error.retry_after is not None:
+        headers["Retry-After"] = str(max(1, math.ceil(reply.error.retry_after)))
     supported = reply.error.supported if reply.error is not None else None
     if supported is not None and reply.status == 405:
         headers["Allow"] = ", ".join(supported)
@@ -71,15 +78,35 @@ async def read_body(request: Request, gateway: Gateway) -> bytes:
     return b"".join(chunks)
 
 
-async def run_pipeline(gateway: Gateway, req: GatewayRequest) -> Reply:
-    """The gateway's pipeline on ``req`` in a worker thread (503 once the server stops)."""
+async def run_pipeline(gateway: Gateway, req: GatewayRequest,
+                       request: Request | None = None) -> Reply:
+    """The gateway's pipeline on ``req`` in a worker thread, once admitted (429 / 503 when
+    not; 503 once the server stops). With ``request`` (its body read), the client
+    disconnecting cancels ``req``."""
+    ticket = gateway.ticket(req)
+    fut = gateway.submit(req)
+    watch = None
+    if request is not None and not fut.done():
+        watch = asyncio.create_task(_on_disconnect(request, ticket))
     try:
-        return await asyncio.get_running_loop().run_in_executor(
-            gateway.executor, gateway.handle, req)
-    except RuntimeError:  # the executor is shut down: the server is stopping
-        stopping = ServiceError(503, ErrorCode.UNAVAILABLE, "the server is stopping")
-        return gateway.error_reply(stopping, codec.negotiate(req.accept) or codec.JSON, "http",
-                                   req.op)
+        return await asyncio.wrap_future(fut)
+    finally:
+        if watch is not None:
+            watch.cancel()
+
+
+async def _on_disconnect(request: Request, ticket: Ticket) -> None:
+    """Cancel ``ticket`` when the client of ``request`` (its body read) disconnects."""
+    while True:
+        message = await request.receive()
+        if message["type"] == "http.disconnect":
+            ticket.cancel("the client disconnected")
+            return
+
+
+def deadline_header(request: Request) -> float | None:
+    """The ``X-Deadline-Ms`` header as milliseconds (400 when it is not a number >= 0)."""
+    return parse_deadline_ms(request.headers.get("x-deadline-ms"), "header.x-deadline-ms")
 
 
 def build_router(gateway: Gateway) -> APIRouter:
@@ -92,6 +119,7 @@ def build_router(gateway: Gateway) -> APIRouter:
         body = None
         try:
             gateway.negotiate(accept)
+            deadline_ms = deadline_header(request)
             if op.request is not None and not op.query:
                 body = await read_body(request, gateway)
         except ServiceError as err:
@@ -101,8 +129,9 @@ def build_router(gateway: Gateway) -> APIRouter:
             op=op.name, session=session, body=body,
             content_type=request.headers.get("content-type"), accept=accept,
             params=dict(request.query_params), transport="http", t0=t0, authenticated=True,
+            deadline_ms=deadline_ms,
         )
-        return response(await run_pipeline(gateway, req))
+        return response(await run_pipeline(gateway, req, request))
 
     def endpoint_for(op: Operation) -> Callable[..., Awaitable[Response]]:
         if op.name == "health":

@@ -100,13 +100,55 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--mapper-burst", type=int,
       help="mapper steps between two publications of the map (AGILEGS_MAPPER_BURST, 20)")
     a("--log-level", help="log level (AGILEGS_LOG_LEVEL, default info)")
+    # what one request may cost (see agilegs.service.admission)
+    a("--read-workers", type=int, help="threads running reads (AGILEGS_READ_WORKERS, 8)")
+    a("--background-nice", type=int, help="lower OS priority of a session keeping compute "
+                                          "queued (AGILEGS_BACKGROUND_NICE, 10)")
+    a("--max-body-items", type=int,
+      help="most values in a JSON / msgpack body (AGILEGS_MAX_BODY_ITEMS)")
+    a("--max-request-decoded-bytes", type=int,
+      help="most decoded image bytes per request (AGILEGS_MAX_REQUEST_DECODED_BYTES)")
+    a("--max-inflight-decoded-bytes", type=int,
+      help="most decoded image bytes in flight (AGILEGS_MAX_INFLIGHT_DECODED_BYTES)")
+    a("--max-select-seconds", type=float,
+      help="largest estimated select time, s (AGILEGS_MAX_SELECT_SECONDS, 120)")
+    a("--max-select-bytes", type=int,
+      help="largest estimated select peak memory (AGILEGS_MAX_SELECT_BYTES)")
+    a("--max-session-queue", type=int,
+      help="compute requests per session running or waiting (AGILEGS_MAX_SESSION_QUEUE, 4)")
+    a("--max-queued", type=int,
+      help="compute requests running or waiting in all (AGILEGS_MAX_QUEUED, 64)")
+    a("--request-deadline", type=float,
+      help="seconds a request may take (AGILEGS_REQUEST_DEADLINE, 300)")
+    # Zenoh security (see agilegs.service.zenoh_security)
+    a("--zenoh-tls-certificate", help="PEM certificate of the tls/ listen endpoints "
+                                      "(AGILEGS_ZENOH_TLS_CERTIFICATE)")
+    a("--zenoh-tls-private-key", help="its PEM key (AGILEGS_ZENOH_TLS_PRIVATE_KEY)")
+    a("--zenoh-tls-root-ca", help="PEM CA certificate (AGILEGS_ZENOH_TLS_ROOT_CA)")
+    mt = parser.add_mutually_exclusive_group()
+    mt.add_argument("--zenoh-mtls", dest="zenoh_mtls", action="store_const", const=True,
+                    help="mutual TLS: peers need a certificate of the CA (AGILEGS_ZENOH_MTLS)")
+    mt.add_argument("--no-zenoh-mtls", dest="zenoh_mtls", action="store_const", const=False,
+                    help="no client certificates (the default)")
+    a("--zenoh-users-file", help="user:password lines: Zenoh peers must authenticate as one "
+                                 "(AGILEGS_ZENOH_USERS_FILE)")
+    a("--zenoh-user", help="the Zenoh user this instance connects as (AGILEGS_ZENOH_USER; "
+                           "its password: AGILEGS_ZENOH_PASSWORD)")
+    a("--zenoh-dev-certs", metavar="DIR",
+      help="make a development CA, server and client certificate in DIR (once) and serve "
+           "tls/ endpoints with them (AGILEGS_ZENOH_DEV_CERTS)")
 
 
 _FIELDS = ("host", "port", "state_dir", "http", "zenoh", "zenoh_mode", "instance_id",
            "forward_timeout", "workers", "torch_threads", "max_body_bytes",
            "max_pool_size", "max_image_pixels", "max_sessions", "max_gaussians", "max_views",
            "max_shortlist", "max_poll_wait", "decision_log", "fsync", "mapper",
-           "mapper_steps_per_view", "mapper_burst", "log_level")
+           "mapper_steps_per_view", "mapper_burst", "log_level", "read_workers", "background_nice",
+           "max_body_items", "max_request_decoded_bytes", "max_inflight_decoded_bytes",
+           "max_select_seconds", "max_select_bytes", "max_session_queue", "max_queued",
+           "request_deadline", "zenoh_tls_certificate", "zenoh_tls_private_key",
+           "zenoh_tls_root_ca", "zenoh_mtls", "zenoh_users_file", "zenoh_user",
+           "zenoh_dev_certs")
 
 
 def build_settings(args: argparse.Namespace) -> Any:

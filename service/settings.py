@@ -59,6 +59,54 @@ class Settings(BaseSettings):
     max_gaussians: int = Field(default=2_000_000, ge=1, description="most Gaussians per session")
     max_views: int = Field(default=10_000, ge=1, description="most acquired views per session")
     max_shortlist: int = Field(default=256, ge=1, description="largest shortlist size N")
+    max_body_items: int = Field(
+        default=1_000_000, ge=1000, description="most values (list items, map entries, "
+        "scalars) in a JSON or msgpack body, counted before it is parsed; large arrays travel "
+        "as binary NDArray fields")
+    max_request_decoded_bytes: int = Field(
+        default=1 << 30, ge=1 << 20, description="most bytes the images and depth maps of "
+        "one request take decoded, summed from their headers before decoding (413)")
+    max_inflight_decoded_bytes: int = Field(
+        default=2 << 30, ge=1 << 20, description="most decoded image and depth bytes of all "
+        "requests in flight together (503 with Retry-After beyond)")
+    max_select_seconds: float = Field(
+        default=120.0, gt=0, description="a select whose up-front time estimate (one thread "
+        "of the reference CPU) exceeds this is refused (422 limit_exceeded)")
+    max_select_bytes: int = Field(
+        default=8 << 30, ge=1 << 20, description="a select whose up-front peak memory "
+        "estimate exceeds this is refused (422 limit_exceeded)")
+    max_session_queue: int = Field(
+        default=4, ge=1, description="compute requests (writes, selects) of one session "
+        "running or waiting at once; more get 429 with Retry-After")
+    max_queued: int = Field(
+        default=64, ge=1, description="compute requests of all sessions running or waiting "
+        "at once; more get 503 with Retry-After (/readyz reports saturation)")
+    request_deadline: float = Field(
+        default=300.0, gt=0, description="seconds a request may take before it is cancelled "
+        "at its next stage boundary (a request's X-Deadline-Ms header / Zenoh deadline_ms "
+        "parameter may shorten it)")
+    # Zenoh security (see agilegs.service.zenoh_security)
+    zenoh_tls_certificate: Path | None = Field(
+        default=None, description="PEM certificate of the tls/ listen endpoints (with "
+        "zenoh_tls_private_key)")
+    zenoh_tls_private_key: Path | None = Field(default=None, description="its PEM private key")
+    zenoh_tls_root_ca: Path | None = Field(
+        default=None, description="PEM CA certificate verifying the tls/ endpoints this "
+        "instance connects to and, with zenoh_mtls, the certificates of peers connecting")
+    zenoh_mtls: bool = Field(
+        default=False, description="mutual TLS: a peer connecting over tls/ must present a "
+        "certificate signed by zenoh_tls_root_ca (this instance presents its own)")
+    zenoh_users_file: Path | None = Field(
+        default=None, description="user:password lines: a peer connecting must authenticate "
+        "as one of them (Zenoh usrpwd); access control then allows the agilegs keys only to "
+        "those users (and to mTLS peers)")
+    zenoh_user: str | None = Field(
+        default=None, description="the Zenoh username this instance presents when connecting "
+        "(to a router or another instance)")
+    zenoh_password: SecretStr | None = Field(default=None, description="its password")
+    zenoh_dev_certs: Path | None = Field(
+        default=None, description="a folder: a development CA, server and client certificate "
+        "are made there (once) and the tls/ endpoints serve with them")
     # ROS 2 over Zenoh (see agilegs.service.ros2)
     ros2: Endpoints = Field(
         default_factory=list, description="ROS 2 namespaces served over Zenoh (CDR on the keys "
@@ -73,7 +121,13 @@ class Settings(BaseSettings):
         default=100, ge=1, description="decisions held per session for get_decisions"
     )
     # execution
-    workers: int = Field(default=16, ge=1, description="threads running session work")
+    workers: int = Field(default=16, ge=1, description="threads running compute (writes, "
+                                                       "selects)")
+    read_workers: int = Field(default=8, ge=1, description="threads running reads (never "
+                                                           "behind compute)")
+    background_nice: int = Field(
+        default=10, ge=0, le=19, description="how much lower the OS priority (nice) of the "
+        "threads serving a session that keeps compute queued is (0: the same)")
     torch_threads: int = Field(default=0, ge=0, description="torch intra-op threads (0: default)")
     fsync: bool = Field(default=True, description="fsync files and folders before acknowledging")
     # the mapper (see agilegs.service.sessions.trainer)
@@ -116,6 +170,31 @@ class Settings(BaseSettings):
             raise ValueError(f"ROS 2 namespaces repeat: {out}")
         return out
 
+    @model_validator(mode="after")
+    def _zenoh_security(self) -> Settings:
+        if self.zenoh_dev_certs is not None:
+            d = Path(self.zenoh_dev_certs)
+            for name, file in (("zenoh_tls_certificate", "server.pem"),
+                               ("zenoh_tls_private_key", "server.key"),
+                               ("zenoh_tls_root_ca", "ca.pem")):
+                if getattr(self, name) is None:
+                    object.__setattr__(self, name, d / file)
+        if (self.zenoh_tls_certificate is None) != (self.zenoh_tls_private_key is None):
+            raise ValueError("AGILEGS_ZENOH_TLS_CERTIFICATE and AGILEGS_ZENOH_TLS_PRIVATE_KEY "
+                             "go together")
+        if self.zenoh_mtls and (self.zenoh_tls_root_ca is None
+                                or self.zenoh_tls_certificate is None):
+            raise ValueError("AGILEGS_ZENOH_MTLS needs AGILEGS_ZENOH_TLS_ROOT_CA and the "
+                             "instance's certificate and key")
+        if (self.zenoh_user is None) != (self.zenoh_password is None):
+            raise ValueError("AGILEGS_ZENOH_USER and AGILEGS_ZENOH_PASSWORD go together")
+        return self
+
+    @field_validator("zenoh_password", mode="before")
+    @classmethod
+    def _empty_password(cls, value: Any) -> Any:
+        return None if value == "" else value
+
     @field_validator("token", mode="before")
     @classmethod
     def _empty_token(cls, value: Any) -> Any:
@@ -131,3 +210,10 @@ class Settings(BaseSettings):
                 "serving on %s without AGILEGS_TOKEN: anyone who can reach it may change state",
                 self.host,
             )
+        loopback = ("tcp/127.0.0.1:", "tcp/localhost:", "tcp/[::1]:")
+        if (self.zenoh and self.zenoh_users_file is None and not self.zenoh_mtls
+                and any(not e.startswith(loopback) for e in self.zenoh_listen)):
+            log.warning(
+                "Zenoh listens on %s without AGILEGS_ZENOH_USERS_FILE or mutual TLS: any peer "
+                "that reaches it sees every session's decisions, frames and candidates (the "
+                "HTTP token does not cover Zenoh traffic)", ",".join(self.zenoh_listen))

@@ -4,11 +4,16 @@ the gateway.
 Key expressions come from :mod:`agilegs.schemas.keys`. A query becomes a gateway
 :class:`~agilegs.service.gateway.Request` (its payload msgpack, or JSON when the query's
 encoding says so, refused with 415 like over HTTP when it names another type; its attachment
-the credentials) run in a worker thread, and is answered with
+the credentials; its ``deadline_ms`` parameter its deadline, which the SDK sets to its query
+timeout) admitted and run in a worker thread (:meth:`Gateway.submit
+<agilegs.service.gateway.Gateway.submit>`), and is answered with
 the reply or an error reply carrying the same :class:`~agilegs.schemas.errors.ErrorBody` as
 over HTTP. Frames and pools published by a robot are applied in arrival order by one thread; a
 refused one is published on ``agilegs/<session>/errors``. Every decision made on this
 instance (over HTTP or Zenoh) is published on ``agilegs/<session>/decisions``.
+
+Who may connect and which keys they may use is Zenoh's own business, set up from the
+server's settings by :mod:`agilegs.service.zenoh_security` (TLS, usrpwd, access control).
 
 Which keys this instance declares (the ``@service`` and ``@instances/<id>`` queryables, and
 each owned session's queryable and subscribers) is :mod:`agilegs.service.cluster`'s business.
@@ -24,13 +29,14 @@ from typing import Any
 
 from agilegs.client.zenoh_rpc import open_session
 from agilegs.schemas import codec, keys
-from agilegs.schemas.errors import ErrorCode
 from agilegs.schemas.models import SelectResponse
 
+from .admission import parse_deadline_ms
 from .cluster import ClusterNode
 from .errors import ServiceError
-from .gateway import Gateway, Request
+from .gateway import Gateway, Reply, Request
 from .settings import Settings
+from .zenoh_security import zenoh_settings
 
 __all__ = ["ZenohAdapter", "content_type", "reply_kind"]
 
@@ -76,7 +82,8 @@ class ZenohAdapter:
     def start(self) -> None:
         mode = self.settings.zenoh_mode
         listen = [] if mode == "client" else self.settings.zenoh_listen
-        self.session = open_session(listen, self.settings.zenoh_connect, mode)
+        self.session = open_session(listen, self.settings.zenoh_connect, mode,
+                                    zenoh_settings(self.settings))
         try:
             self.cluster.attach(self.session, on_query=self._on_query,
                                 on_session_query=self._on_session_query,
@@ -124,35 +131,53 @@ class ZenohAdapter:
     def _on_query(self, query: Any, op: str, session: str | None, local: bool = False,
                   reply_key: str | None = None) -> None:
         t0 = time.perf_counter()
-        if op == "health" or (local and op == "list_sessions"):  # cheap reads: inline
-            self._answer(query, op, session, t0, local, reply_key)
-            return
         try:
-            self.gateway.executor.submit(self._answer, query, op, session, t0, local,
-                                         reply_key)
-        except RuntimeError:  # the executor is shut down: the server is stopping
-            err = ServiceError(503, ErrorCode.UNAVAILABLE, "the server is stopping")
-            reply = self.gateway.error_reply(err, codec.MSGPACK, "zenoh", op)
+            req = self._request(query, op, session, t0, local)
+        except ServiceError as err:
+            reply = self.gateway.error_reply(err, reply_kind(query.encoding), "zenoh", op)
+            self._reply(query, reply.body, reply.media_type, None, ok=False)
+            query.drop()
+            return
+        if op == "health" or (local and op == "list_sessions"):  # cheap reads: inline
+            self._answer(query, req, reply_key)
+            return
+        ran: list[bool] = []
+
+        def run(r: Request) -> Reply:
+            ran.append(True)
+            return self._answer(query, r, reply_key)
+
+        fut = self.gateway.submit(req, run)
+        if fut.done() and not ran:  # refused (429, 503): never ran, answered here
+            reply = fut.result()
             self._reply(query, reply.body, reply.media_type, None, ok=False)
             query.drop()
 
-    def _answer(self, query: Any, op: str, session: str | None, t0: float, local: bool = False,
-                reply_key: str | None = None) -> None:
+    @staticmethod
+    def _request(query: Any, op: str, session: str | None, t0: float, local: bool
+                 ) -> Request:
+        """The gateway request of a query; its ``deadline_ms`` parameter (the client's query
+        timeout) bounds the work."""
+        kind = reply_kind(query.encoding)
+        params = {}
+        if op == "create_session" and query.parameters.get("instance") is not None:
+            params["instance"] = query.parameters.get("instance")
+        deadline_ms = parse_deadline_ms(query.parameters.get("deadline_ms"), "query.deadline_ms")
+        return Request(
+            op=op, session=session,
+            body=query.payload.to_bytes() if query.payload is not None else b"",
+            content_type=content_type(query.encoding), accept=kind,
+            credentials=query.attachment.to_bytes() if query.attachment is not None
+            else None,
+            credentials_field="attachment", params=params, transport="zenoh", t0=t0,
+            local=local, deadline_ms=deadline_ms,
+        )
+
+    def _answer(self, query: Any, req: Request, reply_key: str | None = None) -> Reply:
         try:
-            kind = reply_kind(query.encoding)
-            params = {}
-            if op == "create_session" and query.parameters.get("instance") is not None:
-                params["instance"] = query.parameters.get("instance")
-            reply = self.gateway.handle(Request(
-                op=op, session=session,
-                body=query.payload.to_bytes() if query.payload is not None else b"",
-                content_type=content_type(query.encoding), accept=kind,
-                credentials=query.attachment.to_bytes() if query.attachment is not None
-                else None,
-                credentials_field="attachment", params=params, transport="zenoh", t0=t0,
-                local=local,
-            ))
+            reply = self.gateway.handle(req)
             self._reply(query, reply.body, reply.media_type, reply_key, ok=reply.ok)
+            return reply
         finally:
             query.drop()
 

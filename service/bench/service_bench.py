@@ -16,6 +16,13 @@ Starts ``agilegs serve`` in a subprocess on free loopback ports (or uses ``--url
 2. **Load.** ``--clients`` clients, each on a session of its own, select and commit
    ``--selections`` times at once over HTTP msgpack; reports selections per second, errors,
    and checks that every acknowledged commit is in the session afterwards.
+3. **Noisy neighbour.** A quiet session selects and commits (``--load-method``)
+   ``--neighbour-selections`` times back to back, alone, then again (a fresh session of the
+   same state) while ``--flood-clients`` clients flood another session with
+   ``--flood-method`` selects (each sent again as soon as it is answered or refused):
+   the quiet session's p50 and p99 round trips, unloaded and loaded, and their ratios.
+
+``--phases`` picks which run (default all three).
 
 With ``--instance ID`` (and ``--url`` / ``--zenoh`` of another instance of the same cluster)
 the sessions are created on instance ``ID``: every request then goes through the instance the
@@ -70,6 +77,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--load-method", default="agile", help="selection method of the load phase")
     a("--instance", help="create the sessions on this instance of a cluster (requests to "
       "--url's instance are then forwarded to it)")
+    a("--phases", default="overhead,load,neighbour",
+      help="which phases run: overhead, load, neighbour (comma-separated)")
+    a("--flood-clients", type=int, default=8, help="clients flooding the noisy session")
+    a("--flood-method", default="full_eig", help="selection method of the flood")
+    a("--neighbour-selections", type=int, default=30,
+      help="select + commit of the quiet session, unloaded and loaded")
     a("--json", dest="json_out", help="also write the results here")
 
 
@@ -130,7 +143,8 @@ def _time_selects(select: Callable[[], Any], n: int, warmup: int) -> dict[str, A
 def check_methods(args: argparse.Namespace) -> None:
     """SystemExit with a one-line message naming a ``--method`` / ``--load-method`` that is
     not a selection method of the server."""
-    for flag, name in (("--method", args.method), ("--load-method", args.load_method)):
+    for flag, name in (("--method", args.method), ("--load-method", args.load_method),
+                       ("--flood-method", args.flood_method)):
         if name not in METHODS:
             raise SystemExit(f"{flag}: unknown method {name!r} (known: {', '.join(METHODS)})")
 
@@ -160,6 +174,10 @@ def run(args: argparse.Namespace) -> int:
         if zenoh_ep:
             clients["zenoh"] = ZenohClient([zenoh_ep], token=args.token)
         c = clients["http-msgpack"]
+        phases = {p.strip() for p in args.phases.split(",") if p.strip()}
+        unknown = phases - {"overhead", "load", "neighbour"}
+        if unknown:
+            raise SystemExit(f"--phases: unknown phase(s) {', '.join(sorted(unknown))}")
         f = args.size / 2 / np.tan(np.radians(25))
         intr = {"fx": f, "fy": f, "cx": args.size / 2, "cy": args.size / 2,
                 "width": args.size, "height": args.size}
@@ -170,10 +188,10 @@ def run(args: argparse.Namespace) -> int:
                                  {"bounds": bounds, "init_gaussians": args.max_gaussians})
         sid = f"bench-{os.getpid()}"
         c.create_session(intr, id=sid, pool=poses, instance=args.instance, **scene)
-        if zenoh_ep and args.ros2:
+        if zenoh_ep and args.ros2 and "overhead" in phases:
             clients["ros2"] = _Ros2Client(args.ros2, zenoh_ep, sid, args.token)
         results["overhead"] = {}
-        for name, client in clients.items():
+        for name, client in clients.items() if "overhead" in phases else ():
             for shape in ("preset",) if name == "ros2" else ("preset", "inline"):
                 log.info("timing %s, %s pool", name, shape)
                 if shape == "preset":
@@ -185,7 +203,10 @@ def run(args: argparse.Namespace) -> int:
                 results["overhead"][f"{name}/{shape}"] = _time_selects(
                     select, args.requests, args.warmup)
         c.delete_session(sid)
-        results["load"] = _load(url, args, intr, scene, poses)
+        if "load" in phases:
+            results["load"] = _load(url, args, intr, scene, poses)
+        if "neighbour" in phases:
+            results["neighbour"] = _neighbour(url, args, intr, scene, poses)
     except AgileGSError as exc:
         log.error("benchmark failed: %s", exc)
         return 1
@@ -198,7 +219,9 @@ def run(args: argparse.Namespace) -> int:
     _print(results)
     if args.json_out:
         Path(args.json_out).write_text(json.dumps(results, indent=2))
-    return 0 if results["load"]["errors"] == 0 and results["load"]["lost"] == 0 else 1
+    ld = results.get("load", {"errors": 0, "lost": 0})
+    nb = results.get("neighbour", {"errors": 0})
+    return 0 if ld["errors"] == 0 and ld["lost"] == 0 and nb["errors"] == 0 else 1
 
 
 class _Ros2Client:
@@ -269,6 +292,72 @@ def _load(url: str, args: argparse.Namespace, intr: dict[str, Any], scene: dict[
             "lost": lost, "error_samples": errors[:3]}
 
 
+def _neighbour(url: str, args: argparse.Namespace, intr: dict[str, Any],
+               scene: dict[str, Any], poses: np.ndarray) -> dict[str, Any]:
+    """The quiet session's select + commit round trips, alone and beside a flooded one."""
+    from agilegs.client import AgileGSError, Client
+    from agilegs.client.errors import APIError
+
+    tag = f"{os.getpid()}"
+    noisy = f"noisy-{tag}"
+    errors: list[str] = []
+    with Client(url, token=args.token) as c:
+        c.create_session(intr, id=noisy, pool=poses, instance=args.instance, **scene)
+
+    def quiet_run(sid: str) -> list[float]:
+        with Client(url, token=args.token) as c:
+            c.create_session(intr, id=sid, pool=poses, instance=args.instance, **scene)
+            for _ in range(3):  # warm: the selection, the commit and its write
+                c.select(sid, method=args.load_method, commit=True)
+            out = []
+            for _ in range(args.neighbour_selections):
+                t = time.perf_counter()
+                try:
+                    r = c.select(sid, method=args.load_method, commit=True)
+                    assert r.committed is not None
+                except AgileGSError as exc:
+                    errors.append(f"{sid}: {exc}")
+                    continue
+                out.append((time.perf_counter() - t) * 1e3)
+            c.delete_session(sid)
+        return out
+
+    unloaded = quiet_run(f"quiet-a-{tag}")
+    stop = threading.Event()
+    flood = {"answered": 0, "refused": 0}
+
+    def flooder() -> None:
+        with Client(url, token=args.token, timeout=600) as c:
+            while not stop.is_set():
+                try:
+                    c.select(noisy, method=args.flood_method)
+                    flood["answered"] += 1
+                except APIError as exc:
+                    flood["refused"] += 1
+                    if exc.status not in (429, 503):
+                        errors.append(f"flood: {exc}")
+                        return
+                    time.sleep(0.01)
+
+    threads = [threading.Thread(target=flooder) for _ in range(args.flood_clients)]
+    for th in threads:
+        th.start()
+    time.sleep(1.0)  # the flood under way
+    loaded = quiet_run(f"quiet-b-{tag}")
+    stop.set()
+    for th in threads:
+        th.join()
+    with Client(url, token=args.token) as c:
+        c.delete_session(noisy)
+    a, b = _stats(unloaded or [float("nan")]), _stats(loaded or [float("nan")])
+    return {"method": args.load_method, "flood_method": args.flood_method,
+            "flood_clients": args.flood_clients, "selections": args.neighbour_selections,
+            "unloaded_ms": a, "loaded_ms": b, "p50_ratio": b["p50"] / a["p50"],
+            "p99_ratio": b["p99"] / a["p99"], "flood_answered": flood["answered"],
+            "flood_refused": flood["refused"], "errors": len(errors),
+            "error_samples": errors[:3]}
+
+
 def _print(results: dict[str, Any]) -> None:
     out = sys.stdout
     where = (f", sessions on instance {results['instance']} (forwarded)"
@@ -276,15 +365,30 @@ def _print(results: dict[str, Any]) -> None:
     out.write(f"\nagilegs bench service: select ({results['method']}) over a "
               f"{results['pool']}-candidate pool, {results['gaussians']} Gaussians, "
               f"{results['size']}x{results['size']} px{where}\n\n")
-    out.write(f"{'transport / pool':<24}{'overhead p50':>14}{'p99':>10}{'in server p50':>15}"
-              f"{'p99':>10}{'core p50':>11}{'round trip p50':>16}\n")
+    if results["overhead"]:
+        out.write(f"{'transport / pool':<24}{'overhead p50':>14}{'p99':>10}"
+                  f"{'in server p50':>15}{'p99':>10}{'core p50':>11}{'round trip p50':>16}\n")
     for name, r in results["overhead"].items():
         o, s, c = r["overhead_ms"], r["server_overhead_ms"], r["core_ms"]
         w = r["round_trip_ms"]
         out.write(f"{name:<24}{o['p50']:>11.2f} ms{o['p99']:>7.2f} ms{s['p50']:>12.2f} ms"
                   f"{s['p99']:>7.2f} ms{c['p50']:>8.2f} ms{w['p50']:>13.2f} ms\n")
-    ld = results["load"]
-    out.write(f"\nload: {ld['clients']} clients x {ld['selections'] // max(ld['clients'], 1)} "
-              f"select+commit ({ld['method']}), {ld['selections_per_s']:.1f} selections/s, "
-              f"{ld['errors']} errors, {ld['lost']} acknowledged commits lost\n")
+    ld = results.get("load")
+    if ld is not None:
+        out.write(f"\nload: {ld['clients']} clients x "
+                  f"{ld['selections'] // max(ld['clients'], 1)} select+commit ({ld['method']}), "
+                  f"{ld['selections_per_s']:.1f} selections/s, {ld['errors']} errors, "
+                  f"{ld['lost']} acknowledged commits lost\n")
+    nb = results.get("neighbour")
+    if nb is not None:
+        a, b = nb["unloaded_ms"], nb["loaded_ms"]
+        out.write(f"\nnoisy neighbour: {nb['selections']} select+commit ({nb['method']}) of a "
+                  f"quiet session, alone and while {nb['flood_clients']} clients flood another "
+                  f"with {nb['flood_method']} selects ({nb['flood_answered']} answered, "
+                  f"{nb['flood_refused']} refused 429/503)\n")
+        out.write(f"{'':<12}{'p50':>12}{'p99':>12}\n")
+        out.write(f"{'unloaded':<12}{a['p50']:>9.1f} ms{a['p99']:>9.1f} ms\n")
+        out.write(f"{'loaded':<12}{b['p50']:>9.1f} ms{b['p99']:>9.1f} ms\n")
+        out.write(f"{'ratio':<12}{nb['p50_ratio']:>11.2f}x{nb['p99_ratio']:>11.2f}x"
+                  f"   ({nb['errors']} errors)\n")
     out.flush()

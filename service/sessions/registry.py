@@ -40,6 +40,7 @@ from ..errors import (
 )
 from ..errors import validation_error as _validation_error
 from ..integrity import Damage, FileProblem
+from ..nbv import cancel
 from ..settings import Settings
 from ..store import SessionStore, StoreError
 from .convert import (
@@ -162,13 +163,19 @@ class SessionRegistry:
             self.trainer.close()
 
     # ------------------------------------------------------------------ dispatch
-    def execute(self, op: str, session: str | None, req: BaseModel | None) -> BaseModel:
+    def execute(self, op: str, session: str | None, req: BaseModel | None, *,
+                check: Callable[[], None] | None = None) -> BaseModel:
         """Run operation ``op`` with its validated request; a :class:`ServiceError` for
-        anything refused (the session is then unchanged)."""
+        anything refused (the session is then unchanged). ``check`` is the request's
+        cancellation check (:mod:`agilegs.service.nbv.cancel`): called while waiting for the
+        session's lock and between the steps of a selection, it raises to stop there."""
         handler = HANDLERS.get(op)
         if handler is None:
             raise not_found("op", f"unknown operation {op!r}")
-        return handler(self, session, req)
+        if check is None:
+            return handler(self, session, req)
+        with cancel.scope(check):
+            return handler(self, session, req)
 
     def call(self, op: str, session: str | None, payload: Any) -> BaseModel:
         """:meth:`execute` with decoded request data (for in-process callers)."""

@@ -1,7 +1,8 @@
 """The select operation as a function of the session's record: the session's settings merged
-with the request's (validated once, here), the maths' choice, and, when asked, the chosen view
-acquired (:func:`~agilegs.service.sessions.transitions.acquire`) in the same step; without
-commit, the selection is handed back as a
+with the request's (validated once, here), its cost estimated up front and refused beyond
+``max_select_seconds`` / ``max_select_bytes`` (:func:`check_cost`), the maths' choice, and,
+when asked, the chosen view acquired (:func:`~agilegs.service.sessions.transitions.acquire`)
+in the same step; without commit, the selection is handed back as a
 :class:`~agilegs.service.sessions.transitions.PendingSelection` for the next acquisition."""
 
 from __future__ import annotations
@@ -22,7 +23,9 @@ from agilegs.schemas import models as m
 from agilegs.schemas.config import patch_dict
 from agilegs.schemas.errors import ErrorCode
 
-from ..errors import conflict, invalid, too_large, validation_error
+from ..errors import ServiceError, conflict, invalid, too_large, validation_error
+from ..nbv.backend import default_backend, kernels_available
+from ..nbv.budget import KINDS, Estimate, estimate
 from ..nbv.errors import InputError
 from ..nbv.selectors import Selection, select_validated
 from ..records import SessionRecord, ViewRecord
@@ -38,8 +41,8 @@ from .transitions import (
     with_pool,
 )
 
-__all__ = ["RENDER_WIDTHS", "TOP_LEVEL", "Selected", "check_render_widths", "resolve_config",
-           "select_response", "select_step"]
+__all__ = ["RENDER_WIDTHS", "TOP_LEVEL", "Selected", "check_cost", "check_render_widths",
+           "resolve_config", "select_estimate", "select_response", "select_step"]
 
 TOP_LEVEL = ("shortlist_size", "shortlist", "embodied_k", "seed", "fields")
 """SelectConfig fields a select request carries at its top level."""
@@ -82,6 +85,50 @@ def resolve_config(defaults: dict[str, Any], req: m.SelectRequest, top: dict[str
     except ValidationError as exc:
         raise validation_error(exc, "body.config",
                                rename={k: f"body.{k}" for k in TOP_LEVEL}) from None
+
+
+def select_estimate(rec: SessionRecord, method: str, config: SelectConfig) -> Estimate:
+    """The up-front estimate (:func:`agilegs.service.nbv.budget.estimate`) of a select of
+    ``method`` on ``rec``: its Gaussians, its pool (the ``embodied_k`` nearest in embodied
+    mode), its views, the session's image size (COVER: ``cover_resolution``)."""
+    g = rec.gmap
+    intr = rec.intrinsics
+    w, h = int(intr["width"]), int(intr["height"])
+    if method == "cover" and config.cover_resolution is not None:
+        w, h = config.cover_resolution, max(1, round(config.cover_resolution * h / w))
+    pool = len(rec.pool_ids)
+    if config.embodied_k is not None:
+        pool = min(pool, config.embodied_k)
+    kernels = default_backend() in ("auto", "numba") and kernels_available()
+    return estimate(method, len(g), w * h, pool=pool,  # type: ignore[arg-type]
+                    shortlist=config.shortlist_size, acquired=len(rec.views),
+                    sh_coeffs=int(g.sh.shape[1]), dtype_bytes=g.means.element_size(),
+                    backend="numba" if kernels else "torch")
+
+
+def check_cost(rec: SessionRecord, method: str, config: SelectConfig, limits: Limits) -> None:
+    """422 ``limit_exceeded`` naming ``max_select_seconds`` or ``max_select_bytes``, with the
+    estimate, when the select's up-front estimate exceeds it."""
+    if method not in KINDS:
+        return
+    est = select_estimate(rec, method, config)
+    over = None
+    if est.seconds > limits.max_select_seconds:
+        over = ("max_select_seconds", f"{est.seconds:.3g} s", f"{limits.max_select_seconds:g} s")
+    elif est.peak_bytes > limits.max_select_bytes:
+        over = ("max_select_bytes", f"{est.peak_bytes / 2**20:.0f} MiB",
+                f"{limits.max_select_bytes / 2**20:.0f} MiB")
+    if over is None:
+        return
+    name, got, limit = over
+    intr = rec.intrinsics
+    raise ServiceError(
+        422, ErrorCode.LIMIT_EXCEEDED,
+        f"a {method} select over {len(rec.pool_ids)} candidates of {len(rec.gmap)} Gaussians "
+        f"at {intr['width']}x{intr['height']} is estimated at {got} ({est.seconds:.3g} s, "
+        f"{est.peak_bytes / 2**20:.0f} MiB peak), over {name} ({limit}): use a cheaper method, "
+        "a smaller pool or embodied_k, or a smaller map", "body.method", limit=name,
+        estimate={"peak_bytes": float(est.peak_bytes), "seconds": float(est.seconds)})
 
 
 @dataclass(frozen=True)
@@ -145,6 +192,7 @@ def select_step(rec: SessionRecord, req: m.SelectRequest, limits: Limits, *,
         "seed": req.seed if req.seed is not None else d["seed"],
         "fields": tuple(fields) if fields else None,
     })
+    check_cost(rec, method, config, limits)
     dt = rec.gmap.dtype
     current = None
     current_pose = None

@@ -23,7 +23,8 @@ from __future__ import annotations
 import io
 import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -36,6 +37,7 @@ from agilegs.schemas.geometry import Intrinsics as WireIntrinsics
 
 from ..errors import not_found, session_damaged
 from ..integrity import DamagedFile, FileProblem
+from ..nbv.cancel import checkpoint
 from ..nbv.gaussians import GaussianMap
 from ..records import SessionRecord, ViewRecord
 from ..settings import Settings
@@ -134,6 +136,18 @@ class Session:
         saved = self.env.store.save(new, changed_roles(old, new), blobs)
         self.record = saved
         return saved
+
+    @contextmanager
+    def locked(self) -> Iterator[None]:
+        """Hold the session's lock for a change; while waiting for it, the request's
+        cancellation is checked every 50 ms (:func:`agilegs.service.nbv.cancel.checkpoint`),
+        so a cancelled request stops waiting and frees its worker."""
+        while not self.lock.acquire(timeout=0.05):
+            checkpoint()
+        try:
+            yield
+        finally:
+            self.lock.release()
 
     # ------------------------------------------------------------------ read
     def information_summary(self, rec: SessionRecord) -> m.InformationSummary:
@@ -250,7 +264,7 @@ class Session:
     def set_gaussians(self, req: m.GaussiansIn) -> m.SessionInfo:
         gmap = parse_gaussians(req, "body", max_gaussians=self.settings.max_gaussians,
                                tmp_dir=self.env.tmp_dir)
-        with self.lock:
+        with self.locked():
             self.check_open()
             self.replace_map(gmap)
         return self.info()
@@ -271,7 +285,7 @@ class Session:
 
     def _pool(self, req: m.PoolIn, *, replace_pool: bool) -> m.PoolOut:
         poses = poses_array(req.poses)
-        with self.lock:
+        with self.locked():
             self.check_open()
             new = tr.set_pool(self.record, poses, req.ids, self.limits, "body",
                               replace_pool=replace_pool)
@@ -280,7 +294,7 @@ class Session:
     # ------------------------------------------------------------------ views
     def commit(self, req: m.CommitRequest) -> m.View:
         pose = req.pose.to_matrix() if req.pose is not None else None
-        with self.lock:
+        with self.locked():
             self.check_open()
             new, view = tr.commit_view(self.record, self.limits, candidate_id=req.candidate_id,
                                        pose=pose, keep_in_pool=req.keep_in_pool,
@@ -293,7 +307,7 @@ class Session:
         frames = [parse_frame(o, i, "body.observations", self.record.intrinsics,
                               max_image_pixels=self.settings.max_image_pixels)
                   for i, o in enumerate(req.observations)]
-        with self.lock:
+        with self.locked():
             self.check_open()
             new, blobs, touched = tr.integrate_frames(self.record, frames, "body.observations",
                                                       self.limits, pending=self.pending)
@@ -338,7 +352,7 @@ class Session:
         with ``req.pool`` and / or ``req.commit`` the new pool and the acquired view are
         persisted together, after the selection succeeded. Without commit the selection is
         kept for the next acquisition to take its warm state."""
-        with self.lock:
+        with self.locked():
             self.check_open()
             t_core = time.perf_counter()
             out = select_step(self.record, req, self.limits)

@@ -74,12 +74,16 @@ class Limits:
     max_gaussians: int
     max_shortlist: int
     max_image_pixels: int
+    max_select_seconds: float = float("inf")
+    max_select_bytes: int = 1 << 62
 
     @classmethod
     def of(cls, settings: Settings) -> Limits:
         return cls(max_pool_size=settings.max_pool_size, max_views=settings.max_views,
                    max_gaussians=settings.max_gaussians, max_shortlist=settings.max_shortlist,
-                   max_image_pixels=settings.max_image_pixels)
+                   max_image_pixels=settings.max_image_pixels,
+                   max_select_seconds=settings.max_select_seconds,
+                   max_select_bytes=settings.max_select_bytes)
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,8 @@ def test_bench_service_prints_overhead_and_load(server: ServerProcess, tmp_path:
         [sys.executable, "-m", "agilegs.service.cli", "bench", "service", "--url", server.url,
          "--zenoh", server.zenoh_endpoint, "--requests", "5",
          "--warmup", "1", "--pool", "30", "--max-gaussians", "100", "--size", "16",
-         "--clients", "3", "--selections", "2", "--json", str(out)],
+         "--clients", "3", "--selections", "2", "--flood-clients", "3",
+         "--neighbour-selections", "4", "--flood-method", "cover", "--json", str(out)],
         capture_output=True, text=True, timeout=300,
     )
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
@@ -27,3 +28,8 @@ def test_bench_service_prints_overhead_and_load(server: ServerProcess, tmp_path:
     assert res["load"]["selections"] == 6 and res["load"]["lost"] == 0
     r = res["overhead"]["http-msgpack/preset"]
     assert r["requests"] == 5 and r["overhead_ms"]["p50"] > 0
+    nb = res["neighbour"]
+    assert "noisy neighbour" in proc.stdout and nb["errors"] == 0
+    assert nb["unloaded_ms"]["p50"] > 0 and nb["loaded_ms"]["p99"] >= nb["loaded_ms"]["p50"]
+    # three flooding clients on one session: the per-session queue turned some away
+    assert nb["flood_answered"] > 0

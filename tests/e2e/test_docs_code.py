@@ -133,6 +133,16 @@ HOW: dict[tuple[str, str], How] = {
      "--gaussians 20000,100000 \\"): BENCH,
     ("docs/benchmarks.md", "agilegs bench service --pool 300"):
         How("parse", "a benchmark of minutes (its small run: tests/e2e/test_bench_service.py)"),
+    ("docs/benchmarks.md", "OMP_NUM_THREADS=1 agilegs bench service --phases neighbour"):
+        How("parse", "a benchmark of minutes (its small run: tests/e2e/test_bench_service.py)"),
+    ("docs/benchmarks.md", "OMP_NUM_THREADS=1 agilegs bench bigmap --json bigmap.json     "
+     "# default limits"):
+        How("parse", "a million-Gaussian server session, minutes and GiBs (its small run: "
+                     "tests/e2e/test_bench_bigmap.py)"),
+    ("docs/benchmarks.md", "OMP_NUM_THREADS=1 agilegs bench bigmap --methods "
+     "full_eig,fisherrf,cover \\"):
+        How("parse", "twenty minutes of a million-Gaussian session (its small run: "
+                     "tests/e2e/test_bench_bigmap.py)"),
     ("docs/benchmarks.md", "git worktree add /tmp/old e66334a && (cd /tmp/old && python3 -m "
      "venv .venv && . .venv/bin/activate \\"):
         How("skip", "builds an earlier commit in a worktree with its own install, then four "

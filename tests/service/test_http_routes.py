@@ -8,6 +8,7 @@ import threading
 import time
 import uuid
 from concurrent.futures import ThreadPoolExecutor
+from typing import Any
 
 import httpx
 import msgpack
@@ -192,7 +193,8 @@ def test_concurrent_sessions_lose_nothing(api: InProcess) -> None:
     assert any(b[0] < a[1] for a, b in zip(spans, spans[1:]))
 
 
-def test_same_session_commits_serialise(api: InProcess) -> None:
+def test_same_session_commits_serialise(api_factory: Any) -> None:
+    api = api_factory(max_session_queue=6)  # six at once queue (the default refuses some)
     sid = new_id()
     with api.client() as c:
         c.create_session(SMALL_INTRINSICS, id=sid, bounds=BOUNDS, init_gaussians=100,

@@ -22,6 +22,7 @@ from torch import Tensor
 
 from ..anchor import PoolEnvelope, optimize_anchor_validated, typical_fisher_from_views
 from ..camera import Camera
+from ..cancel import checkpoint
 from ..coverage import coverage_matrix, jl_projection, support_samples
 from ..information import fisher_diag
 from ..leverage import greedy_ridge_leverage_gains, online_ridge_leverage, topnorm_shortlist
@@ -150,6 +151,7 @@ def _rows(ctx: SelectionContext, anchors: list[tuple[Tensor, float]], lat: dict[
         blocks: list[Tensor] = []
         rho: Tensor | None = None
         for a, (pose, weight) in enumerate(anchors):
+            checkpoint()
             x = support_samples(
                 ctx.gmap.means,
                 pose,

@@ -9,6 +9,7 @@ import torch
 from torch import Tensor
 
 from ..camera import Camera, Intrinsics
+from ..cancel import checkpoint
 from ..gaussians import GaussianMap
 from ..information import fisher_diag
 
@@ -46,6 +47,7 @@ def eig_scores_keeping_best(
     best_rank = -math.inf
     with torch.no_grad():
         for i, pose in enumerate(poses.detach().to(g.dtype)):
+            checkpoint()
             h = fisher_diag(
                 g, Camera(c2w=pose, intrinsics=intrinsics), fields=fields, background=background
             )

@@ -30,6 +30,7 @@ import torch
 from torch import Tensor
 
 from ..camera import Camera, Intrinsics
+from ..cancel import checkpoint
 from ..gaussians import GaussianMap
 from ..projection import project_map
 from ..rasterize import render
@@ -165,6 +166,7 @@ def cover_scores(
     scores = []
     with torch.no_grad():
         for pose in candidates.detach().to(means.dtype):
+            checkpoint()
             c = gaussian_coverage(means, pose[:3, 3], bins, filled)
             out = render(g, Camera(c2w=pose, intrinsics=intr), features=c[:, None], near=near)
             assert out.features is not None

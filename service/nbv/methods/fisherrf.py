@@ -46,6 +46,7 @@ from agilegs.config.selection import FISHERRF_FIELDS
 
 from ..backend import Backend, resolve
 from ..camera import Camera
+from ..cancel import checkpoint
 from ..gaussians import GaussianMap
 from ..information import (
     _check_fields,
@@ -157,6 +158,8 @@ def fisherrf_hessian_bruteforce(
     acc = {k: torch.zeros_like(v) for k, v in act.items()}
     names = list(act)
     for i in range(per_pixel.numel()):
+        if i % 256 == 0:
+            checkpoint()
         if not per_pixel[i].requires_grad:
             continue
         grads = torch.autograd.grad(per_pixel[i], [act[k] for k in names], retain_graph=True,
@@ -187,6 +190,7 @@ class FisherRFMethod:
         with timed(lat, "information"):
             h_train = {f: torch.zeros_like(getattr(g, f)) for f in fields}
             for pose in acquired.detach().to(g.dtype):
+                checkpoint()
                 hv = fisherrf_hessian(g, Camera(c2w=pose, intrinsics=ctx.intrinsics),
                                       background=ctx.background, fields=fields)
                 for f in fields:
@@ -195,6 +199,7 @@ class FisherRFMethod:
         with timed(lat, "scoring"):
             acq = torch.empty(len(ctx.eligible), dtype=torch.float64)
             for i, pose in enumerate(ctx.eligible_poses):
+                checkpoint()
                 hv = fisherrf_hessian(g, Camera(c2w=pose, intrinsics=ctx.intrinsics),
                                       background=ctx.background, fields=fields)
                 acq[i] = sum(float((hv[f] * inv[f]).sum(dtype=torch.float64)) for f in fields)
