@@ -21,11 +21,13 @@ import argparse
 import sys
 from typing import Any
 
+import numpy as np
 import torch
 
 from agilegs.service.bench.latency import eig_percentile, spearman
 from agilegs.service.bench.profiles import resolve_profile
 from agilegs.service.bench.protocol import run_progressive
+from agilegs.service.bench.redundancy import angles_to_nearest, pool_directions
 from agilegs.service.bench.scenes import load_bench_scene
 from agilegs.service.bench.variants import parse_variant
 from agilegs.service.nbv.gaussians import GaussianMap
@@ -37,25 +39,17 @@ OVERRIDES = ("pool_size", "resolution", "max_gaussians", "initial_views", "inter
              "view_budget", "shortlist_size", "lam")
 
 
-def directions(poses: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
+def directions(poses: torch.Tensor, centre: torch.Tensor) -> np.ndarray:
     """(N, 4, 4) camera-to-world poses -> (N, 3) unit directions of their centres."""
-    d = poses[:, :3, 3] - centre
-    return d / d.norm(dim=1, keepdim=True)
-
-
-def nearest_angle(cands: torch.Tensor, acquired: torch.Tensor,
-                  centre: torch.Tensor) -> torch.Tensor:
-    """(N,) degrees from each candidate to the nearest acquired view."""
-    cos = directions(cands, centre) @ directions(acquired, centre).T
-    return torch.rad2deg(torch.acos(cos.clamp(-1, 1).max(1).values))
+    return pool_directions(poses[:, :3, 3].double().numpy(), centre.double().numpy())
 
 
 def spread(poses: torch.Tensor, centre: torch.Tensor) -> float:
     """Mean pairwise angle, in degrees, of (n, 4, 4) poses."""
     d = directions(poses, centre)
     n = d.shape[0]
-    ang = torch.rad2deg(torch.acos((d @ d.T).clamp(-1, 1)))
-    return float(ang[~torch.eye(n, dtype=torch.bool)].mean()) if n > 1 else 0.0
+    ang = np.degrees(np.arccos(np.clip(d @ d.T, -1.0, 1.0)))
+    return float(ang[~np.eye(n, dtype=bool)].mean()) if n > 1 else 0.0
 
 
 def snap(args: argparse.Namespace) -> None:
@@ -99,7 +93,9 @@ def stages(args: argparse.Namespace) -> None:
                              s["intr"], config=variant.config(base), acquired=s["acq"],
                              state=state, lam=d["lam"])
                 state = sel.state
-                phi, ang = s["phi"], nearest_angle(s["cands"], s["acq"], centre)
+                phi = s["phi"]
+                ang = angles_to_nearest(directions(s["cands"], centre),
+                                        directions(s["acq"], centre))
                 best = max(sel.shortlist, key=lambda i: float(phi[i]))
                 pool_psi = sel.details.get("pool_proxy_psi") or {}
                 psi = torch.tensor([pool_psi.get(i, float("nan")) for i in range(len(phi))],
