@@ -35,7 +35,8 @@ from .errors import (
     TransportError,
     error_from_body,
 )
-from .zenoh_rpc import credentials, first_answer, open_session
+from .zenoh_rpc import credentials as zenoh_credentials
+from .zenoh_rpc import first_answer, open_session, read_credentials
 
 __all__ = ["ZenohClient"]
 
@@ -44,7 +45,8 @@ class ZenohClient(SyncOperations):
     """Blocking Zenoh client (peer mode, scouting off).
 
     Args:
-        connect: endpoints of the server (its ``--zenoh-listen``) or of a router.
+        connect: endpoints of the server (its ``--zenoh-listen``) or of a router (default:
+            those of ``credentials``, else ``tcp/127.0.0.1:7447``).
         listen: endpoints this peer listens on (none by default).
         token: bearer token, sent as the attachment ``Bearer <token>``.
         timeout: seconds to wait for a reply (sent as the query's ``deadline_ms``: the
@@ -57,11 +59,15 @@ class ZenohClient(SyncOperations):
         tls_root_ca: PEM CA certificate verifying a ``tls/...`` endpoint.
         tls_certificate, tls_private_key: this client's PEM certificate and key, for a
             server with mutual TLS (``AGILEGS_ZENOH_MTLS``).
+        credentials: the JSON file a server started with ``AGILEGS_TOKEN`` writes in its
+            state folder, ``<state-dir>/zenoh/client.json``: its endpoints, the Zenoh user
+            and password it made (and its CA); ``user`` / ``password`` / ``tls_root_ca``
+            given here win.
     """
 
     def __init__(
         self,
-        connect: Sequence[str] = ("tcp/127.0.0.1:7447",),
+        connect: Sequence[str] | None = None,
         *,
         listen: Sequence[str] = (),
         token: str | None = None,
@@ -73,17 +79,30 @@ class ZenohClient(SyncOperations):
         tls_root_ca: str | Path | None = None,
         tls_certificate: str | Path | None = None,
         tls_private_key: str | Path | None = None,
+        credentials: str | Path | None = None,
     ) -> None:
         try:
             import zenoh
         except ImportError as exc:  # pragma: no cover - depends on the install
             raise TransportError("ZenohClient needs eclipse-zenoh: "
                                  "pip install 'agilegs[zenoh]'") from exc
+        if credentials is not None:
+            try:
+                saved = read_credentials(credentials)
+            except ValueError as exc:
+                raise TransportError(str(exc)) from None
+            if user is None and password is None:
+                user, password = saved["user"], saved["password"]
+            tls_root_ca = tls_root_ca if tls_root_ca is not None else saved.get("tls_root_ca")
+            if connect is None and saved["connect"]:
+                connect = saved["connect"]
+        if connect is None:
+            connect = ("tcp/127.0.0.1:7447",)
         self.timeout = timeout
         self._attachment = f"Bearer {token}".encode() if token else None
         self._session: Any = None
         try:
-            extra = credentials(user=user, password=password, root_ca=tls_root_ca,
+            extra = zenoh_credentials(user=user, password=password, root_ca=tls_root_ca,
                                 certificate=tls_certificate, private_key=tls_private_key)
             self._session = open_session(listen, connect, mode, extra)
         except (zenoh.ZError, ValueError) as exc:

@@ -15,7 +15,8 @@ from typing import Any
 
 from agilegs.schemas import codec
 
-__all__ = ["Answer", "credentials", "first_answer", "open_session", "query", "session_config"]
+__all__ = ["Answer", "credentials", "first_answer", "open_session", "query", "read_credentials",
+           "session_config"]
 
 
 def session_config(
@@ -59,6 +60,26 @@ def credentials(*, user: str | None = None, password: str | None = None,
         out["transport/link/tls/connect_certificate"] = str(certificate)
         out["transport/link/tls/connect_private_key"] = str(private_key)
         out["transport/link/tls/enable_mtls"] = True  # present it
+    return out
+
+
+def read_credentials(path: str | Path) -> dict[str, Any]:
+    """What a client needs to reach a server, from the JSON file the server writes in its
+    state folder (``zenoh/client.json``): ``connect`` (the server's endpoints), ``user`` and
+    ``password`` (its Zenoh credentials) and, with TLS, ``tls_root_ca`` (a path; relative
+    paths are relative to the file). ValueError naming the file when it is malformed."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{path}: cannot read the Zenoh credentials: {exc}") from None
+    if not isinstance(data, dict) or not isinstance(data.get("user"), str) \
+            or not isinstance(data.get("password"), str):
+        raise ValueError(f"{path}: expected a JSON object with user and password")
+    out: dict[str, Any] = {"user": data["user"], "password": data["password"],
+                           "connect": [str(e) for e in data.get("connect") or []]}
+    if data.get("tls_root_ca"):
+        out["tls_root_ca"] = path.parent / str(data["tls_root_ca"])
     return out
 
 

@@ -25,7 +25,11 @@ Every request goes through :class:`Admission` on its way to a worker thread
   than ``max_body_items`` values (:func:`count_values`); the images and depth maps of a request
   are priced from their headers before decoding (:func:`decoded_bytes`) against
   ``max_request_decoded_bytes`` (413) and, with every request in flight, against
-  ``max_inflight_decoded_bytes`` (503 with ``Retry-After``).
+  ``max_inflight_decoded_bytes`` (503 with ``Retry-After``). The bodies themselves are
+  priced before they are read (:meth:`Admission.reserve_body`): the bytes of every body being
+  read or held by a request in flight count against ``max_inflight_body_bytes`` (503 with
+  ``Retry-After`` beyond), from the Content-Length, or chunk by chunk without one; a body
+  refused for its size or for the budget is not read.
 """
 
 from __future__ import annotations
@@ -49,14 +53,24 @@ from agilegs.schemas.errors import ErrorCode
 from .errors import ServiceError
 from .settings import Settings
 
-__all__ = ["READ_OPS", "Admission", "Ticket", "count_values", "decoded_bytes",
-           "parse_deadline_ms", "request_decoded_bytes"]
+__all__ = ["CLIENT_CLOSED", "CLIENT_GONE", "READ_OPS", "Admission", "Ticket", "count_values",
+           "decoded_bytes", "parse_deadline_ms", "request_decoded_bytes"]
 
 log = logging.getLogger(__name__)
 
 READ_OPS = frozenset({"health", "list_sessions", "get_session", "get_gaussians",
                       "list_views", "get_pool", "get_information", "get_decisions"})
 """Operations that only read: they run on the read threads and never queue behind compute."""
+
+CLIENT_GONE = "the client disconnected"
+"""A :class:`Ticket`'s reason when its client hung up."""
+
+CLIENT_CLOSED = 499
+"""The status a request whose client hung up is counted with (nginx's "client closed
+request"); it is never sent."""
+
+LARGE_BODY = 4 << 20
+"""A body this large or larger makes the allocator trim once the bodies in flight are done."""
 
 RETRY_AFTER = 1.0
 """Seconds a refusal for load tells the client to wait (``Retry-After``)."""
@@ -120,6 +134,8 @@ class Admission:
         self.compute = 0  # compute requests running or waiting
         self.running = 0  # compute requests on a worker thread
         self.inflight_bytes = 0  # decoded image bytes reserved by requests in flight
+        self.body_bytes = 0  # bytes of request bodies reserved by requests in flight
+        self.large_bodies = 0  # bodies of LARGE_BODY bytes or more since the last trim
 
     # ------------------------------------------------------------------ queueing
     def enter(self, op: str, session: str | None) -> None:
@@ -229,6 +245,37 @@ class Admission:
             with self._lock:
                 self.inflight_bytes -= nbytes
 
+    def reserve_body(self, nbytes: int) -> None:
+        """Count ``nbytes`` more of request body in flight: 503 with ``Retry-After`` when
+        the bodies in flight would pass ``max_inflight_body_bytes``. Pair with
+        :meth:`release_body`."""
+        s = self.settings
+        if nbytes <= 0:
+            return
+        with self._lock:
+            if self.body_bytes + nbytes > s.max_inflight_body_bytes:
+                raise ServiceError(
+                    503, ErrorCode.UNAVAILABLE,
+                    f"request bodies in flight hold {self.body_bytes} bytes; this one needs "
+                    f"{nbytes} more, over max_inflight_body_bytes "
+                    f"({s.max_inflight_body_bytes})", "body",
+                    limit="max_inflight_body_bytes", retry_after=RETRY_AFTER)
+            self.body_bytes += nbytes
+            if nbytes >= LARGE_BODY:
+                self.large_bodies += 1
+
+    def release_body(self, nbytes: int) -> bool:
+        """Give back ``nbytes`` of :meth:`reserve_body`; True when it was the last body in
+        flight and large bodies passed since the last time (time to trim the allocator)."""
+        if nbytes <= 0:
+            return False
+        with self._lock:
+            self.body_bytes -= nbytes
+            if self.body_bytes == 0 and self.large_bodies:
+                self.large_bodies = 0
+                return True
+        return False
+
     # ------------------------------------------------------------------ readiness
     def saturation(self) -> str | None:
         """Why the server cannot take more compute now (None: it can)."""
@@ -240,6 +287,9 @@ class Admission:
             if self.running >= s.workers and self.compute > self.running:
                 waiting = self.compute - self.running
                 return f"all {s.workers} compute workers are busy and {waiting} requests wait"
+            if self.body_bytes >= s.max_inflight_body_bytes:
+                return (f"request bodies in flight hold {self.body_bytes} bytes "
+                        f"(max_inflight_body_bytes {s.max_inflight_body_bytes})")
             if self.inflight_bytes >= s.max_inflight_decoded_bytes:
                 return (f"requests in flight hold {self.inflight_bytes} decoded bytes "
                         f"(max_inflight_decoded_bytes {s.max_inflight_decoded_bytes})")

@@ -56,7 +56,15 @@ from agilegs.schemas.errors import ErrorBody, ErrorCode
 from agilegs.schemas.models import SelectResponse
 from agilegs.schemas.ops import OPERATIONS
 
-from .admission import READ_OPS, Admission, Ticket, count_values, request_decoded_bytes
+from .admission import (
+    CLIENT_CLOSED,
+    CLIENT_GONE,
+    READ_OPS,
+    Admission,
+    Ticket,
+    count_values,
+    request_decoded_bytes,
+)
 from .errors import ServiceError, insufficient_storage, invalid, is_disk_full
 from .metrics import Metrics
 from .sessions.registry import QueryParams, SessionRegistry, parse_request
@@ -384,6 +392,8 @@ class Gateway:
                                        instance=req.params.get("instance"), local=local)
             body = self.encode(result, kind)
         except ServiceError as err:
+            if ticket.reason == CLIENT_GONE:
+                return self.gone_reply(err, kind, req.transport, req.op)
             return self.error_reply(err, kind, req.transport, req.op)
         except Exception as exc:
             if is_disk_full(exc):  # nothing was changed: the store undoes a refused write
@@ -474,6 +484,14 @@ class Gateway:
     def error_reply(self, err: ServiceError, kind: str, transport: str, op: str) -> Reply:
         """The error body of ``err`` in ``kind``, counted."""
         self.count(transport, op, err.status, err.code)
+        return Reply(err.status, codec.dump(err.body(), kind), kind, error=err)
+
+    def gone_reply(self, err: ServiceError, kind: str, transport: str, op: str) -> Reply:
+        """The reply of a request whose client hung up (nobody reads it): logged once at
+        INFO, counted as status 499 (not an error of the server)."""
+        log.info("%s (%s): the client disconnected; the request was cancelled, nothing was "
+                 "changed", op, transport)
+        self.count(transport, op, CLIENT_CLOSED)
         return Reply(err.status, codec.dump(err.body(), kind), kind, error=err)
 
     def count(self, transport: str, op: str, status: int, code: str | None = None) -> None:

@@ -2,7 +2,10 @@
 the gateway.
 
 Each route checks that the response type is acceptable (406) and reads the body, refusing
-more than ``max_body_bytes`` (413) before it has all arrived; then the gateway admits it and
+more than ``max_body_bytes`` (413) before it has all arrived, and its bytes beyond the
+server's budget of bodies in flight (503, :meth:`Admission.reserve_body
+<agilegs.service.admission.Admission.reserve_body>`) before reading them; a client that hangs
+up mid-body is logged at INFO and counted as 499; then the gateway admits it and
 a worker thread runs its pipeline (:meth:`Gateway.submit
 <agilegs.service.gateway.Gateway.submit>`). The ``X-Deadline-Ms`` header shortens the
 request's deadline; a client that disconnects before the answer cancels its request at the
@@ -20,17 +23,19 @@ from typing import Annotated
 
 from fastapi import APIRouter, Path, Request
 from fastapi.responses import Response
+from starlette.requests import ClientDisconnect
 
 from agilegs.schemas import codec
 from agilegs.schemas.errors import ErrorCode
 from agilegs.schemas.models import SESSION_ID_PATTERN
 from agilegs.schemas.ops import OPERATIONS, Operation
 
-from .admission import Ticket, parse_deadline_ms
+from .admission import CLIENT_GONE, Ticket, parse_deadline_ms
 from .errors import ServiceError
 from .gateway import Gateway, Reply
 from .gateway import Request as GatewayRequest
 from .http_decisions import decisions_endpoint
+from .http_edge import release_memory
 from .http_openapi import route_openapi
 
 __all__ = ["build_router", "read_body", "response", "run_pipeline"]
@@ -59,9 +64,17 @@ def response(reply: Reply) -> Response:
                     headers=headers or None)
 
 
-async def read_body(request: Request, gateway: Gateway) -> bytes:
-    """The request body, refusing more than ``max_body_bytes`` (413) before reading it all."""
+class ClientGone(Exception):
+    """The client hung up before its request's body was in."""
+
+
+async def read_body(request: Request, gateway: Gateway, reserved: list[int]) -> bytes:
+    """The request body, refusing more than ``max_body_bytes`` (413) before reading it all,
+    its bytes priced against ``max_inflight_body_bytes`` before they are read (503; added to
+    ``reserved[0]``, which the caller gives back); :class:`ClientGone` when the client hangs
+    up."""
     length = request.headers.get("content-length")
+    size = None
     if length is not None:
         try:
             size = int(length)
@@ -69,12 +82,21 @@ async def read_body(request: Request, gateway: Gateway) -> bytes:
             raise ServiceError(400, ErrorCode.BAD_REQUEST, "Content-Length is not a number",
                                "header.content-length") from None
         gateway.check_size(size)
+        gateway.admission.reserve_body(size)
+        reserved[0] += size
     chunks = []
     total = 0
-    async for chunk in request.stream():
-        total += len(chunk)
-        gateway.check_size(total)
-        chunks.append(chunk)
+    try:
+        async for chunk in request.stream():
+            total += len(chunk)
+            gateway.check_size(total)
+            if size is None or total > size:  # no (or a wrong) Content-Length: as it comes
+                more = total - reserved[0]
+                gateway.admission.reserve_body(more)
+                reserved[0] += more
+            chunks.append(chunk)
+    except ClientDisconnect:
+        raise ClientGone from None
     return b"".join(chunks)
 
 
@@ -100,7 +122,7 @@ async def _on_disconnect(request: Request, ticket: Ticket) -> None:
     while True:
         message = await request.receive()
         if message["type"] == "http.disconnect":
-            ticket.cancel("the client disconnected")
+            ticket.cancel(CLIENT_GONE)
             return
 
 
@@ -117,21 +139,32 @@ def build_router(gateway: Gateway) -> APIRouter:
         t0 = time.perf_counter()
         accept = request.headers.get("accept")
         body = None
+        reserved = [0]
         try:
-            gateway.negotiate(accept)
-            deadline_ms = deadline_header(request)
-            if op.request is not None and not op.query:
-                body = await read_body(request, gateway)
-        except ServiceError as err:
-            kind = codec.negotiate(accept) or codec.JSON
-            return response(gateway.error_reply(err, kind, "http", op.name))
-        req = GatewayRequest(
-            op=op.name, session=session, body=body,
-            content_type=request.headers.get("content-type"), accept=accept,
-            params=dict(request.query_params), transport="http", t0=t0, authenticated=True,
-            deadline_ms=deadline_ms,
-        )
-        return response(await run_pipeline(gateway, req, request))
+            try:
+                gateway.negotiate(accept)
+                deadline_ms = deadline_header(request)
+                if op.request is not None and not op.query:
+                    body = await read_body(request, gateway, reserved)
+            except ServiceError as err:
+                kind = codec.negotiate(accept) or codec.JSON
+                return response(gateway.error_reply(err, kind, "http", op.name))
+            except ClientGone:
+                kind = codec.negotiate(accept) or codec.JSON
+                gone = ServiceError(400, ErrorCode.BAD_REQUEST, "the client disconnected "
+                                    "before its body was in", "body")
+                return response(gateway.gone_reply(gone, kind, "http", op.name))
+            req = GatewayRequest(
+                op=op.name, session=session, body=body,
+                content_type=request.headers.get("content-type"), accept=accept,
+                params=dict(request.query_params), transport="http", t0=t0,
+                authenticated=True, deadline_ms=deadline_ms,
+            )
+            del body
+            return response(await run_pipeline(gateway, req, request))
+        finally:
+            if gateway.admission.release_body(reserved[0]):
+                asyncio.get_running_loop().run_in_executor(None, release_memory)
 
     def endpoint_for(op: Operation) -> Callable[..., Awaitable[Response]]:
         if op.name == "health":

@@ -78,6 +78,13 @@ class ServerProcess:
         assert self.zenoh_port is not None
         return f"tcp/127.0.0.1:{self.zenoh_port}"
 
+    @property
+    def zenoh_credentials(self) -> Path | None:
+        """The Zenoh credentials a server with a token made (``zenoh/client.json`` in its
+        state folder; ``ZenohClient(credentials=...)``), or None when it made none."""
+        path = self.state_dir / "zenoh" / "client.json"
+        return path if path.exists() else None
+
     def command(self) -> list[str]:
         cmd = [sys.executable, "-m", "agilegs.service.cli", "serve", "--host", "127.0.0.1",
                "--port", str(self.port), "--state-dir", str(self.state_dir)]
@@ -114,7 +121,8 @@ class ServerProcess:
             return httpx.get(self.url + "/healthz", headers=headers, timeout=1).status_code == 200
         from agilegs.client.zenoh_client import ZenohClient
 
-        with ZenohClient([self.zenoh_endpoint], token=token, wait=0, timeout=1.0) as zc:
+        with ZenohClient([self.zenoh_endpoint], token=token, wait=0, timeout=1.0,
+                         credentials=self.zenoh_credentials) as zc:
             zc.health()
         return True
 

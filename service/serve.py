@@ -74,6 +74,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--torch-threads", type=int, help="torch intra-op threads, 0 = default "
                                         "(AGILEGS_TORCH_THREADS)")
     a("--max-body-bytes", type=int, help="largest request body (AGILEGS_MAX_BODY_BYTES)")
+    a("--max-inflight-body-bytes", type=int,
+      help="most bytes of request bodies in flight together (AGILEGS_MAX_INFLIGHT_BODY_BYTES)")
+    a("--header-timeout", type=float,
+      help="seconds to send a request's headers (AGILEGS_HEADER_TIMEOUT, 10)")
+    a("--body-timeout", type=float,
+      help="seconds to send a request's body (AGILEGS_BODY_TIMEOUT, 60)")
+    a("--keep-alive-timeout", type=float,
+      help="seconds an idle connection stays open (AGILEGS_KEEP_ALIVE_TIMEOUT, 5)")
+    a("--max-connections", type=int,
+      help="most HTTP connections at once (AGILEGS_MAX_CONNECTIONS, 2048)")
+    a("--max-header-bytes", type=int,
+      help="largest request head (AGILEGS_MAX_HEADER_BYTES, 16384)")
     a("--max-pool-size", type=int, help="most candidates per pool (AGILEGS_MAX_POOL_SIZE)")
     a("--max-image-pixels", type=int, help="most pixels per image (AGILEGS_MAX_IMAGE_PIXELS)")
     a("--max-sessions", type=int, help="most sessions (AGILEGS_MAX_SESSIONS)")
@@ -134,6 +146,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                  "(AGILEGS_ZENOH_USERS_FILE)")
     a("--zenoh-user", help="the Zenoh user this instance connects as (AGILEGS_ZENOH_USER; "
                            "its password: AGILEGS_ZENOH_PASSWORD)")
+    a("--zenoh-insecure", dest="zenoh_insecure", action="store_const", const=True,
+      help="INSECURE: with AGILEGS_TOKEN set, do not make or require Zenoh credentials: any "
+           "peer that reaches the Zenoh endpoints reads every session's data "
+           "(AGILEGS_ZENOH_INSECURE)")
     a("--zenoh-dev-certs", metavar="DIR",
       help="make a development CA, server and client certificate in DIR (once) and serve "
            "tls/ endpoints with them (AGILEGS_ZENOH_DEV_CERTS)")
@@ -148,7 +164,8 @@ _FIELDS = ("host", "port", "state_dir", "http", "zenoh", "zenoh_mode", "instance
            "max_select_seconds", "max_select_bytes", "max_session_queue", "max_queued",
            "request_deadline", "zenoh_tls_certificate", "zenoh_tls_private_key",
            "zenoh_tls_root_ca", "zenoh_mtls", "zenoh_users_file", "zenoh_user",
-           "zenoh_dev_certs")
+           "zenoh_dev_certs", "zenoh_insecure", "max_inflight_body_bytes", "header_timeout",
+           "body_timeout", "keep_alive_timeout", "max_connections", "max_header_bytes")
 
 
 def build_settings(args: argparse.Namespace) -> Any:
@@ -211,11 +228,13 @@ def zenoh_start_error(exc: BaseException, settings: Any) -> str | None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from .http_edge import raise_file_limit, tune_allocator
     from .server import Server
     from .state_dir import StateDirError
 
     settings = build_settings(args)
     settings.warn_if_unsafe()
+    tune_allocator()
     server = Server(settings, freeze_gc=True)
     try:
         server.claim_state()
@@ -243,9 +262,12 @@ def run(args: argparse.Namespace) -> int:
         return failed
     log.info("agilegs serve: http://%s:%d (state in %s, zenoh %s)", settings.host, settings.port,
              settings.state_dir, "on" if settings.zenoh else "off")
+    from .http_edge import uvicorn_config
+
+    raise_file_limit(settings.max_connections)
     config = uvicorn.Config(app, host=settings.host, port=settings.port,
                             log_level=settings.log_level.lower(), access_log=False,
-                            timeout_graceful_shutdown=10)
+                            timeout_graceful_shutdown=10, **uvicorn_config(settings))
     http = uvicorn.Server(config)
     exit_now = http.handle_exit
 

@@ -53,6 +53,25 @@ class Settings(BaseSettings):
     )
     # limits
     max_body_bytes: int = Field(default=64 * 2**20, ge=1024, description="largest request body")
+    max_inflight_body_bytes: int = Field(
+        default=512 << 20, ge=1 << 20, description="most bytes of request bodies being read "
+        "or held by requests in flight together, priced from Content-Length before the body "
+        "is read (503 with Retry-After beyond)")
+    # the HTTP edge (see agilegs.service.http_edge)
+    header_timeout: float = Field(
+        default=10.0, gt=0, description="seconds a connection has to send a request's "
+        "complete headers (from its opening, or its previous response); then it is closed")
+    body_timeout: float = Field(
+        default=60.0, gt=0, description="seconds a request's whole body has to arrive once "
+        "its headers are in; then the connection is closed and the request cancelled")
+    keep_alive_timeout: float = Field(
+        default=5.0, gt=0, description="seconds an idle connection stays open between two "
+        "requests")
+    max_connections: int = Field(
+        default=2048, ge=1, description="most HTTP connections (and requests) at once; a "
+        "request beyond gets 503")
+    max_header_bytes: int = Field(
+        default=16384, ge=1024, description="largest request line and headers (400 beyond)")
     max_pool_size: int = Field(default=10_000, ge=1, description="most candidates per pool")
     max_image_pixels: int = Field(default=4096 * 4096, ge=1, description="most pixels per image")
     max_sessions: int = Field(default=64, ge=1, description="most sessions held")
@@ -107,6 +126,11 @@ class Settings(BaseSettings):
     zenoh_dev_certs: Path | None = Field(
         default=None, description="a folder: a development CA, server and client certificate "
         "are made there (once) and the tls/ endpoints serve with them")
+    zenoh_insecure: bool = Field(
+        default=False, description="INSECURE: with AGILEGS_TOKEN set, serve Zenoh without "
+        "authentication (any peer that reaches the endpoints reads every session's data); "
+        "by default a server with a token and no users file or mutual TLS makes its own "
+        "Zenoh credentials in <state_dir>/zenoh")
     # ROS 2 over Zenoh (see agilegs.service.ros2)
     ros2: Endpoints = Field(
         default_factory=list, description="ROS 2 namespaces served over Zenoh (CDR on the keys "
@@ -210,10 +234,16 @@ class Settings(BaseSettings):
                 "serving on %s without AGILEGS_TOKEN: anyone who can reach it may change state",
                 self.host,
             )
-        loopback = ("tcp/127.0.0.1:", "tcp/localhost:", "tcp/[::1]:")
-        if (self.zenoh and self.zenoh_users_file is None and not self.zenoh_mtls
-                and any(not e.startswith(loopback) for e in self.zenoh_listen)):
-            log.warning(
-                "Zenoh listens on %s without AGILEGS_ZENOH_USERS_FILE or mutual TLS: any peer "
-                "that reaches it sees every session's decisions, frames and candidates (the "
-                "HTTP token does not cover Zenoh traffic)", ",".join(self.zenoh_listen))
+        if self.zenoh and self.zenoh_users_file is None and not self.zenoh_mtls:
+            if self.token is None:
+                log.warning(
+                    "development mode: no AGILEGS_TOKEN, so HTTP and Zenoh (%s) are open: any "
+                    "client or peer that reaches them reads and changes every session; set "
+                    "AGILEGS_TOKEN to require the token and Zenoh credentials",
+                    ",".join(self.zenoh_listen) or "no listen endpoint")
+            elif self.zenoh_insecure:
+                log.warning(
+                    "INSECURE (AGILEGS_ZENOH_INSECURE): Zenoh (%s) authenticates no peer: any "
+                    "peer that reaches it sees every session's decisions, frames and "
+                    "candidates (the token guards requests, not subscriptions)",
+                    ",".join(self.zenoh_listen) or "no listen endpoint")

@@ -17,6 +17,12 @@ for :func:`agilegs.client.zenoh_rpc.session_config`):
   else from or to a peer is denied.
 - ``zenoh_user`` / ``zenoh_password``: what this instance presents when it connects to a
   router or another instance that authenticates its peers.
+- Secure by default: a server with a bearer token (``AGILEGS_TOKEN``) and neither a users
+  file nor mutual TLS makes its own credentials on first start (:func:`own_credentials`):
+  ``<state_dir>/zenoh/users.txt`` (one user, ``agilegs``, with a random password, kept across
+  restarts) serves as its users file, so a peer without them cannot open a session; and
+  ``<state_dir>/zenoh/client.json`` holds what a client needs (the endpoints, user,
+  password: ``ZenohClient(credentials=PATH)``). ``zenoh_insecure`` turns this off.
 
 :func:`make_dev_certs` writes a development CA and a server and a client certificate
 (``agilegs serve --zenoh-dev-certs DIR``).
@@ -26,7 +32,10 @@ from __future__ import annotations
 
 import datetime as dt
 import ipaddress
+import json
 import logging
+import os
+import secrets
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -36,7 +45,8 @@ from agilegs.schemas import keys
 
 from .settings import Settings
 
-__all__ = ["ACL_MESSAGES", "DevCerts", "acl_config", "agilegs_keys", "make_dev_certs",
+__all__ = ["ACL_MESSAGES", "OWN_USER", "DevCerts", "OwnCredentials", "acl_config",
+           "agilegs_keys", "make_dev_certs", "needs_own_credentials", "own_credentials",
            "read_users", "zenoh_settings"]
 
 log = logging.getLogger(__name__)
@@ -87,6 +97,68 @@ def agilegs_keys(ros2: list[str]) -> list[str]:
              f"{keys.PREFIX}/{keys.INSTANCES}/**"] + [f"{ns.strip('/')}/**" for ns in ros2])
 
 
+OWN_USER = "agilegs"
+"""The Zenoh user a server makes for itself (:func:`own_credentials`)."""
+
+
+@dataclass(frozen=True)
+class OwnCredentials:
+    """The files :func:`own_credentials` keeps, and the password it made."""
+
+    users_file: Path
+    client_file: Path
+    user: str
+    password: str
+
+
+def needs_own_credentials(settings: Settings) -> bool:
+    """Whether the server makes its own Zenoh credentials: Zenoh on, a bearer token set, no
+    users file, no mutual TLS, and not ``zenoh_insecure``."""
+    s = settings
+    return (s.zenoh and s.token is not None and not s.zenoh_insecure
+            and s.zenoh_users_file is None and not s.zenoh_mtls)
+
+
+def _write_private(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` readable by its owner only (atomically)."""
+    tmp = path.with_name(path.name + ".tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write(text)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def own_credentials(folder: Path, connect: list[str], root_ca: Path | None = None
+                    ) -> OwnCredentials:
+    """The server's own Zenoh credentials in ``folder``: ``users.txt`` (``agilegs:<random
+    password>``, made once and kept) and ``client.json`` (rewritten: ``connect``, the user,
+    the password and ``root_ca``, what :func:`agilegs.client.zenoh_rpc.read_credentials`
+    reads), both readable by their owner only."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    folder.chmod(0o700)
+    users_file = folder / "users.txt"
+    password = None
+    if users_file.exists():
+        for line in users_file.read_text().splitlines():
+            user, sep, pw = line.strip().partition(":")
+            if sep and user == OWN_USER and pw:
+                password = pw
+                break
+    if password is None:
+        password = secrets.token_urlsafe(32)
+        _write_private(users_file, f"{OWN_USER}:{password}\n")
+        log.info("zenoh: made the credentials of user %r in %s", OWN_USER, users_file)
+    client: dict[str, Any] = {"connect": list(connect), "user": OWN_USER, "password": password}
+    if root_ca is not None:
+        client["tls_root_ca"] = str(Path(root_ca).resolve())
+    client_file = folder / "client.json"
+    _write_private(client_file, json.dumps(client, indent=2) + "\n")
+    return OwnCredentials(users_file, client_file, OWN_USER, password)
+
+
 def zenoh_settings(settings: Settings) -> dict[str, Any]:
     """The Zenoh config entries of the server's security settings (see the module
     docstring); empty when none is set."""
@@ -94,7 +166,17 @@ def zenoh_settings(settings: Settings) -> dict[str, Any]:
     if s.zenoh_dev_certs is not None:
         make_dev_certs(Path(s.zenoh_dev_certs))
     password = s.zenoh_password.get_secret_value() if s.zenoh_password is not None else None
-    out = credentials(user=s.zenoh_user, password=password, root_ca=s.zenoh_tls_root_ca,
+    user = s.zenoh_user
+    users_file = s.zenoh_users_file
+    if needs_own_credentials(s):
+        own = own_credentials(Path(s.state_dir) / "zenoh", s.zenoh_listen, s.zenoh_tls_root_ca)
+        users_file = own.users_file
+        if user is None:  # presented when it connects to a router or the robot's bridge
+            user, password = own.user, own.password
+        log.info("zenoh: peers must authenticate; a client connects with "
+                 "ZenohClient(credentials=%r, token=...) (the endpoints, user and password "
+                 "in that file)", str(own.client_file))
+    out = credentials(user=user, password=password, root_ca=s.zenoh_tls_root_ca,
                       certificate=s.zenoh_tls_certificate if s.zenoh_mtls else None,
                       private_key=s.zenoh_tls_private_key if s.zenoh_mtls else None)
     if s.zenoh_tls_certificate is not None:
@@ -102,13 +184,13 @@ def zenoh_settings(settings: Settings) -> dict[str, Any]:
         out["transport/link/tls/listen_private_key"] = str(s.zenoh_tls_private_key)
     if s.zenoh_mtls:
         out["transport/link/tls/enable_mtls"] = True
-    users = read_users(Path(s.zenoh_users_file)) if s.zenoh_users_file is not None else []
-    if s.zenoh_users_file is not None:
-        out["transport/auth/usrpwd/dictionary_file"] = str(s.zenoh_users_file)
+    users = read_users(Path(users_file)) if users_file is not None else []
+    if users_file is not None:
+        out["transport/auth/usrpwd/dictionary_file"] = str(users_file)
     if users or s.zenoh_mtls:
         key_exprs = agilegs_keys(s.ros2)
         # this instance's own user may reach the others of its cluster
-        names = users + ([s.zenoh_user] if s.zenoh_user and s.zenoh_user not in users else [])
+        names = users + ([user] if user and user not in users else [])
         out["access_control"] = acl_config(key_exprs, names, s.zenoh_mtls)
     return out
 

@@ -22,6 +22,7 @@ import json
 import os
 import time
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -56,6 +57,9 @@ class Ros2Robot:
         namespace: the namespace the server serves (``agilegs serve --ros2 NAMESPACE``).
         connect: Zenoh endpoints to connect to (the server's, or a router's).
         session: an open Zenoh session to use instead (not closed by :meth:`close`).
+        credentials: the server's ``<state-dir>/zenoh/client.json`` (a server with a token
+            requires its Zenoh user and password; its endpoints serve when ``connect`` is
+            empty).
         world_frame: the ``header.frame_id`` of the poses published.
         camera_frame: the frame the camera poses are of (its name sets its axes).
         timeout: seconds a service call may take.
@@ -65,7 +69,8 @@ class Ros2Robot:
 
     def __init__(self, namespace: str, connect: Sequence[str] = (), *, session: Any = None,
                  world_frame: str = "map", camera_frame: str = "camera_optical_frame",
-                 timeout: float = 120.0, wait: float = 10.0) -> None:
+                 timeout: float = 120.0, wait: float = 10.0,
+                 credentials: str | Path | None = None) -> None:
         self.ns = Namespace(namespace)
         self.world_frame = world_frame
         self.camera_frame = camera_frame
@@ -73,9 +78,16 @@ class Ros2Robot:
         self.wait = wait
         self._own = session is None
         if session is None:
-            from agilegs.client.zenoh_rpc import open_session
+            from agilegs.client.zenoh_rpc import credentials as zenoh_credentials
+            from agilegs.client.zenoh_rpc import open_session, read_credentials
 
-            session = open_session((), connect)
+            extra = None
+            if credentials is not None:
+                saved = read_credentials(credentials)
+                connect = connect or saved["connect"]
+                extra = zenoh_credentials(user=saved["user"], password=saved["password"],
+                                          root_ca=saved.get("tls_root_ca"))
+            session = open_session((), connect, extra=extra)
         self.session = session
         self._seq = itertools.count(1)
         self._subs: list[Any] = []

@@ -46,7 +46,7 @@ from agilegs.schemas.models import PoolOut, SelectResponse, SessionInfo
 
 from ..errors import ServiceError
 from ..gateway import Gateway, Reply, Request
-from .assembler import FrameAssembler
+from .assembler import Dropped, FrameAssembler
 from .convert import (
     Binding,
     create_body,
@@ -64,6 +64,20 @@ __all__ = ["Ros2Adapter"]
 log = logging.getLogger(__name__)
 
 TRANSPORT = "ros2"
+
+_PARTS_OF_FIELDS = (("depth", "depth"), ("pose", "camera_pose"), ("intrinsics", "camera_info"),
+                    ("image", "image"))
+
+
+def faulty_part(field: str | None, default: str) -> str:
+    """The topic of the frame part a refused ``add_observations`` field belongs to (e.g.
+    ``observations.0.depth.shape`` -> ``depth``, ``...pose.orientation_xyzw`` ->
+    ``camera_pose``); ``default`` when the field names none."""
+    names = (field or "").split(".")
+    for name, topic in _PARTS_OF_FIELDS:
+        if any(n == name or n.startswith(name + "_") for n in names):
+            return topic
+    return default
 _STOP = object()
 
 
@@ -173,7 +187,14 @@ class Ros2Adapter:
 
     def _drain(self, space: _Space) -> None:
         while True:
-            item = space.inbox.get()
+            try:
+                item = space.inbox.get(timeout=1.0)
+            except queue.Empty:  # frames that never complete are dropped past their deadline
+                try:
+                    self._report_dropped(space, space.frames.expire())
+                except Exception:
+                    log.exception("ros2: expiring frames on %s failed", space.ns.name)
+                continue
             if item is _STOP:
                 return
             kind, leaf, data, t0 = item
@@ -207,16 +228,18 @@ class Ros2Adapter:
                     depth_to_array(message, "depth") if leaf == "depth" else
                     pose_part(message, binding))
             frames, dropped = space.frames.add(leaf, m.stamp_ns(stamp), part)
-            for d in dropped:
-                self._refuse(space, ServiceError(
-                    422, ErrorCode.INVALID, f"the frame stamped {d.stamp_ns} ns was dropped "
-                    f"incomplete: no {' and no '.join(d.missing)} arrived for it",
-                    d.missing[0]), "add_observations", leaf, m.stamp_msg(d.stamp_ns, ns=True))
+            self._report_dropped(space, dropped)
             for frame in frames:
                 stamp = m.stamp_msg(frame.stamp_ns, ns=True)
-                body = frame_body(frame.image, frame.camera_pose, frame.depth,
-                                  space.intrinsics)
-                self._run(space, "add_observations", binding.session, body, t0, "image", stamp)
+                try:
+                    body = frame_body(frame.image, frame.camera_pose, frame.depth,
+                                      space.intrinsics)
+                except FieldError as exc:
+                    self._refuse(space, ServiceError(422, ErrorCode.INVALID, str(exc),
+                                                     exc.field), "add_observations",
+                                 faulty_part(exc.field, leaf), stamp)
+                    continue
+                self._run(space, "add_observations", binding.session, body, t0, leaf, stamp)
         except FieldError as exc:
             self._refuse(space, ServiceError(422, ErrorCode.INVALID, str(exc), exc.field),
                          _TOPIC_OPS[leaf], leaf, stamp)
@@ -228,7 +251,18 @@ class Ros2Adapter:
         reply = self._handle(op, session, body, t0, authenticated=True)
         if not reply.ok:
             assert reply.error is not None
+            if op == "add_observations":  # the part at fault, not the one that completed it
+                topic = faulty_part(reply.error.field, topic)
             self._publish_error(space, reply.error, topic, stamp, reply.body)
+
+    def _report_dropped(self, space: _Space, dropped: list[Dropped]) -> None:
+        """Report each incomplete frame given up, on the topic of the first part it lacked."""
+        for d in dropped:
+            self._refuse(space, ServiceError(
+                422, ErrorCode.INVALID, f"the frame stamped {d.stamp_ns} ns was dropped "
+                f"incomplete: no {' and no '.join(d.missing)} arrived for it",
+                d.missing[0]), "add_observations", d.missing[0] if d.missing else "image",
+                m.stamp_msg(d.stamp_ns, ns=True))
 
     def _refuse(self, space: _Space, err: ServiceError, op: str, topic: str,
                 stamp: Any) -> None:

@@ -143,9 +143,13 @@ def test_zenoh_queries_need_the_token(server_factory: object) -> None:
 
     token = "s3cret-token"
     srv = server_factory(env={"AGILEGS_TOKEN": token}).start()  # type: ignore[operator]
+    creds = srv.zenoh_credentials  # made by the server, with a token, on its first start
+    assert creds is not None and oct(creds.stat().st_mode & 0o777) == "0o600"
+    with pytest.raises(TransportError):  # no Zenoh credentials: no session with the server
+        ZenohClient([srv.zenoh_endpoint], token=token, wait=1.0, timeout=2.0)
     with pytest.raises(AuthenticationError):
-        ZenohClient([srv.zenoh_endpoint], token="wrong")
-    with ZenohClient([srv.zenoh_endpoint], token=token) as z:
+        ZenohClient([srv.zenoh_endpoint], token="wrong", credentials=creds)
+    with ZenohClient(token=token, credentials=creds) as z:  # the endpoints from the file too
         assert z.list_sessions().sessions == []
 
 
@@ -170,7 +174,7 @@ def test_zenoh_refusals_match_http_and_change_nothing(server_factory: object) ->
     session."""
     import httpx
 
-    from agilegs.client.zenoh_rpc import first_answer, open_session
+    from agilegs.client.zenoh_rpc import credentials, first_answer, open_session, read_credentials
     from agilegs.schemas import OPERATIONS, keys
 
     token = "audit-token"
@@ -188,7 +192,9 @@ def test_zenoh_refusals_match_http_and_change_nothing(server_factory: object) ->
 
     before = state()
     http = httpx.Client(base_url=srv.url, headers={"accept": "application/msgpack"})
-    z = open_session(connect=[srv.zenoh_endpoint])
+    saved = read_credentials(srv.zenoh_credentials)
+    z = open_session(connect=[srv.zenoh_endpoint], extra=credentials(
+        user=saved["user"], password=saved["password"]))
     try:
         def ask(key: str, payload: bytes | None = None, attachment: bytes | None = auth,
                 encoding: str = "application/msgpack") -> dict:

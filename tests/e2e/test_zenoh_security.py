@@ -18,7 +18,12 @@ from conftest import SMALL_INTRINSICS, gaussian_blob, ring_poses
 
 from agilegs.client import Client, ZenohClient
 from agilegs.client.errors import TransportError
-from agilegs.client.zenoh_rpc import credentials, first_answer, open_session
+from agilegs.client.zenoh_rpc import (
+    credentials,
+    first_answer,
+    open_session,
+    read_credentials,
+)
 from agilegs.schemas import codec
 from agilegs.service.launch import free_port
 from agilegs.service.settings import Settings
@@ -52,6 +57,78 @@ def test_settings_give_zenoh_its_own_security(tmp_path: Path) -> None:
         Settings(zenoh_mtls=True)  # needs a CA and a certificate
     with pytest.raises(ValueError):
         Settings(zenoh_user="robot")  # needs its password
+
+
+def test_a_token_makes_zenoh_credentials_kept_across_restarts(tmp_path: Path) -> None:
+    state = tmp_path / "state"
+    s = Settings(state_dir=state, token="t", zenoh_listen=["tcp/127.0.0.1:7999"])
+    got = zenoh_settings(s)
+    users = state / "zenoh" / "users.txt"
+    assert got["transport/auth/usrpwd/dictionary_file"] == str(users)
+    assert read_users(users) == ["agilegs"]
+    assert got["access_control"]["default_permission"] == "deny"
+    assert got["access_control"]["subjects"] == [{"id": "agilegs-users",
+                                                  "usernames": ["agilegs"]}]
+    saved = read_credentials(state / "zenoh" / "client.json")
+    assert saved["connect"] == ["tcp/127.0.0.1:7999"] and saved["user"] == "agilegs"
+    assert got["transport/auth/usrpwd/password"] == saved["password"]  # presented to a router
+    for f in ("users.txt", "client.json"):
+        assert (state / "zenoh" / f).stat().st_mode & 0o077 == 0  # the owner's only
+    again = zenoh_settings(s)  # a restart keeps the password
+    assert read_credentials(state / "zenoh" / "client.json")["password"] == saved["password"]
+    assert again["access_control"] == got["access_control"]
+    # no token (development mode), or the explicit insecure flag: no credentials made
+    assert zenoh_settings(Settings(state_dir=tmp_path / "dev")) == {}
+    assert zenoh_settings(Settings(state_dir=tmp_path / "open", token="t",
+                                   zenoh_insecure=True)) == {}
+    assert not (tmp_path / "dev" / "zenoh").exists() and not (tmp_path / "open").exists()
+
+
+def test_a_server_started_as_the_readme_says_shows_a_stranger_nothing(
+        server_factory: Any) -> None:
+    """``AGILEGS_TOKEN=... agilegs serve``, nothing else: a peer without credentials that
+    subscribes to ``agilegs/**`` during selects over HTTP and over Zenoh receives nothing;
+    the client with the server's credentials file receives both decisions."""
+    srv = server_factory(env={"AGILEGS_TOKEN": TOKEN}).start()
+    creds = srv.zenoh_credentials
+    assert creds is not None
+    assert "peers must authenticate" in srv.log()
+    sid = f"dflt-{uuid.uuid4().hex[:6]}"
+    with Client(srv.url, token=TOKEN, timeout=60) as c:
+        c.create_session(SMALL_INTRINSICS, id=sid, gaussians=gaussian_blob(100),
+                         pool=ring_poses(8))
+    stranger_saw: list[str] = []
+    robot_saw: list[str] = []
+    stranger = open_session([], [srv.zenoh_endpoint], "peer")
+    sub = stranger.declare_subscriber("agilegs/**",
+                                      lambda sample: stranger_saw.append(str(sample.key_expr)))
+    try:
+        with ZenohClient(token=TOKEN, credentials=creds, timeout=30) as zc:
+            zc.subscribe_decisions(sid, lambda d: robot_saw.append(d.session))
+            time.sleep(0.5)
+            zc.select(sid, method="random")  # over Zenoh
+            with Client(srv.url, token=TOKEN, timeout=60) as c:
+                c.select(sid, method="random")  # over HTTP
+            deadline = time.monotonic() + 5
+            while len(robot_saw) < 2 and time.monotonic() < deadline:
+                time.sleep(0.05)
+            time.sleep(0.5)
+        assert robot_saw == [sid, sid]
+        assert stranger_saw == []
+        ans, _ = first_answer(stranger, f"agilegs/{sid}/get_session", timeout=1.0,
+                              attachment=f"Bearer {TOKEN}".encode())
+        assert ans is None  # the token alone does not open Zenoh
+    finally:
+        sub.undeclare()
+        stranger.close()
+
+
+def test_without_a_token_the_server_says_it_is_open(server_factory: Any) -> None:
+    srv = server_factory().start()
+    assert srv.zenoh_credentials is None
+    assert "development mode: no AGILEGS_TOKEN" in srv.log()
+    with ZenohClient([srv.zenoh_endpoint], timeout=30) as zc:
+        assert zc.list_sessions().sessions == []
 
 
 def test_an_unauthenticated_peer_sees_nothing_and_changes_nothing(server_factory: Any,

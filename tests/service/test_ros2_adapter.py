@@ -73,7 +73,7 @@ def served(tmp_path: Path) -> Iterator[tuple[Server, str]]:
 
 
 def _robot(ep: str, ns: str = NS, **kwargs: Any) -> Ros2Robot:
-    return Ros2Robot(ns, connect=[ep], timeout=60, **kwargs)
+    return Ros2Robot(ns, connect=[ep], **{"timeout": 60, **kwargs})
 
 
 def _frame(robot: Ros2Robot, c2w: np.ndarray, stamp: int) -> None:
@@ -204,7 +204,13 @@ def test_bad_input_is_refused_naming_the_field_and_changes_nothing(
 
 def test_the_token_guards_every_service_and_binds_the_topics(tmp_path: Path) -> None:
     with _serve(tmp_path, token="s3cret") as (srv, ep):
-        with _robot(ep) as robot:
+        # with a token the server makes Zenoh credentials: a robot without them gets nothing
+        with _robot(ep, timeout=2) as stranger:
+            with pytest.raises(TimeoutError):
+                stranger.create_session(bounds=BOUNDS, session="t0",
+                                        intrinsics=SMALL_INTRINSICS)
+        creds = tmp_path / "state" / "zenoh" / "client.json"
+        with _robot(ep, credentials=creds) as robot:
             errors = _errors(robot)
             time.sleep(0.3)
             denied = robot.create_session(bounds=BOUNDS, session="t1",
