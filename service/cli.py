@@ -33,6 +33,8 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("bench", "service"), "agilegs.service.bench.service_bench", "transport overhead"),
     (("bench", "bigmap"), "agilegs.service.bench.bigmap",
      "a server holding a session of a million Gaussians: memory and time per method"),
+    (("bench", "edge"), "agilegs.service.bench.edge",
+     "slow and idle connections, and large bodies at once: what they cost the server"),
     (("bench", "value"), "agilegs.service.bench.value",
      "what each candidate is worth, and which scores predict it"),
     (("bench", "proxy"), "agilegs.service.bench.proxy_check",
@@ -41,7 +43,7 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
 
 GROUPS: dict[str, str] = {
     "store": "check or repair a server's state folder, offline",
-    "bench": "the benchmarks: render, latency, run, service, bigmap, value, proxy",
+    "bench": "the benchmarks: render, latency, run, service, bigmap, edge, value, proxy",
 }
 """The help of each command that groups subcommands."""
 

@@ -136,6 +136,11 @@ class Reply:
         self.status = status
         self.body = body
         self.media_type = media_type
+        if error is not None:
+            # the refusal's traceback holds the frames that raised it, and through them the
+            # request (its body) and this reply: a cycle only a full collection would free
+            error.__traceback__ = None
+            error.__context__ = error.__cause__ = None
         self.error = error
         self._model = model
         self._decode = decode
@@ -486,13 +491,14 @@ class Gateway:
         self.count(transport, op, err.status, err.code)
         return Reply(err.status, codec.dump(err.body(), kind), kind, error=err)
 
-    def gone_reply(self, err: ServiceError, kind: str, transport: str, op: str) -> Reply:
-        """The reply of a request whose client hung up (nobody reads it): logged once at
-        INFO, counted as status 499 (not an error of the server)."""
-        log.info("%s (%s): the client disconnected; the request was cancelled, nothing was "
-                 "changed", op, transport)
+    def gone_reply(self, err: ServiceError, kind: str, transport: str, op: str,
+                   why: str = "the client disconnected") -> Reply:
+        """The reply of a request whose client hung up (nobody reads it: its body is
+        empty): logged once at INFO, counted as status 499 (not an error of the server)."""
+        log.info("%s (%s): %s; the request was cancelled, nothing was changed", op, transport,
+                 why)
         self.count(transport, op, CLIENT_CLOSED)
-        return Reply(err.status, codec.dump(err.body(), kind), kind, error=err)
+        return Reply(CLIENT_CLOSED, b"", kind, error=err)
 
     def count(self, transport: str, op: str, status: int, code: str | None = None) -> None:
         if self.metrics is not None:

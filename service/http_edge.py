@@ -6,8 +6,8 @@ open, and memory handed back to the operating system.
   previous response); bytes trickling in do not extend it. Once the headers are in, the whole
   body must arrive within ``body_timeout`` seconds. A connection past either deadline is
   closed: one still waiting for headers silently (logged at DEBUG), one in the middle of a
-  body as a client that hung up (the request's work is cancelled, status 499 in the
-  metrics).
+  body as a client that hung up (logged once at INFO with the reason, the request's work
+  cancelled, status 499 in the metrics).
 - :func:`uvicorn_config` gives uvicorn the protocol, the keep-alive limit
   (``keep_alive_timeout``: an idle connection between two requests is closed after it), the
   connection cap (``max_connections``: beyond it a request gets 503) and the largest request
@@ -34,10 +34,15 @@ from uvicorn.protocols.http.h11_impl import H11Protocol
 
 from .settings import Settings
 
-__all__ = ["EdgeProtocol", "raise_file_limit", "release_memory", "tune_allocator",
+__all__ = ["TIMED_OUT", "EdgeProtocol", "raise_file_limit", "release_memory", "tune_allocator",
            "uvicorn_config"]
 
 log = logging.getLogger(__name__)
+
+
+TIMED_OUT = "agilegs.body_timeout"
+"""The scope key the protocol sets (to ``body_timeout``) on a request whose connection it
+closed because the body was late."""
 
 
 class EdgeProtocol(H11Protocol):
@@ -102,10 +107,11 @@ class EdgeProtocol(H11Protocol):
         if phase == "headers":
             log.debug("closing the connection of %s: no complete request headers within "
                       "%.0f s (header_timeout)", who, self.header_timeout)
-        else:
-            log.info("closing the connection of %s: the body of %s %s did not arrive within "
-                     "%.0f s (body_timeout)", who, self.scope.get("method"),
-                     self.scope.get("path"), self.body_timeout)
+        else:  # the request reading the body logs it, once (agilegs.service.http_routes)
+            self.scope[TIMED_OUT] = self.body_timeout  # type: ignore[literal-required]
+            log.debug("closing the connection of %s: the body of %s %s did not arrive within "
+                      "%.0f s (body_timeout)", who, self.scope.get("method"),
+                      self.scope.get("path"), self.body_timeout)
         self.transport.close()
 
 

@@ -30,12 +30,12 @@ from agilegs.schemas.errors import ErrorCode
 from agilegs.schemas.models import SESSION_ID_PATTERN
 from agilegs.schemas.ops import OPERATIONS, Operation
 
-from .admission import CLIENT_GONE, Ticket, parse_deadline_ms
+from .admission import CLIENT_CLOSED, CLIENT_GONE, Ticket, parse_deadline_ms
 from .errors import ServiceError
 from .gateway import Gateway, Reply
 from .gateway import Request as GatewayRequest
 from .http_decisions import decisions_endpoint
-from .http_edge import release_memory
+from .http_edge import TIMED_OUT, release_memory
 from .http_openapi import route_openapi
 
 __all__ = ["build_router", "read_body", "response", "run_pipeline"]
@@ -64,13 +64,19 @@ def response(reply: Reply) -> Response:
                     headers=headers or None)
 
 
+BODY_COPIES = 2
+"""A body read costs up to twice its size (its chunks, then the joined bytes): it is priced
+at that against ``max_inflight_body_bytes``."""
+
+
 class ClientGone(Exception):
     """The client hung up before its request's body was in."""
 
 
 async def read_body(request: Request, gateway: Gateway, reserved: list[int]) -> bytes:
     """The request body, refusing more than ``max_body_bytes`` (413) before reading it all,
-    its bytes priced against ``max_inflight_body_bytes`` before they are read (503; added to
+    :data:`BODY_COPIES` times its bytes priced against ``max_inflight_body_bytes`` before
+    they are read (503; added to
     ``reserved[0]``, which the caller gives back); :class:`ClientGone` when the client hangs
     up."""
     length = request.headers.get("content-length")
@@ -82,8 +88,8 @@ async def read_body(request: Request, gateway: Gateway, reserved: list[int]) -> 
             raise ServiceError(400, ErrorCode.BAD_REQUEST, "Content-Length is not a number",
                                "header.content-length") from None
         gateway.check_size(size)
-        gateway.admission.reserve_body(size)
-        reserved[0] += size
+        gateway.admission.reserve_body(BODY_COPIES * size)
+        reserved[0] += BODY_COPIES * size
     chunks = []
     total = 0
     try:
@@ -91,7 +97,7 @@ async def read_body(request: Request, gateway: Gateway, reserved: list[int]) -> 
             total += len(chunk)
             gateway.check_size(total)
             if size is None or total > size:  # no (or a wrong) Content-Length: as it comes
-                more = total - reserved[0]
+                more = BODY_COPIES * total - reserved[0]
                 gateway.admission.reserve_body(more)
                 reserved[0] += more
             chunks.append(chunk)
@@ -150,10 +156,12 @@ def build_router(gateway: Gateway) -> APIRouter:
                 kind = codec.negotiate(accept) or codec.JSON
                 return response(gateway.error_reply(err, kind, "http", op.name))
             except ClientGone:
-                kind = codec.negotiate(accept) or codec.JSON
-                gone = ServiceError(400, ErrorCode.BAD_REQUEST, "the client disconnected "
-                                    "before its body was in", "body")
-                return response(gateway.gone_reply(gone, kind, "http", op.name))
+                late = request.scope.get(TIMED_OUT)
+                why = (f"its body did not arrive within {late:g} s (body_timeout): the "
+                       "connection was closed" if late else
+                       "the client disconnected before its body was in")
+                gone = ServiceError(CLIENT_CLOSED, ErrorCode.BAD_REQUEST, why, "body")
+                return response(gateway.gone_reply(gone, codec.JSON, "http", op.name, why))
             req = GatewayRequest(
                 op=op.name, session=session, body=body,
                 content_type=request.headers.get("content-type"), accept=accept,

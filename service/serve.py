@@ -187,7 +187,9 @@ def build_settings(args: argparse.Namespace) -> Any:
 def bind_http(host: str, port: int) -> socket.socket:
     """The HTTP server's socket, bound (as uvicorn binds it); OSError if it cannot be."""
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
-    sock = socket.socket(family=family)
+    # IPPROTO_TCP named: asyncio sets TCP_NODELAY only on sockets that name it, and without
+    # it a response sent in two writes waits for the client's delayed ACK (about 40 ms)
+    sock = socket.socket(family, socket.SOCK_STREAM, socket.IPPROTO_TCP)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     try:
         sock.bind((host, port))

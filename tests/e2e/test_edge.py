@@ -18,7 +18,7 @@ from conftest import SMALL_INTRINSICS, gaussian_blob
 from agilegs.client import Client
 
 EDGE = {"AGILEGS_HEADER_TIMEOUT": "1.5", "AGILEGS_BODY_TIMEOUT": "2",
-        "AGILEGS_KEEP_ALIVE_TIMEOUT": "1", "AGILEGS_MAX_INFLIGHT_BODY_BYTES": str(3 << 20)}
+        "AGILEGS_KEEP_ALIVE_TIMEOUT": "1", "AGILEGS_MAX_INFLIGHT_BODY_BYTES": str(5 << 20)}
 
 
 def _connect(port: int) -> socket.socket:
