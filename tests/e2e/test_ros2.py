@@ -8,6 +8,7 @@ Peers meet on a loopback TCP endpoint with multicast and gossip scouting off.
 from __future__ import annotations
 
 import ast
+import json
 import subprocess
 import sys
 import time
@@ -145,6 +146,17 @@ def test_the_bridge_config_and_launch_file_load() -> None:
     conf = zenoh.Config.from_file(str(ROOT / "deploy" / "ros2" / "zenoh-bridge-ros2dds.json5"))
     plugin = conf.get_json("plugins/ros2dds")
     assert '"namespace"' in plugin and "agilegs/select" in plugin
+    # closed as the server is: its users file, its user, access control on the agilegs keys
+    from agilegs.service.zenoh_security import ACL_MESSAGES, OWN_USER
+
+    assert json.loads(conf.get_json("transport/auth/usrpwd/dictionary_file"))
+    assert json.loads(conf.get_json("transport/auth/usrpwd/user")) == OWN_USER
+    acl = json.loads(conf.get_json("access_control"))
+    assert acl["enabled"] and acl["default_permission"] == "deny"
+    assert acl["rules"][0]["messages"] == ACL_MESSAGES
+    assert "bot1/agilegs/**" in acl["rules"][0]["key_exprs"]
+    assert [(s["id"], s["usernames"]) for s in acl["subjects"]] == [("agilegs-users",
+                                                                     [OWN_USER])]
     for name in ("agilegs_robot.launch.py", "camera_pose_node.py"):
         ast.parse((ROOT / "deploy" / "ros2" / name).read_text())
     assert (ROOT / "deploy" / "ros2" / "agilegs_interfaces" / "package.xml").is_file()

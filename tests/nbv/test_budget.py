@@ -3,12 +3,21 @@ fresh processes on small maps staying under them."""
 
 from __future__ import annotations
 
+import math
 import multiprocessing as mp
+import os
 from typing import Any
 
 import pytest
 
-from agilegs.service.nbv.budget import KINDS, estimate, footprint_area, mean_footprint
+from agilegs.service.nbv.budget import (
+    ALLOCATOR_BYTES,
+    KINDS,
+    MEMORY_MARGIN,
+    estimate,
+    footprint_area,
+    mean_footprint,
+)
 
 
 def test_estimates_grow_with_the_work() -> None:
@@ -57,12 +66,12 @@ def test_bad_arguments_name_the_field(kwargs: dict[str, Any], field: str) -> Non
         estimate(args.pop("kind"), args.pop("gaussians"), args.pop("pixels"), **args)
 
 
-def _measure(q: Any, kind: str, n: int, res: int, pool: int) -> None:
+def _measure(q: Any, kind: str, n: int, res: int, pool: int, threads: int = 1) -> None:
     """In a fresh process: the peak RSS a computation adds, and the estimate beside it."""
     try:
         import torch
 
-        torch.set_num_threads(1)
+        torch.set_num_threads(threads)
         from agilegs.service.bench.latency import PeakRSS, densified
         from agilegs.service.data import bundled_scene
         from agilegs.service.nbv import backend
@@ -105,24 +114,55 @@ def _measure(q: Any, kind: str, n: int, res: int, pool: int) -> None:
         q.put({"error": repr(exc)})
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("kind, n, res, pool", [
-    ("render_grad", 30_000, 128, 4),
-    ("fisher", 30_000, 128, 4),
-    ("agile_plus", 30_000, 96, 12),
-    ("cover", 30_000, 96, 4),
-])
-def test_measured_peaks_stay_under_the_estimate(kind: str, n: int, res: int, pool: int) -> None:
+ALLOCATORS = {"default": ({}, 1), "one-arena": ({"MALLOC_ARENA_MAX": "1"}, 1),
+              "two-threads": ({}, 2), "eager-trim": ({"MALLOC_TRIM_THRESHOLD_": "0",
+                                                      "MALLOC_MMAP_THRESHOLD_": "65536"}, 1)}
+"""Allocator settings the peaks are measured under (environment of the fresh process, torch
+threads)."""
+
+
+def _measured(kind: str, n: int, res: int, pool: int, allocator: str) -> dict[str, Any]:
+    env, threads = ALLOCATORS[allocator]
     ctx = mp.get_context("spawn")
     q = ctx.Queue()
-    proc = ctx.Process(target=_measure, args=(q, kind, n, res, pool))
-    proc.start()
+    saved = {k: os.environ.get(k) for k in env}
+    os.environ.update(env)  # the spawned process starts with it (glibc reads it at start)
+    try:
+        proc = ctx.Process(target=_measure, args=(q, kind, n, res, pool, threads))
+        proc.start()
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
     out = q.get(timeout=600)
     proc.join()
     assert "error" not in out, out
+    return out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind, n, res, pool, allocator", [
+    ("render_grad", 30_000, 128, 4, "default"),
+    ("fisher", 30_000, 128, 4, "default"),
+    ("agile_plus", 30_000, 96, 12, "default"),
+    ("cover", 30_000, 96, 4, "default"),
+    ("cover", 30_000, 96, 4, "one-arena"),
+    ("cover", 30_000, 96, 4, "two-threads"),
+    ("agile_plus", 30_000, 96, 12, "eager-trim"),
+    ("fisher", 30_000, 128, 4, "two-threads"),
+])
+def test_measured_peaks_stay_under_the_estimate(kind: str, n: int, res: int, pool: int,
+                                                allocator: str) -> None:
+    out = _measured(kind, n, res, pool, allocator)
     est = estimate(kind, n, res * res, pool=pool, acquired=2, sh_coeffs=out["sh"])  # type: ignore[arg-type]
     tight = estimate(kind, n, res * res, pool=pool, acquired=2, sh_coeffs=out["sh"],  # type: ignore[arg-type]
                      footprint=out["footprint"])
     assert out["measured"] > 0
+    # the bound: the model with its stated margin
+    assert est.peak_bytes == (est.model_bytes + math.ceil(est.model_bytes * (MEMORY_MARGIN - 1))
+                              + ALLOCATOR_BYTES)
     assert out["measured"] <= min(tight.peak_bytes, est.peak_bytes), (out, tight, est)
+    # and not a vacuous one
     assert est.peak_bytes < 30 * out["measured"] + (64 << 20), (out, est)

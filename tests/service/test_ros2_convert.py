@@ -201,3 +201,31 @@ def test_frames_pair_by_stamp_in_any_order() -> None:
         (10, ("camera_pose",))]
     with pytest.raises(ValueError):
         small.add("cmd_vel", 1, "x")
+
+
+def test_incomplete_frames_are_dropped_past_their_deadline() -> None:
+    fa = FrameAssembler(expect_depth=True, deadline=10.0)
+    fa.add("image", 1_000, "i1")
+    fa.add("camera_pose", 2_000, "p2")
+    fa.add("depth", 50 * 10**9, "lone depth")
+    t0 = fa.pending[1_000].arrived
+    assert fa.expire(t0 + 9.0) == []  # within the deadline: they wait
+    dropped = fa.expire(t0 + 60.0)
+    assert [(d.stamp_ns, d.missing) for d in dropped] == [
+        (1_000, ("camera_pose", "depth")), (2_000, ("image", "depth"))]
+    assert fa.pending == {} and fa.depths == {}  # their parts are freed
+    assert fa.expire(t0 + 120.0) == []
+
+
+@pytest.mark.parametrize("field, topic", [
+    ("observations.0.depth.shape", "depth"), ("observations.0.depth_scale", "depth"),
+    ("depth.width", "depth"), ("observations.0.pose.orientation_xyzw", "camera_pose"),
+    ("observations.0.intrinsics.fx", "camera_info"), ("image.width", "image"),
+    ("observations.0.image.data", "image"), ("body", "camera_pose"), (None, "camera_pose"),
+])
+def test_a_refused_frame_names_the_part_at_fault(field: str | None, topic: str) -> None:
+    from agilegs.service.ros2.adapter import faulty_part
+
+    # the part whose arrival completed the frame (here its pose) is named only when the field
+    # names no part
+    assert faulty_part(field, "camera_pose") == topic
