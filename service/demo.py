@@ -18,7 +18,9 @@ folder, HTTP only) and plays a simulated robot written with the client SDK
    robot polls the session's state until the mapper is idle, downloads the map
    (``get_gaussians``) and computes the PSNR on the held-out views. One line per event and
    method: the chosen candidate, the selection's latency breakdown and the PSNR.
-4. A summary table, ``psnr.png`` (test PSNR against views, both methods) and ``demo.json``
+4. A summary table (printed and written as ``psnr.md``, with each method's mean selection time
+   and where AGILE-GS+ stands against Random, computed from the run), ``psnr.png`` (test PSNR
+   against views, both methods) and ``demo.json``
    in ``--out``, and the scene's attribution.
 
 With ``--view`` a live browser view (:class:`~agilegs.service.viewer.live.SessionViewer`,
@@ -95,12 +97,11 @@ QUICK = DemoSize(width=32, gt_gaussians=400, pool_size=14, test_count=3, initial
                  init_gaussians=250, events=2, steps_per_view=6, shortlist_size=4,
                  max_gaussians=500, densify_every=6)
 
-EXPECT = ("What you will see: one line per event and method (the view chosen, the selection's "
-          "latency breakdown in ms, the PSNR on held-out views), then a table. AGILE-GS+ takes "
-          "about a second per selection, Random milliseconds. With the default settings on the "
-          "bundled Spot, AGILE-GS+ trails Random over the first three events (by 1 to 2 dB) and "
-          "is ahead from the fourth on (by 0.6 to 1.9 dB). One run is noisy: "
-          "docs/benchmarks.md has the paired figures over twelve scenes.")
+EXPECT = ("What this run measures: per event and method, the view chosen, the selection's "
+          "latency breakdown in ms and the PSNR on held-out views; at the end, the PSNR table "
+          "(also written to psnr.md), each method's mean selection time, and at which events "
+          "AGILE-GS+ is ahead of, level with or behind Random, all computed from this run. One "
+          "run is noisy: docs/benchmarks.md has the paired figures over twelve scenes.")
 """What the demo shows, printed first."""
 
 BACKGROUND = (1.0, 1.0, 1.0)
@@ -348,10 +349,11 @@ def run(args: argparse.Namespace) -> int:
     wall = time.perf_counter() - t_start
     results.update(scene=args.scene, size=asdict(size), seed=int(args.seed), wall_s=wall,
                    attribution=attribution(args.scene))
-    summary(console, results)
+    (out / "psnr.md").write_text(summary(console, results))
     png = plot(results, out / "psnr.png")
     (out / "demo.json").write_text(json.dumps(results, indent=2))
-    console.print(f"plot: {png}\nresults: {out / 'demo.json'}", soft_wrap=True)
+    console.print(f"table: {out / 'psnr.md'}\nplot: {png}\nresults: {out / 'demo.json'}",
+                  soft_wrap=True)
     console.print(results["attribution"], soft_wrap=True)
     console.print(f"done in {wall:.1f} s", soft_wrap=True)
     return 0
@@ -463,33 +465,55 @@ def _loop(url: str, robot: Robot, size: DemoSize, seed: int, console: Console,
     return results
 
 
-def summary(console: Console, results: dict[str, Any]) -> None:
-    """The PSNR table of both methods per event."""
+LEVEL_DB = 0.1
+"""PSNR differences smaller than this are reported as level."""
+
+
+def summary(console: Console, results: dict[str, Any]) -> str:
+    """Print the PSNR table of both methods per event, each method's mean selection time and
+    where AGILE-GS+ stands against Random, as this run measured them; returns the table and
+    those lines as Markdown."""
     from rich.table import Table
 
     names = dict(METHODS)
     keys = list(results["methods"])
     table = Table(title="test PSNR (dB) per event")
-    table.add_column("event", justify="right")
-    table.add_column("views", justify="right")
-    for k in keys:
-        table.add_column(names.get(k, k), justify="right")
-    if len(keys) == 2:
-        table.add_column("Δ", justify="right")
+    head = ["event", "views"] + [names.get(k, k) for k in keys] + (["Δ"] if len(keys) == 2
+                                                                   else [])
+    for h in head:
+        table.add_column(h, justify="right")
+    md = ["| " + " | ".join(head) + " |", "|" + "---:|" * len(head)]
     curves = [results["methods"][k]["curve"] for k in keys]
+    deltas: list[tuple[int, float]] = []
     for i in range(min(len(cv) for cv in curves)):
         vals = [cv[i]["psnr"] for cv in curves]
         row = [str(i), str(curves[0][i]["views"])] + [f"{v:.2f}" for v in vals]
         if len(vals) == 2:
             row.append(f"{vals[0] - vals[1]:+.2f}")
+            if i > 0:
+                deltas.append((i, vals[0] - vals[1]))
         table.add_row(*row)
+        md.append("| " + " | ".join(row) + " |")
     console.print(table)
+    lines = []
     for k in keys:
         ev = results["methods"][k]["events"]
         if ev:
             tot = [e["latency_ms"].get("total", math.nan) for e in ev]
-            console.print(f"{names.get(k, k)}: mean selection {sum(tot) / len(tot):.1f} ms "
-                          f"over {len(ev)} events", soft_wrap=True)
+            lines.append(f"{names.get(k, k)}: mean selection {sum(tot) / len(tot):.1f} ms "
+                         f"over {len(ev)} events")
+    if deltas and len(keys) == 2:
+        a, b = (names.get(k, k) for k in keys)
+        groups = {"ahead of": [i for i, d in deltas if d >= LEVEL_DB],
+                  "level with": [i for i, d in deltas if abs(d) < LEVEL_DB],
+                  "behind": [i for i, d in deltas if d <= -LEVEL_DB]}
+        parts = [f"{what} {b} at event{'s' if len(idx) > 1 else ''} "
+                 f"{', '.join(str(i) for i in idx)}" for what, idx in groups.items() if idx]
+        lines.append(f"{a} is " + "; ".join(parts) + f" (|Δ| < {LEVEL_DB} dB: level); "
+                     f"last event Δ {deltas[-1][1]:+.2f} dB")
+    for line in lines:
+        console.print(line, soft_wrap=True)
+    return "\n".join(md + [""] + lines) + "\n"
 
 
 def plot(results: dict[str, Any], path: Path) -> Path:

@@ -139,21 +139,31 @@ def plot_trajectories(
     rows = math.ceil(len(keys) / cols)
     fig = plt.figure(figsize=(4.2 * cols, 4.0 * rows))
     pool = scene.pool_poses[:, :3, 3].numpy() if scene is not None else None
+    legend: list[tuple[Any, str]] = []
     for j, k in enumerate(keys):
         ax = fig.add_subplot(rows, cols, j + 1, projection="3d")
         seed = sorted(runs[k], key=int)[0]
         rec = runs[k][seed]
         if pool is not None:
-            ax.scatter(pool[:, 0], pool[:, 2], -pool[:, 1], s=3, c="0.75", depthshade=False)
+            ax.scatter(pool[:, 0], pool[:, 2], -pool[:, 1], s=3, c="0.75", depthshade=False,
+                       label="candidate pool")
             ini = pool[rec["initial"]]
-            ax.scatter(ini[:, 0], ini[:, 2], -ini[:, 1], s=22, c="k", marker="s")
+            ax.scatter(ini[:, 0], ini[:, 2], -ini[:, 1], s=22, c="k", marker="s",
+                       label="initial views")
         tr = rec["trajectory"]
         xs = [p[0] for p in tr]
         ys = [p[2] for p in tr]
         zs = [-p[1] for p in tr]  # world up is -y: plot it upwards
-        ax.plot(xs, ys, zs, "-", color=_color(k, j), lw=1.2)
-        ax.scatter(xs[1:], ys[1:], zs[1:], c=range(len(xs) - 1), cmap="viridis", s=18,
-                   depthshade=False)
+        ax.plot(xs, ys, zs, "-", color=_color(k, j), lw=1.2, label="path")
+        points = ax.scatter(xs[1:], ys[1:], zs[1:], c=range(len(xs) - 1), cmap="viridis",
+                            s=18, depthshade=False, label="views chosen")
+        if j == 0:
+            handles, labels = ax.get_legend_handles_labels()
+            legend = [(h, lab) for h, lab in zip(handles, labels, strict=True)]
+        if len(xs) > 1 and j == len(keys) - 1:
+            bar = fig.colorbar(points, ax=ax, shrink=0.5, pad=0.1)
+            bar.set_label("event (order chosen)", fontsize="x-small")
+            bar.ax.tick_params(labelsize="xx-small")
         ax.set_title(f"{_name(k)} (seed {seed})", fontsize="small")
         ax.set_xlabel("x", fontsize="x-small")
         ax.set_ylabel("z", fontsize="x-small")
@@ -163,7 +173,9 @@ def plot_trajectories(
             span = pool.max(0) - pool.min(0)
             ax.set_box_aspect((float(span[0]), float(span[2]), float(max(span[1], 1e-3))))
     fig.suptitle(f"{scene_name}: acquisition trajectories", fontsize="medium")
-    fig.tight_layout()
+    fig.tight_layout(rect=(0.0, 0.06, 1.0, 1.0))
+    fig.legend([h for h, _ in legend], [lab for _, lab in legend], loc="lower center",
+               ncol=len(legend), fontsize="small", frameon=False)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path

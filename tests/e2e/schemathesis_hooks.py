@@ -15,6 +15,12 @@
   ``?instance=``, whose valid values are the ids of a cluster's live instances, and a creation
   that would give the map none gets bounds (so that later stateful steps can select). Negative cases are left exactly as
   generated.
+* A link that gives the whole request body (``x-schemathesis: {merge_body: false}``: the
+  chosen candidate to ``commit``, a committed view to ``add_observations``) makes a case
+  without a media type, and schemathesis (4.x) then asks the target operation for its only
+  one; the document states two, JSON and msgpack, both valid, so it raised "Can not detect
+  appropriate media type" and ended the stateful phase. Such a case goes as JSON
+  (:func:`_default_media_type`); any other case keeps the type schemathesis chose.
 """
 
 from __future__ import annotations
@@ -29,6 +35,22 @@ import msgpack
 import numpy as np
 import schemathesis
 from schemathesis import GenerationMode
+
+def _patch_default_media_type() -> None:
+    from schemathesis.schemas import APIOperation
+
+    original = APIOperation._get_default_media_type
+
+    def _default_media_type(self: Any) -> str:
+        types = self.get_request_payload_content_types()
+        if len(types) > 1 and "application/json" in types:
+            return "application/json"
+        return str(original(self))
+
+    APIOperation._get_default_media_type = _default_media_type  # type: ignore[method-assign]
+
+
+_patch_default_media_type()
 
 RAW_TYPES = ("application/octet-stream", "application/x-ply", "application/x-splat")
 """Media types of a raw Gaussians upload (``set_gaussians``)."""

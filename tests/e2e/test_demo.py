@@ -46,6 +46,14 @@ def test_quick_demo_runs_the_closed_loop(tmp_path: Path) -> None:
         assert len(set(chosen)) == len(chosen)  # committed views leave the pool
         assert not set(chosen) & set(res["initial_views"])
     assert "server.log" in {p.name for p in out.iterdir()}
+    # the table it writes, and where AGILE-GS+ stands, computed from this run
+    table = (out / "psnr.md").read_text()
+    deltas = [a["psnr"] - b["psnr"] for a, b in zip(
+        res["methods"]["agile_plus"]["curve"], res["methods"]["random"]["curve"], strict=True)]
+    rows = [ln for ln in table.splitlines() if re.match(r"\| \d+ \|", ln)]
+    assert [float(r.split("|")[-2]) for r in rows] == [round(d, 2) + 0.0 for d in deltas]
+    assert f"last event Δ {deltas[-1]:+.2f} dB" in table and table.splitlines()[-1] in proc.stdout
+    assert "AGILE-GS+: mean selection" in table and "Random: mean selection" in table
 
 
 def test_attribution_and_initial_views() -> None:

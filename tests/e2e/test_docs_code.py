@@ -79,8 +79,8 @@ HOW: dict[tuple[str, str], How] = {
     ("README.md", "agilegs serve --host 127.0.0.1 --port 8000 --state-dir ./agilegs-state   "
      "# HTTP + Zenoh"): How("server", "the server the README's clients talk to"),
     ("README.md", "from dataclasses import asdict"): How("server"),
-    ("README.md", "curl -s -X POST http://127.0.0.1:8000/v1/sessions -H 'content-type: "
-     "application/json' -d '{"): How("server"),
+    ("README.md", "curl -s -w '\\n' -X POST http://127.0.0.1:8000/v1/sessions -H "
+     "'content-type: application/json' -d '{"): How("server"),
     ("docs/viewer.md", "from agilegs.client import Client"): How("server"),
     ("docs/viewer.md", "pip install \"agilegs[viewer]\"          # viser, and no torch (the dev "
      "extra includes it)"):
@@ -285,8 +285,12 @@ def test_the_block_runs_against_the_readme_server(block: Block, readme_server: P
         docs = _json_documents(out)
         assert docs and not [d for d in docs if isinstance(d, dict) and "error" in d], out
         assert isinstance(docs[-1], dict) and "chosen" in docs[-1], out
+        lines = out.strip().splitlines()  # one body a line
+        assert len(lines) == len(docs) == 3 and all(json.loads(x) for x in lines), out
     if "asdict(robot.intrinsics)" in block.text:  # the README's loop: its four selections
         assert len(re.findall(r"^view \d+: \d+ ms$", out, re.M)) == 4, out
+        again = _check_run(block, readme_server, timeout=360)  # and it runs again
+        assert len(re.findall(r"^view \d+: \d+ ms$", again, re.M)) == 4, again
 
 
 @pytest.mark.timeout(300)

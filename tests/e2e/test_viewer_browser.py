@@ -27,7 +27,8 @@ from agilegs.service.viewer.browser import Browser, canvas_fraction, find_chromi
 from agilegs.service.viewer.live import SessionViewer
 
 needs_chromium = pytest.mark.skipif(find_chromium() is None,
-                                    reason="no chromium (.ci/run installs Debian's)")
+                                    reason="no chromium: the browser tests need Debian's chromium "
+                                           "(apt-get install chromium; .ci/run installs it)")
 
 
 def green(rgb: np.ndarray) -> np.ndarray:
