@@ -36,6 +36,7 @@ import numpy as np
 import schemathesis
 from schemathesis import GenerationMode
 
+
 def _patch_default_media_type() -> None:
     from schemathesis.schemas import APIOperation
 
