@@ -152,6 +152,9 @@ HOW: dict[tuple[str, str], How] = {
      ".venv/bin/agilegs bench latency \\"):
         How("skip", "runs in the earlier commit's worktree of the block above (the same "
                     "benchmark, small: tests/bench/test_latency_bench.py)"),
+    ("docs/benchmarks.md", "OMP_NUM_THREADS=1 agilegs bench edge --json edge.json"):
+        How("parse", "1,000 connections and 64 bodies of 60 MiB, two minutes (its small run: "
+                     "tests/e2e/test_bench_edge.py; its full run in the heavy lane)"),
     ("docs/benchmarks.md", "agilegs serve --no-zenoh --port 8000 --state-dir /tmp/fuzz-state   "
      "# with the limits below"):
         How("parse", "a server in one terminal and a fuzzing run of minutes in another (the "
