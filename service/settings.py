@@ -234,14 +234,18 @@ class Settings(BaseSettings):
                 "serving on %s without AGILEGS_TOKEN: anyone who can reach it may change state",
                 self.host,
             )
-        if self.zenoh and self.zenoh_users_file is None and not self.zenoh_mtls:
-            if self.token is None:
-                log.warning(
-                    "development mode: no AGILEGS_TOKEN, so HTTP and Zenoh (%s) are open: any "
-                    "client or peer that reaches them reads and changes every session; set "
-                    "AGILEGS_TOKEN to require the token and Zenoh credentials",
-                    ",".join(self.zenoh_listen) or "no listen endpoint")
-            elif self.zenoh_insecure:
+        secured = self.zenoh_users_file is not None or self.zenoh_mtls
+        if self.token is None:
+            served = ([f"HTTP ({self.host}:{self.port})"] if self.http else []) + (
+                [f"Zenoh ({','.join(self.zenoh_listen) or 'no listen endpoint'})"]
+                if self.zenoh and not secured else [])
+            log.warning(
+                "development mode: no AGILEGS_TOKEN, so %s %s open: any client or peer that "
+                "reaches %s reads and changes every session; set AGILEGS_TOKEN to require the "
+                "token and Zenoh credentials", " and ".join(served),
+                "is" if len(served) == 1 else "are", "it" if len(served) == 1 else "them")
+        if self.zenoh and not secured:
+            if self.token is not None and self.zenoh_insecure:
                 log.warning(
                     "INSECURE (AGILEGS_ZENOH_INSECURE): Zenoh (%s) authenticates no peer: any "
                     "peer that reaches it sees every session's decisions, frames and "
