@@ -64,6 +64,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
       help="the ROS 2 namespace timed (default /bench/agilegs on a started server; with "
            "--url: only when given)")
     a("--token", default=os.environ.get("AGILEGS_TOKEN"), help="bearer token (AGILEGS_TOKEN)")
+    a("--zenoh-credentials", metavar="CLIENT_JSON",
+      help="the server's <state-dir>/zenoh/client.json (a server with a token admits no Zenoh "
+           "peer without it; default: that of the server started here)")
     a("--scene", default=DEFAULT_SCENE, help=".splat / .ply scene (random Gaussians if absent)")
     a("--max-gaussians", type=int, default=2000, help="subsample the scene to this many")
     a("--pool", type=int, default=300, help="candidates per pool")
@@ -164,6 +167,7 @@ def run(args: argparse.Namespace) -> int:
         server = ServerProcess(Path(tmp.name) / "state", env=env,
                                args=["--ros2", args.ros2]).start()
         url, zenoh_ep = server.url, server.zenoh_endpoint
+        args.zenoh_credentials = args.zenoh_credentials or server.zenoh_credentials
     results: dict[str, Any] = {"pool": args.pool, "method": args.method,
                                "gaussians": args.max_gaussians, "size": args.size,
                                "instance": args.instance}
@@ -172,7 +176,8 @@ def run(args: argparse.Namespace) -> int:
         clients["http-json"] = Client(url, token=args.token, encoding="json")
         clients["http-msgpack"] = Client(url, token=args.token, encoding="msgpack")
         if zenoh_ep:
-            clients["zenoh"] = ZenohClient([zenoh_ep], token=args.token)
+            clients["zenoh"] = ZenohClient([zenoh_ep], token=args.token,
+                                           credentials=args.zenoh_credentials)
         c = clients["http-msgpack"]
         phases = {p.strip() for p in args.phases.split(",") if p.strip()}
         unknown = phases - {"overhead", "load", "neighbour"}
@@ -189,7 +194,8 @@ def run(args: argparse.Namespace) -> int:
         sid = f"bench-{os.getpid()}"
         c.create_session(intr, id=sid, pool=poses, instance=args.instance, **scene)
         if zenoh_ep and args.ros2 and "overhead" in phases:
-            clients["ros2"] = _Ros2Client(args.ros2, zenoh_ep, sid, args.token)
+            clients["ros2"] = _Ros2Client(args.ros2, zenoh_ep, sid, args.token,
+                                          args.zenoh_credentials)
         results["overhead"] = {}
         for name, client in clients.items() if "overhead" in phases else ():
             for shape in ("preset",) if name == "ros2" else ("preset", "inline"):
@@ -227,10 +233,11 @@ def run(args: argparse.Namespace) -> int:
 class _Ros2Client:
     """``select`` over the ROS 2 service (CDR), with the client's answer shape."""
 
-    def __init__(self, namespace: str, endpoint: str, sid: str, token: str | None) -> None:
+    def __init__(self, namespace: str, endpoint: str, sid: str, token: str | None,
+                 credentials: Any = None) -> None:
         from agilegs.client.ros2.robot import Ros2Robot
 
-        self.robot = Ros2Robot(namespace, connect=[endpoint])
+        self.robot = Ros2Robot(namespace, connect=[endpoint], credentials=credentials)
         self.robot.token = token or ""
         opened = self.robot.open_session(sid)
         if opened.status.status != 200:

@@ -32,6 +32,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
       help="the server (default http://127.0.0.1:8000)")
     a("--session", help="the session to follow (it may not exist yet)")
     a("--token", help="the server's bearer token (default: AGILEGS_TOKEN)")
+    a("--zenoh-credentials", metavar="CLIENT_JSON",
+      help="with --zenoh: the server's <state-dir>/zenoh/client.json (its Zenoh user and "
+           "password; a server with a token admits no Zenoh peer without them)")
     a("--zenoh", metavar="ENDPOINT",
       help="reach the server over Zenoh (e.g. tcp/127.0.0.1:7447) instead of HTTP")
     a("--run", metavar="DIR", help="replay the output folder of `agilegs bench run`")
@@ -95,7 +98,8 @@ def _live(args: argparse.Namespace) -> int:
             from agilegs.client.zenoh_client import ZenohClient
 
             client = ZenohClient([args.zenoh], token=token, wait=0,
-                                 timeout=max(30.0, args.poll + 30.0))
+                                 timeout=max(30.0, args.poll + 30.0),
+                                 credentials=getattr(args, "zenoh_credentials", None))
         except TransportError as exc:
             sys.stderr.write(f"agilegs view: {exc}\n")
             return 2
