@@ -22,6 +22,7 @@ they ran at their commit.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import re
@@ -79,6 +80,7 @@ HOW: dict[tuple[str, str], How] = {
     ("README.md", "agilegs serve --host 127.0.0.1 --port 8000 --state-dir ./agilegs-state   "
      "# HTTP + Zenoh"): How("server", "the server the README's clients talk to"),
     ("README.md", "from dataclasses import asdict"): How("server"),
+    ("README.md", "import json"): How("server"),
     ("README.md", "curl -s -w '\\n' -X POST http://127.0.0.1:8000/v1/sessions -H "
      "'content-type: application/json' -d '{"): How("server"),
     ("docs/viewer.md", "from agilegs.client import Client"): How("server"),
@@ -294,6 +296,12 @@ def test_the_block_runs_against_the_readme_server(block: Block, readme_server: P
         assert len(re.findall(r"^view \d+: \d+ ms$", out, re.M)) == 4, out
         again = _check_run(block, readme_server, timeout=360)  # and it runs again
         assert len(re.findall(r"^view \d+: \d+ ms$", again, re.M)) == 4, again
+    if "read_bytes()" in block.text:  # the robot of files: four selections, twice, no torch
+        no_torch = dataclasses.replace(block, text=block.text + "\nimport sys\n"
+                                       "assert 'torch' not in sys.modules, 'torch imported'\n")
+        for _ in range(2):
+            out = _check_run(no_torch, readme_server, timeout=360)
+            assert len(re.findall(r"^view \d+: \d+ ms$", out, re.M)) == 4, out
 
 
 @pytest.mark.timeout(300)
