@@ -101,6 +101,8 @@ VARIANTS = (
     "agile@paper",
     "agile_plus@paper",
 )
+ANCHOR_STAGES = ("envelope", "visibility", "rates", "unexplored", "starts", "ascent")
+"""The anchor's stages, each ``latency_ms["anchor.<stage>"]`` (ms, within ``anchor``)."""
 SLOW = ("agile_plus@exact", "agile@paper", "agile_plus@paper")
 """Variants that ascend the exact psi through the rasterizer (seconds per selection)."""
 
@@ -292,7 +294,8 @@ def run(args: argparse.Namespace) -> int:
             rec["event_ms"].append(sel.latency_ms["total"])  # the upkeep is added below
             rec["cpu_ms"].append(cpu_ms)
             rec["stages"].append(dict(sel.latency_ms))
-            staged = sum(v for k, v in sel.latency_ms.items() if k != "total")
+            # "total" and the sub-stages ("anchor.<stage>", within their stage) left out
+            staged = sum(v for k, v in sel.latency_ms.items() if k != "total" and "." not in k)
             rec["other_ms"].append(sel.latency_ms["total"] - staged)
             rec["commit_ms"].append(0.0)  # the upkeep is added below, unless reused
             rec["reused"] = sel.chosen_information is not None
@@ -303,6 +306,8 @@ def run(args: argparse.Namespace) -> int:
                 rec.setdefault("shortlist_best_pct", []).append(
                     max(eig_percentile(phi_all, float(phi_all[i])) for i in sel.shortlist)
                 )
+            if "psi_evaluations" in sel.details:
+                rec.setdefault("evaluations", []).append(float(sel.details["psi_evaluations"]))
             if sel.psi_trace:
                 rec.setdefault("psi_gain", []).append(sel.psi_trace[-1] / sel.psi_trace[0])
             pool_psi = sel.details.get("pool_proxy_psi")
@@ -354,6 +359,8 @@ def run(args: argparse.Namespace) -> int:
         if rec["head_pct"]:
             out["head_eig_percentile"] = statistics.fmean(rec["head_pct"])
             out["shortlist_best_eig_percentile"] = statistics.fmean(rec["shortlist_best_pct"])
+        if rec.get("evaluations"):
+            out["psi_evaluations"] = statistics.median(rec["evaluations"])
         if rec.get("psi_gain"):
             out["psi_gain"] = statistics.fmean(rec["psi_gain"])
         if rec.get("spearman"):
@@ -431,6 +438,23 @@ def _print_table(methods: dict[str, Any]) -> None:
             f"{m['peak_rss_mb']:.0f} |"
         )
     sys.stdout.write("\n".join(lines) + "\n")
+    split = [(n, m) for n, m in methods.items() if "anchor.ascent" in m["stages_ms"]]
+    if split:
+        out = [
+            "",
+            "| method | anchor ms | " + " | ".join(ANCHOR_STAGES) + " | ψ evaluations | "
+            "ms per evaluation |",
+            "|---|---|" + "---|" * (len(ANCHOR_STAGES) + 2),
+        ]
+        for name, m in split:
+            s = m["stages_ms"]
+            ev = m.get("psi_evaluations")
+            per = f"{s['anchor.ascent'] / ev:.2f}" if ev else ""
+            cells = " | ".join(f"{s.get('anchor.' + k, float('nan')):.1f}"
+                               for k in ANCHOR_STAGES)
+            out.append(f"| {name} | {s['anchor']:.1f} | {cells} | "
+                       f"{'' if ev is None else f'{ev:.0f}'} | {per} |")
+        sys.stdout.write("\n".join(out) + "\n")
 
 
 def _ratio(m: dict[str, Any], key: str) -> str:

@@ -26,6 +26,7 @@ from agilegs.config.selection import AnchorConfig
 from agilegs.config.types import validate_config
 
 from ..camera import Camera, Intrinsics
+from ..cancel import checkpoint
 from ..candidates import pool_radius, scene_center_radius
 from ..gaussians import FIELD_NAMES, GaussianMap
 from ..information import fisher_diag, trace_surrogate
@@ -61,7 +62,10 @@ class AnchorResult:
         modes: the anchors of distinct modes [M, 4, 4], best first (``c2w`` first; only it
             unless ``config.anchors`` > 1).
         mode_psi: psi at each of ``modes``.
-        extra: diagnostics (typical Fisher used, timings).
+        extra: diagnostics (typical Fisher used; ``timings_s``, the seconds of each stage:
+            ``visibility`` (the opacity maps), ``rates`` (the model fitted over the acquired
+            views, the importance sample), ``unexplored`` (unexplored space), ``starts``
+            (the pool's psi, the starts), ``ascent``).
     """
 
     c2w: Tensor
@@ -107,7 +111,11 @@ def ascend(
     def evaluate(poses: Tensor) -> Tensor:
         if batched:
             return psi_fn(poses)
-        return torch.stack([psi_fn(p.unsqueeze(0))[0] for p in poses])
+        out = []
+        for p in poses:
+            checkpoint()
+            out.append(psi_fn(p.unsqueeze(0))[0])
+        return torch.stack(out)
 
     def twist_grad(poses: Tensor) -> tuple[Tensor, Tensor]:
         xi = torch.zeros(poses.shape[0], 6, dtype=dt, device=poses.device, requires_grad=True)
@@ -128,6 +136,7 @@ def ascend(
     eta = torch.full((poses.shape[0],), config.step_size, dtype=dt, device=poses.device)
     active = torch.ones(poses.shape[0], dtype=torch.bool, device=poses.device)
     for _ in range(config.iterations):
+        checkpoint()
         if not bool(active.any()):
             break
         ids = torch.nonzero(active).squeeze(1)
@@ -139,6 +148,7 @@ def ascend(
         pending = step_ok.clone()
         loc_eta = eta[ids].clone()
         for _trial in range(config.backtracks + 1):
+            checkpoint()
             if not bool(pending.any()):
                 break
             pid = torch.nonzero(pending).squeeze(1)
@@ -236,7 +246,14 @@ def optimize_anchor_validated(
             psi renders with it too; None: black).
     """
     timings: dict[str, float] = {}
-    t0 = time.perf_counter()
+    last = [time.perf_counter()]
+
+    def lap(stage: str) -> None:
+        now = time.perf_counter()
+        timings[stage] = timings.get(stage, 0.0) + (now - last[0])
+        last[0] = now
+        checkpoint()
+
     dt = gmap.dtype
     radius = envelope.radius if envelope is not None else pool_radius(candidates)
     extra: dict[str, Any] = {}
@@ -264,7 +281,7 @@ def optimize_anchor_validated(
             occ_tests=config.occlusion_tests,
             occluders=pick_occluders(gmap, config.occluders, generator),
         )
-    timings["visibility"] = time.perf_counter() - t0
+    lap("visibility")
     fitted = (
         typical is None
         and config.model in ("fitted", "directional")
@@ -307,6 +324,7 @@ def optimize_anchor_validated(
         c = information_weights(h_acc, typical, fields)
         proxy = ProxyPsi.build(gmap, c, prox_intr, num_samples=config.num_gaussians, **common)
         extra["model"] = "typical"
+    lap("rates")
     if fitted and config.unexplored:
         assert acquired is not None
         space = unexplored_space(gmap, acquired, proxy, cells=config.unexplored_cells,
@@ -316,7 +334,7 @@ def optimize_anchor_validated(
             proxy = proxy.extended(space.means, space.cov, per_gaussian * space.weight, rates)
         extra["unexplored_fraction"] = space.unexplored_fraction
         extra["unexplored_points"] = int(space.means.shape[0])
-    timings["proxy_build"] = time.perf_counter() - t0
+    lap("unexplored")
     # starts: best pool candidates under the proxy (+ the previous anchor)
     with torch.no_grad():
         pool = candidates.detach().to(dt)
@@ -333,7 +351,7 @@ def optimize_anchor_validated(
     # the ascent moves on SE(3): poses within the wire's tolerance start from the nearest
     # rigid transform
     starts = project_to_se3(starts)
-    timings["starts"] = time.perf_counter() - t0 - timings["proxy_build"]
+    lap("starts")
     if config.psi == "proxy":
         poses, vals, traces, evals = ascend(
             proxy, starts, config=config, envelope=envelope, radius=radius, batched=True
@@ -345,7 +363,7 @@ def optimize_anchor_validated(
         )
     win = int(torch.argmax(vals))
     modes = distinct_best(poses, vals, config.anchors, separation, radius)
-    timings["ascent"] = time.perf_counter() - t0 - timings["proxy_build"] - timings["starts"]
+    lap("ascent")
     extra["timings_s"] = timings
     extra["start_indices"] = [int(i) for i in best]
     extra["proxy_samples"] = int(proxy.means.shape[0])
@@ -402,6 +420,7 @@ def exact_psi_fn(
     def psi(c2w: Tensor) -> Tensor:
         out = []
         for pose in c2w:
+            checkpoint()
             cam = Camera(c2w=pose, intrinsics=small)
             fd = fisher_diag(gmap, cam, fields=fields, background=background)
             out.append(trace_surrogate(fd, h_sel))

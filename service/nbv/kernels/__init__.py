@@ -42,6 +42,7 @@ Python threads (:mod:`agilegs.service.nbv.backend`). No numba threading layer is
 from .binning import bin_count, bin_fill, reduce_entries, visible_order
 from .common import CAM, FWD, MOMENTS, REC
 from .projection import PHI_INDEX, fisher_chain, jacobians, project, project_backward
+from .proxy import proxy_psi
 from .walks import composite_backward, composite_forward, fisher_tiles
 
 __all__ = [
@@ -59,6 +60,7 @@ __all__ = [
     "jacobians",
     "project",
     "project_backward",
+    "proxy_psi",
     "reduce_entries",
     "visible_order",
 ]
