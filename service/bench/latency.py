@@ -308,6 +308,10 @@ def run(args: argparse.Namespace) -> int:
                 )
             if "psi_evaluations" in sel.details:
                 rec.setdefault("evaluations", []).append(float(sel.details["psi_evaluations"]))
+            split = sel.details.get("ascent_evaluations")
+            if split:
+                rec.setdefault("gradient_evals", []).append(float(split["gradient"]))
+                rec.setdefault("value_evals", []).append(float(split["value"]))
             if sel.psi_trace:
                 rec.setdefault("psi_gain", []).append(sel.psi_trace[-1] / sel.psi_trace[0])
             pool_psi = sel.details.get("pool_proxy_psi")
@@ -361,6 +365,9 @@ def run(args: argparse.Namespace) -> int:
             out["shortlist_best_eig_percentile"] = statistics.fmean(rec["shortlist_best_pct"])
         if rec.get("evaluations"):
             out["psi_evaluations"] = statistics.median(rec["evaluations"])
+        if rec.get("gradient_evals"):
+            out["gradient_evaluations"] = statistics.median(rec["gradient_evals"])
+            out["value_evaluations"] = statistics.median(rec["value_evals"])
         if rec.get("psi_gain"):
             out["psi_gain"] = statistics.fmean(rec["psi_gain"])
         if rec.get("spearman"):
@@ -442,18 +449,24 @@ def _print_table(methods: dict[str, Any]) -> None:
     if split:
         out = [
             "",
-            "| method | anchor ms | " + " | ".join(ANCHOR_STAGES) + " | ψ evaluations | "
-            "ms per evaluation |",
-            "|---|---|" + "---|" * (len(ANCHOR_STAGES) + 2),
+            "| method | anchor ms | " + " | ".join(ANCHOR_STAGES) + " | ascent: gradient "
+            "evaluations | ms | ms each | ascent: value evaluations | ms | ms each |",
+            "|---|---|" + "---|" * (len(ANCHOR_STAGES) + 6),
         ]
         for name, m in split:
             s = m["stages_ms"]
-            ev = m.get("psi_evaluations")
-            per = f"{s['anchor.ascent'] / ev:.2f}" if ev else ""
             cells = " | ".join(f"{s.get('anchor.' + k, float('nan')):.1f}"
                                for k in ANCHOR_STAGES)
-            out.append(f"| {name} | {s['anchor']:.1f} | {cells} | "
-                       f"{'' if ev is None else f'{ev:.0f}'} | {per} |")
+            parts = []
+            for kind, key in (("gradient", "anchor.ascent.gradients"),
+                              ("value", "anchor.ascent.values")):
+                ev = m.get(f"{kind}_evaluations")
+                ms = s.get(key)
+                parts.append(
+                    f"{'' if ev is None else f'{ev:.0f}'} | "
+                    f"{'' if ms is None else f'{ms:.1f}'} | "
+                    f"{f'{ms / ev:.2f}' if ev and ms is not None else ''}")
+            out.append(f"| {name} | {s['anchor']:.1f} | {cells} | " + " | ".join(parts) + " |")
         sys.stdout.write("\n".join(out) + "\n")
 
 

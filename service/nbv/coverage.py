@@ -136,14 +136,19 @@ def support_samples(
         ).reshape(-1, 3)
         surf = cam_pos + (dirs * depth) @ anchor[:3, :3].T
     else:
+        # per occupied cell (in cell order) the nearest mean, the first in index order among
+        # equally near ones: two scatter-mins, no sort
         cell = v[idx].long() * grid + u[idx].long()
         zi = z[idx]
-        order = torch.argsort(zi, stable=True)
-        order = order[torch.argsort(cell[order], stable=True)]  # by cell, then depth
-        cs = cell[order]
-        first = torch.ones_like(cs, dtype=torch.bool)
-        first[1:] = cs[1:] != cs[:-1]
-        surf = means.detach()[idx[order[first]]]
+        cells = grid * grid
+        zmin = torch.full((cells,), float("inf"), dtype=dt, device=dev).scatter_reduce(
+            0, cell, zi, reduce="amin")
+        at_min = zi == zmin[cell]
+        n_vis = idx.numel()
+        pos = torch.arange(n_vis, device=dev)
+        first = torch.full((cells,), n_vis, dtype=torch.long, device=dev).scatter_reduce(
+            0, cell[at_min], pos[at_min], reduce="amin")
+        surf = means.detach()[idx[first[first < n_vis]]]
     pieces = [surf]
     if ray_samples > 0:
         frac = ray_min_fraction + (1.0 - ray_min_fraction) * torch.rand(

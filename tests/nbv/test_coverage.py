@@ -151,3 +151,26 @@ def test_jl_projection_is_seeded_and_scaled() -> None:
 def test_jl_projection_rejects_bad_sizes() -> None:
     with pytest.raises(ValueError, match="JL"):
         jl_projection(0, 4)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_point_zbuffer_equals_the_sorted_reference(dtype: torch.dtype) -> None:
+    """The surface samples: per occupied cell in cell order, the nearest mean, the first in
+    index order among equally near ones (as a stable sort by depth, then by cell)."""
+    from agilegs.service.nbv.coverage import project_points
+
+    means = blob(3000, dtype, seed=4)
+    means[1500:1600] = means[:100]  # exact ties in depth and cell
+    anchor = pose([0.3, 0.2, -2.0], [0.0, 0.0, 0.0], dtype)
+    grid = 16
+    got = support_samples(means, anchor, INTR, grid=grid, ray_samples=0, max_samples=10**6)
+    u, v, z = project_points(means, anchor, INTR.scaled(grid, grid))
+    idx = torch.nonzero((z > 0.01) & (u >= 0) & (u < grid) & (v >= 0) & (v < grid)).squeeze(1)
+    cell = v[idx].long() * grid + u[idx].long()
+    order = torch.argsort(z[idx], stable=True)
+    order = order[torch.argsort(cell[order], stable=True)]
+    cs = cell[order]
+    first = torch.ones_like(cs, dtype=torch.bool)
+    first[1:] = cs[1:] != cs[:-1]
+    assert int(first.sum()) > 50
+    assert torch.equal(got, means[idx[order[first]]])

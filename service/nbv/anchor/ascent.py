@@ -65,7 +65,8 @@ class AnchorResult:
         extra: diagnostics (typical Fisher used; ``timings_s``, the seconds of each stage:
             ``visibility`` (the opacity maps), ``rates`` (the model fitted over the acquired
             views, the importance sample), ``unexplored`` (unexplored space), ``starts``
-            (the pool's psi, the starts), ``ascent``).
+            (the pool's psi, the starts), ``ascent``); ``ascent_split``, the ascent's
+            evaluations with and without the gradient, and their seconds (:func:`ascend`).
     """
 
     c2w: Tensor
@@ -99,14 +100,29 @@ def ascend(
     envelope: PoolEnvelope | None,
     radius: float,
     batched: bool = True,
+    split: dict[str, float] | None = None,
 ) -> tuple[Tensor, Tensor, list[list[float]], int]:
     """Riemannian gradient ascent of psi from every start pose [S, 4, 4].
 
     ``psi_fn`` maps poses [B, 4, 4] to psi [B]; with ``batched=False`` it is called one pose
     at a time. Returns the final poses [S, 4, 4], their psi [S], the per-start psi traces
     (one entry per accepted step, never decreasing) and the number of psi evaluations.
+    ``split``, when given, receives the poses evaluated with their gradient
+    (``gradient_evaluations``) and without (``value_evaluations``), and the seconds of each
+    (``gradient_s``, ``value_s``).
     """
     dt = starts.dtype
+    tally = split if split is not None else {}
+    for key in ("gradient_evaluations", "value_evaluations", "gradient_s", "value_s"):
+        tally.setdefault(key, 0.0)
+
+    def values(poses: Tensor) -> Tensor:
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            out = evaluate(poses).detach()
+        tally["value_s"] += time.perf_counter() - t0
+        tally["value_evaluations"] += poses.shape[0]
+        return out
 
     def evaluate(poses: Tensor) -> Tensor:
         if batched:
@@ -118,19 +134,21 @@ def ascend(
         return torch.stack(out)
 
     def twist_grad(poses: Tensor) -> tuple[Tensor, Tensor]:
+        t0 = time.perf_counter()
         xi = torch.zeros(poses.shape[0], 6, dtype=dt, device=poses.device, requires_grad=True)
         moved = poses @ se3_exp(xi)
         if envelope is not None:
             moved = envelope.project(moved)
         val = evaluate(moved)
         (g,) = torch.autograd.grad(val.sum(), xi)
+        tally["gradient_s"] += time.perf_counter() - t0
+        tally["gradient_evaluations"] += poses.shape[0]
         return val.detach(), g.detach()
 
     poses = starts.detach().clone()
     if envelope is not None:
         poses = envelope.project(poses)
-    with torch.no_grad():
-        cur = evaluate(poses).detach()
+    cur = values(poses)
     evals = poses.shape[0]
     traces = [[float(v)] for v in cur]
     eta = torch.full((poses.shape[0],), config.step_size, dtype=dt, device=poses.device)
@@ -157,7 +175,7 @@ def ascend(
                 trial = poses[ids[pid]] @ se3_exp(xi)
                 if envelope is not None:
                     trial = envelope.project(trial)
-                val = evaluate(trial).detach()
+            val = values(trial)
             evals += len(pid)
             ok = torch.isfinite(val) & (val >= cur[ids[pid]])
             for j, k in enumerate(pid.tolist()):
@@ -352,19 +370,23 @@ def optimize_anchor_validated(
     # rigid transform
     starts = project_to_se3(starts)
     lap("starts")
+    split: dict[str, float] = {}
     if config.psi == "proxy":
         poses, vals, traces, evals = ascend(
-            proxy, starts, config=config, envelope=envelope, radius=radius, batched=True
+            proxy, starts, config=config, envelope=envelope, radius=radius, batched=True,
+            split=split,
         )
     else:
         exact = exact_psi_fn(gmap, h_acc, intrinsics, config, fields, background=background)
         poses, vals, traces, evals = ascend(
-            exact, starts, config=config, envelope=envelope, radius=radius, batched=False
+            exact, starts, config=config, envelope=envelope, radius=radius, batched=False,
+            split=split,
         )
     win = int(torch.argmax(vals))
     modes = distinct_best(poses, vals, config.anchors, separation, radius)
     lap("ascent")
     extra["timings_s"] = timings
+    extra["ascent_split"] = split
     extra["start_indices"] = [int(i) for i in best]
     extra["proxy_samples"] = int(proxy.means.shape[0])
     return AnchorResult(

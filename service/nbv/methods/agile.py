@@ -87,6 +87,14 @@ def _anchor(ctx: SelectionContext, lat: dict[str, float], out: dict[str, Any]) -
     # the anchor's stages, apart: "anchor.<stage>" (within "anchor", not added to it)
     for stage, sec in res.extra.get("timings_s", {}).items():
         lat[f"anchor.{stage}"] = sec * 1e3
+    split = res.extra.get("ascent_split", {})
+    if split:
+        lat["anchor.ascent.gradients"] = split["gradient_s"] * 1e3
+        lat["anchor.ascent.values"] = split["value_s"] * 1e3
+        out["details"]["ascent_evaluations"] = {
+            "gradient": int(split["gradient_evaluations"]),
+            "value": int(split["value_evaluations"]),
+        }
     out["psi_trace"] = list(res.psi_trace)
     if res.modes is not None and res.modes.shape[0] > 1:
         out["modes"] = (res.modes, res.mode_psi)
