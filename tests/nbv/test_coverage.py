@@ -174,3 +174,32 @@ def test_point_zbuffer_equals_the_sorted_reference(dtype: torch.dtype) -> None:
     first[1:] = cs[1:] != cs[:-1]
     assert int(first.sum()) > 50
     assert torch.equal(got, means[idx[order[first]]])
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_coverage_kernel_equals_the_torch_reference(dtype: torch.dtype) -> None:
+    from agilegs.service.nbv import backend
+    from agilegs.service.nbv.coverage import _coverage_terms_kernel, _coverage_terms_torch
+
+    if not backend.kernels_available():
+        pytest.skip("numba unavailable")
+    means = blob(600, dtype, seed=5)
+    cands = capture_pool(torch.zeros(3, dtype=torch.float64), 2.0, 40, seed=1).to(dtype)
+    cands[0, :3, 3] = means[0]  # a candidate on a sample: distance 0
+    samples = torch.cat([means, 3.0 * means[:50]])  # some behind the cameras or outside
+    got = _coverage_terms_kernel(samples, cands, INTR, 0.01, 1e-3)
+    ref = _coverage_terms_torch(samples, cands, INTR, 0.01, 1e-3)
+    assert 0 < int(ref[1].sum()) < ref[1].numel()
+    assert torch.equal(got[1], ref[1])
+    tol = 1e-12 if dtype == torch.float64 else 1e-5
+    torch.testing.assert_close(got[0], ref[0], rtol=tol, atol=tol)
+    torch.testing.assert_close(got[2], ref[2], rtol=tol, atol=tol)
+    anchor = pose([0.0, 0.5, -2.0], [0.0, 0.0, 0.0], dtype)
+    full = coverage_matrix(samples, cands, anchor, INTR, sigma_p=1.0)
+    try:
+        backend.set_default_backend("torch")
+        slow = coverage_matrix(samples, cands, anchor, INTR, sigma_p=1.0)
+    finally:
+        backend.set_default_backend(None)
+    torch.testing.assert_close(full.m, slow.m, rtol=tol, atol=tol)
+    assert torch.equal(full.chi, slow.chi)
