@@ -75,6 +75,7 @@ from agilegs.service.nbv.rotations import quat_to_rotmat
 from agilegs.service.nbv.selectors import SelectConfig, select, select_validated
 
 from .options import add_latency_arguments
+from .stages import ANCHOR_STAGES
 from .variants import parse_variant
 
 log = logging.getLogger(__name__)
@@ -101,8 +102,6 @@ VARIANTS = (
     "agile@paper",
     "agile_plus@paper",
 )
-ANCHOR_STAGES = ("envelope", "visibility", "rates", "unexplored", "starts", "ascent")
-"""The anchor's stages, each ``latency_ms["anchor.<stage>"]`` (ms, within ``anchor``)."""
 SLOW = ("agile_plus@exact", "agile@paper", "agile_plus@paper")
 """Variants that ascend the exact psi through the rasterizer (seconds per selection)."""
 

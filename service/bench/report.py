@@ -45,6 +45,7 @@ from typing import Any
 from agilegs.service.bench.profiles import RESULTS_FORMAT
 from agilegs.service.bench.redundancy import redundancy_table, summarise_redundancy
 from agilegs.service.bench.scenes import BenchScene
+from agilegs.service.bench.stages import anchor_split_table
 from agilegs.service.bench.variants import SHORTLIST_DISPLAY, display_name
 
 __all__ = ["build_results", "scene_summary", "render_table", "mean_std", "paired_differences"]
@@ -314,7 +315,7 @@ def render_table(results: Mapping[str, Any]) -> str:
     if keys:
         lines += _main_table(results, scenes, keys)
         lines += _latency_table(results, keys)
-        lines += _anchor_split_table(results, keys)
+        lines += anchor_split_table(results, keys, _display)
         lines += _trajectory_table(results, keys, emb)
         lines += redundancy_table(
             [(_display(k), results["summary"][k].get("redundancy") or {}) for k in keys])
@@ -422,46 +423,6 @@ def _latency_table(results: Mapping[str, Any], keys: list[str]) -> list[str]:
             f"{_times(a.get('full_eig_over_method'))} |"
         )
     return rows + [""]
-
-
-ANCHOR_STAGES = ("envelope", "visibility", "rates", "unexplored", "starts", "ascent",
-                 "ascent.gradients", "ascent.values")
-"""The anchor's stages in ``latency_ms`` (``anchor.<stage>``, within ``anchor``)."""
-
-
-def _anchor_split_table(results: Mapping[str, Any], keys: list[str]) -> list[str]:
-    """The anchor's time by stage (ms, mean over events, then over scenes), for the methods
-    whose selections report it."""
-    body = []
-    for k in keys:
-        stages: dict[str, list[float]] = {}
-        for s in results["scenes"].values():
-            summ = s["summary"].get(k)
-            if summ is None:
-                continue
-            for st, v in summ["stages_ms_mean"].items():
-                stages.setdefault(st, []).append(v)
-        if "anchor.ascent" not in stages:
-            continue
-        cells = " | ".join(
-            f"{statistics.fmean(stages[f'anchor.{st}']):.1f}" if stages.get(f"anchor.{st}")
-            else "–" for st in ANCHOR_STAGES)
-        body.append(f"| {_display(k)} | {statistics.fmean(stages['anchor']):.1f} | {cells} |")
-    if not body:
-        return []
-    return [
-        "## Where the anchor's time goes",
-        "",
-        "The anchor's stages, ms per event (means over events, then scenes): the pool's "
-        "envelope, the visibility (opacity maps), the model's rates (fitted over the acquired "
-        "views), unexplored space, the starts (ψ of the pool), the ascent, and within it the "
-        "evaluations with their gradient and those of values alone.",
-        "",
-        "| Method | anchor | " + " | ".join(ANCHOR_STAGES) + " |",
-        "|---|---|" + "---|" * len(ANCHOR_STAGES),
-        *body,
-        "",
-    ]
 
 
 def _times(v: float | None) -> str:
