@@ -46,6 +46,11 @@ __all__ = ["AnchorResult", "ascend", "distinct_best", "exact_psi_fn", "optimize_
            "optimize_anchor_validated"]
 
 
+POOL_CHUNK = 32
+"""Pool candidates whose psi is evaluated at once (the request's deadline is checked between
+chunks)."""
+
+
 @dataclass
 class AnchorResult:
     """Outcome of the anchor ascent.
@@ -356,7 +361,12 @@ def optimize_anchor_validated(
     # starts: best pool candidates under the proxy (+ the previous anchor)
     with torch.no_grad():
         pool = candidates.detach().to(dt)
-        pool_psi = proxy(envelope.project(pool) if envelope is not None else pool)
+        placed = envelope.project(pool) if envelope is not None else pool
+        parts = []
+        for i in range(0, placed.shape[0], POOL_CHUNK):  # a cancellation check per chunk
+            checkpoint()
+            parts.append(proxy(placed[i : i + POOL_CHUNK]))
+        pool_psi = torch.cat(parts)
     k = min(config.num_starts, pool.shape[0])
     separation = config.mode_separation * radius
     if config.anchors > 1:
