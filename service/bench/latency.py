@@ -75,6 +75,7 @@ from agilegs.service.nbv.rotations import quat_to_rotmat
 from agilegs.service.nbv.selectors import SelectConfig, select, select_validated
 
 from .options import add_latency_arguments
+from .stages import ANCHOR_STAGES
 from .variants import parse_variant
 
 log = logging.getLogger(__name__)
@@ -292,7 +293,8 @@ def run(args: argparse.Namespace) -> int:
             rec["event_ms"].append(sel.latency_ms["total"])  # the upkeep is added below
             rec["cpu_ms"].append(cpu_ms)
             rec["stages"].append(dict(sel.latency_ms))
-            staged = sum(v for k, v in sel.latency_ms.items() if k != "total")
+            # "total" and the sub-stages ("anchor.<stage>", within their stage) left out
+            staged = sum(v for k, v in sel.latency_ms.items() if k != "total" and "." not in k)
             rec["other_ms"].append(sel.latency_ms["total"] - staged)
             rec["commit_ms"].append(0.0)  # the upkeep is added below, unless reused
             rec["reused"] = sel.chosen_information is not None
@@ -303,6 +305,12 @@ def run(args: argparse.Namespace) -> int:
                 rec.setdefault("shortlist_best_pct", []).append(
                     max(eig_percentile(phi_all, float(phi_all[i])) for i in sel.shortlist)
                 )
+            if "psi_evaluations" in sel.details:
+                rec.setdefault("evaluations", []).append(float(sel.details["psi_evaluations"]))
+            split = sel.details.get("ascent_evaluations")
+            if split:
+                rec.setdefault("gradient_evals", []).append(float(split["gradient"]))
+                rec.setdefault("value_evals", []).append(float(split["value"]))
             if sel.psi_trace:
                 rec.setdefault("psi_gain", []).append(sel.psi_trace[-1] / sel.psi_trace[0])
             pool_psi = sel.details.get("pool_proxy_psi")
@@ -354,6 +362,11 @@ def run(args: argparse.Namespace) -> int:
         if rec["head_pct"]:
             out["head_eig_percentile"] = statistics.fmean(rec["head_pct"])
             out["shortlist_best_eig_percentile"] = statistics.fmean(rec["shortlist_best_pct"])
+        if rec.get("evaluations"):
+            out["psi_evaluations"] = statistics.median(rec["evaluations"])
+        if rec.get("gradient_evals"):
+            out["gradient_evaluations"] = statistics.median(rec["gradient_evals"])
+            out["value_evaluations"] = statistics.median(rec["value_evals"])
         if rec.get("psi_gain"):
             out["psi_gain"] = statistics.fmean(rec["psi_gain"])
         if rec.get("spearman"):
@@ -431,6 +444,29 @@ def _print_table(methods: dict[str, Any]) -> None:
             f"{m['peak_rss_mb']:.0f} |"
         )
     sys.stdout.write("\n".join(lines) + "\n")
+    split = [(n, m) for n, m in methods.items() if "anchor.ascent" in m["stages_ms"]]
+    if split:
+        out = [
+            "",
+            "| method | anchor ms | " + " | ".join(ANCHOR_STAGES) + " | ascent: gradient "
+            "evaluations | ms | ms each | ascent: value evaluations | ms | ms each |",
+            "|---|---|" + "---|" * (len(ANCHOR_STAGES) + 6),
+        ]
+        for name, m in split:
+            s = m["stages_ms"]
+            cells = " | ".join(f"{s.get('anchor.' + k, float('nan')):.1f}"
+                               for k in ANCHOR_STAGES)
+            parts = []
+            for kind, key in (("gradient", "anchor.ascent.gradients"),
+                              ("value", "anchor.ascent.values")):
+                ev = m.get(f"{kind}_evaluations")
+                ms = s.get(key)
+                parts.append(
+                    f"{'' if ev is None else f'{ev:.0f}'} | "
+                    f"{'' if ms is None else f'{ms:.1f}'} | "
+                    f"{f'{ms / ev:.2f}' if ev and ms is not None else ''}")
+            out.append(f"| {name} | {s['anchor']:.1f} | {cells} | " + " | ".join(parts) + " |")
+        sys.stdout.write("\n".join(out) + "\n")
 
 
 def _ratio(m: dict[str, Any], key: str) -> str:

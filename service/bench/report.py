@@ -45,6 +45,7 @@ from typing import Any
 from agilegs.service.bench.profiles import RESULTS_FORMAT
 from agilegs.service.bench.redundancy import redundancy_table, summarise_redundancy
 from agilegs.service.bench.scenes import BenchScene
+from agilegs.service.bench.stages import anchor_split_table
 from agilegs.service.bench.variants import SHORTLIST_DISPLAY, display_name
 
 __all__ = ["build_results", "scene_summary", "render_table", "mean_std", "paired_differences"]
@@ -314,6 +315,7 @@ def render_table(results: Mapping[str, Any]) -> str:
     if keys:
         lines += _main_table(results, scenes, keys)
         lines += _latency_table(results, keys)
+        lines += anchor_split_table(results, keys, _display)
         lines += _trajectory_table(results, keys, emb)
         lines += redundancy_table(
             [(_display(k), results["summary"][k].get("redundancy") or {}) for k in keys])

@@ -66,9 +66,11 @@ __all__ = [
     "ENV_VAR",
     "Backend",
     "default_backend",
+    "kernel_module",
     "kernels_available",
     "release_workspace",
     "resolve",
+    "run_in_parts",
     "set_default_backend",
     "set_kernel_threads",
 ]
@@ -279,3 +281,17 @@ def release_workspace() -> int:
         n = _WORKSPACE.nbytes
         _WORKSPACE.clear()
     return n
+
+
+def run_in_parts(fn: Callable[[int, int], Any], items: int) -> None:
+    """``fn(start, stop)`` over ``items`` items split into contiguous ranges, one per kernel
+    thread (:func:`set_kernel_threads`); the ranges run at once on Python threads (the
+    kernels release the GIL)."""
+    parts = max(1, min(_threads(), items))
+    bounds = [items * p // parts for p in range(parts + 1)]
+    _parallel(lambda p: fn(bounds[p], bounds[p + 1]), parts)
+
+
+def kernel_module() -> Any:
+    """The compiled kernels' module (None when numba does not import)."""
+    return _load()

@@ -19,9 +19,11 @@ from __future__ import annotations
 import functools
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
+from . import backend
 from .camera import Intrinsics
 
 
@@ -136,14 +138,19 @@ def support_samples(
         ).reshape(-1, 3)
         surf = cam_pos + (dirs * depth) @ anchor[:3, :3].T
     else:
+        # per occupied cell (in cell order) the nearest mean, the first in index order among
+        # equally near ones: two scatter-mins, no sort
         cell = v[idx].long() * grid + u[idx].long()
         zi = z[idx]
-        order = torch.argsort(zi, stable=True)
-        order = order[torch.argsort(cell[order], stable=True)]  # by cell, then depth
-        cs = cell[order]
-        first = torch.ones_like(cs, dtype=torch.bool)
-        first[1:] = cs[1:] != cs[:-1]
-        surf = means.detach()[idx[order[first]]]
+        cells = grid * grid
+        zmin = torch.full((cells,), float("inf"), dtype=dt, device=dev).scatter_reduce(
+            0, cell, zi, reduce="amin")
+        at_min = zi == zmin[cell]
+        n_vis = idx.numel()
+        pos = torch.arange(n_vis, device=dev)
+        first = torch.full((cells,), n_vis, dtype=torch.long, device=dev).scatter_reduce(
+            0, cell[at_min], pos[at_min], reduce="amin")
+        surf = means.detach()[idx[first[first < n_vis]]]
     pieces = [surf]
     if ray_samples > 0:
         frac = ray_min_fraction + (1.0 - ray_min_fraction) * torch.rand(
@@ -186,6 +193,44 @@ def coverage_matrix(
     anchor = anchor_c2w.detach().to(samples.dtype)
     r = c[:, :3, :3]
     p = c[:, :3, 3]
+    if backend.resolve(None, (samples, c)):
+        kappa, chi, cover = _coverage_terms_kernel(samples.detach(), c, intrinsics, near, eps)
+    else:
+        kappa, chi, cover = _coverage_terms_torch(samples.detach(), c, intrinsics, near, eps)
+    pos = torch.exp(-((p - anchor[:3, 3]) ** 2).sum(-1) / (2.0 * sigma_p**2))
+    orient = (r[:, :, 2] @ anchor[:3, 2]).clamp(0.0, 1.0) ** 2
+    rho = pos * orient * cover
+    m = rho.pow(gamma).unsqueeze(1) * kappa
+    return CoverageResult(m=m, rho=rho, chi=chi, samples=samples)
+
+
+def _coverage_terms_kernel(samples: Tensor, c: Tensor, intrinsics: Intrinsics, near: float,
+                           eps: float) -> tuple[Tensor, Tensor, Tensor]:
+    """kappa [D, K], chi [D, K] and the covered fraction [D] through the compiled kernel."""
+    d, k = c.shape[0], samples.shape[0]
+    cams = torch.cat([c[:, :3, :3].reshape(d, 9), c[:, :3, 3]], dim=1).to(torch.float64)
+    cams_np = np.ascontiguousarray(cams.cpu().numpy())
+    pts = np.ascontiguousarray(samples.to(torch.float64).cpu().numpy())
+    intr = np.array([intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy,
+                     float(intrinsics.width), float(intrinsics.height)])
+    kappa = np.empty((d, k))
+    chi = np.empty((d, k), dtype=np.uint8)
+    cover = np.empty(d)
+    fn = backend.kernel_module().coverage_terms
+    backend.run_in_parts(
+        lambda d0, d1: fn(cams_np, intr, pts, float(near), float(eps), d0, d1, kappa, chi,
+                          cover), d)
+    dt, dev = samples.dtype, samples.device
+    return (torch.from_numpy(kappa).to(device=dev, dtype=dt),
+            torch.from_numpy(chi).to(device=dev, dtype=torch.bool),
+            torch.from_numpy(cover).to(device=dev, dtype=dt))
+
+
+def _coverage_terms_torch(samples: Tensor, c: Tensor, intrinsics: Intrinsics, near: float,
+                          eps: float) -> tuple[Tensor, Tensor, Tensor]:
+    """kappa [D, K], chi [D, K] and the covered fraction [D]: the pure-torch reference."""
+    r = c[:, :3, :3]
+    p = c[:, :3, 3]
     rel = samples.unsqueeze(0) - p.unsqueeze(1)  # [D, K, 3]
     cam = torch.einsum("dkj,dji->dki", rel, r)  # camera-frame coordinates
     z = cam[..., 2]
@@ -196,12 +241,7 @@ def coverage_matrix(
     chi = (z > near) & (u >= 0) & (u < intrinsics.width) & (v >= 0) & (v < intrinsics.height)
     cos = (z / dist.clamp_min(1e-12)).clamp_min(0.0)  # d_v . r_vk, rectified
     kappa = torch.where(chi, cos / (dist + eps), torch.zeros_like(cos))
-    pos = torch.exp(-((p - anchor[:3, 3]) ** 2).sum(-1) / (2.0 * sigma_p**2))
-    orient = (r[:, :, 2] @ anchor[:3, 2]).clamp(0.0, 1.0) ** 2
-    cover = chi.to(samples.dtype).mean(dim=1)
-    rho = pos * orient * cover
-    m = rho.pow(gamma).unsqueeze(1) * kappa
-    return CoverageResult(m=m, rho=rho, chi=chi, samples=samples)
+    return kappa, chi, chi.to(samples.dtype).mean(dim=1)
 
 
 def jl_projection(

@@ -75,6 +75,7 @@ def test_tiny_run_writes_outputs_and_rerun_skips(tmp_path: Path) -> None:
     assert 0 < len(ev["shortlist"]) <= prof.shortlist_size
     assert ev["choice"] in ev["shortlist"]
     assert ev["latency_ms"]["rerank"] > 0.0 and ev["information_ms"] > 0.0
+    assert 0.0 < ev["latency_ms"]["anchor.ascent"] <= ev["latency_ms"]["anchor"]
     assert ev["select_cpu_ms"] > 0.0
     assert res["summary"]["agile_plus"]["cpu_ms_mean"] > res["summary"]["random"]["cpu_ms_mean"]
     # the budget ablation: AGILE-GS+ with N = 2 reranks at most 2 views
@@ -87,6 +88,9 @@ def test_tiny_run_writes_outputs_and_rerun_skips(tmp_path: Path) -> None:
     assert "| Random |" in table and "| AGILE-GS+ |" in table
     assert "spot_10k PSNR↑" in table and "Avg. selection time (s)" in table
     assert "## Ablation: AGILE-GS+ shortlist budget N" in table
+    assert "## Where the anchor's time goes" in table
+    split = table.split("## Where the anchor's time goes")[1]
+    assert "| AGILE-GS+ |" in split and "| Random |" not in split.split("##")[0]
     budget_rows = table.split("## Ablation: AGILE-GS+ shortlist budget N")[1]
     assert "| 2 |" in budget_rows and f"| {prof.shortlist_size} |" in budget_rows
     # paired differences between the main methods (the budget variant is not one of them)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import torch
 
-from agilegs.service.bench.latency import PeakRSS, densified
+from agilegs.service.bench.latency import ANCHOR_STAGES, PeakRSS, densified
 from agilegs.service.cli import main
 from agilegs.service.nbv.gaussians import GaussianMap
 
@@ -52,8 +52,16 @@ def test_latency_bench_reports_every_method(tmp_path: Path) -> None:
         m = methods[name]
         assert -1.0 <= m["proxy_spearman"] <= 1.0 and not math.isnan(m["proxy_spearman"])
         assert 0.0 <= m["head_eig_percentile"] <= m["shortlist_best_eig_percentile"] <= 100.0
-        assert set(m["stages_ms"]) == {"information", "anchor", "scoring", "leverage", "rerank",
-                                       "total"}
+        stages = m["stages_ms"]
+        assert {k for k in stages if "." not in k} == {"information", "anchor", "scoring",
+                                                       "leverage", "rerank", "total"}
+        # the anchor's stages, apart: within the anchor (medians of two events: means)
+        split = [stages[f"anchor.{st}"] for st in ANCHOR_STAGES]
+        assert all(v >= 0 for v in split) and 0 < sum(split) <= stages["anchor"] + 1e-6
+        assert stages["anchor.ascent.gradients"] + stages["anchor.ascent.values"] <= (
+            stages["anchor.ascent"] + 1e-6)
+        assert m["value_evaluations"] >= 1 and m["gradient_evaluations"] >= 0
+        assert m["psi_evaluations"] == m["value_evaluations"] + m["gradient_evaluations"]
     # AGILE-GS+ reranks its shortlist by the exact EIG: it picks the shortlist's best
     assert methods["agile_plus"]["eig_percentile"] == methods["agile_plus"][
         "shortlist_best_eig_percentile"

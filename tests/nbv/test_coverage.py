@@ -151,3 +151,55 @@ def test_jl_projection_is_seeded_and_scaled() -> None:
 def test_jl_projection_rejects_bad_sizes() -> None:
     with pytest.raises(ValueError, match="JL"):
         jl_projection(0, 4)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_point_zbuffer_equals_the_sorted_reference(dtype: torch.dtype) -> None:
+    """The surface samples: per occupied cell in cell order, the nearest mean, the first in
+    index order among equally near ones (as a stable sort by depth, then by cell)."""
+    from agilegs.service.nbv.coverage import project_points
+
+    means = blob(3000, dtype, seed=4)
+    means[1500:1600] = means[:100]  # exact ties in depth and cell
+    anchor = pose([0.3, 0.2, -2.0], [0.0, 0.0, 0.0], dtype)
+    grid = 16
+    got = support_samples(means, anchor, INTR, grid=grid, ray_samples=0, max_samples=10**6)
+    u, v, z = project_points(means, anchor, INTR.scaled(grid, grid))
+    idx = torch.nonzero((z > 0.01) & (u >= 0) & (u < grid) & (v >= 0) & (v < grid)).squeeze(1)
+    cell = v[idx].long() * grid + u[idx].long()
+    order = torch.argsort(z[idx], stable=True)
+    order = order[torch.argsort(cell[order], stable=True)]
+    cs = cell[order]
+    first = torch.ones_like(cs, dtype=torch.bool)
+    first[1:] = cs[1:] != cs[:-1]
+    assert int(first.sum()) > 50
+    assert torch.equal(got, means[idx[order[first]]])
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+def test_coverage_kernel_equals_the_torch_reference(dtype: torch.dtype) -> None:
+    from agilegs.service.nbv import backend
+    from agilegs.service.nbv.coverage import _coverage_terms_kernel, _coverage_terms_torch
+
+    if not backend.kernels_available():
+        pytest.skip("numba unavailable")
+    means = blob(600, dtype, seed=5)
+    cands = capture_pool(torch.zeros(3, dtype=torch.float64), 2.0, 40, seed=1).to(dtype)
+    cands[0, :3, 3] = means[0]  # a candidate on a sample: distance 0
+    samples = torch.cat([means, 3.0 * means[:50]])  # some behind the cameras or outside
+    got = _coverage_terms_kernel(samples, cands, INTR, 0.01, 1e-3)
+    ref = _coverage_terms_torch(samples, cands, INTR, 0.01, 1e-3)
+    assert 0 < int(ref[1].sum()) < ref[1].numel()
+    assert torch.equal(got[1], ref[1])
+    tol = 1e-12 if dtype == torch.float64 else 1e-5
+    torch.testing.assert_close(got[0], ref[0], rtol=tol, atol=tol)
+    torch.testing.assert_close(got[2], ref[2], rtol=tol, atol=tol)
+    anchor = pose([0.0, 0.5, -2.0], [0.0, 0.0, 0.0], dtype)
+    full = coverage_matrix(samples, cands, anchor, INTR, sigma_p=1.0)
+    try:
+        backend.set_default_backend("torch")
+        slow = coverage_matrix(samples, cands, anchor, INTR, sigma_p=1.0)
+    finally:
+        backend.set_default_backend(None)
+    torch.testing.assert_close(full.m, slow.m, rtol=tol, atol=tol)
+    assert torch.equal(full.chi, slow.chi)

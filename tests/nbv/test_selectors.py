@@ -7,6 +7,7 @@ import math
 import pytest
 import torch
 
+from agilegs.service.bench.stages import ANCHOR_STAGES
 from agilegs.service.nbv.camera import Camera, Intrinsics
 from agilegs.service.nbv.candidates import capture_pool
 from agilegs.service.nbv.gaussians import FIELD_NAMES, GaussianMap
@@ -104,9 +105,17 @@ def test_latency_breakdown_and_selection_fields(world) -> None:
     gmap, h, pool, acq, _ = world
     for method in METHODS:
         sel = select(method, gmap, h, pool, INTR, acquired=acq)
-        assert set(sel.latency_ms) == set(STAGES)
+        assert {k for k in sel.latency_ms if "." not in k} == set(STAGES)
         assert all(v >= 0 for v in sel.latency_ms.values())
         assert sel.latency_ms["total"] >= max(v for k, v in sel.latency_ms.items() if k != "total")
+        # the anchor's own stages, apart: within the anchor
+        sub = [v for k, v in sel.latency_ms.items() if k.startswith("anchor.")
+               and k.count(".") == 1]
+        if method in ("agile", "agile_plus"):
+            assert {f"anchor.{s}" for s in ANCHOR_STAGES} <= set(sel.latency_ms)
+            assert 0 < sum(sub) <= sel.latency_ms["anchor"]
+        else:
+            assert not sub
         assert 0 <= sel.index < len(pool)
         assert sel.eligible == list(range(len(pool)))
         assert sel.method == method

@@ -26,6 +26,7 @@ from agilegs.config.selection import AnchorConfig
 from agilegs.config.types import validate_config
 
 from ..camera import Camera, Intrinsics
+from ..cancel import checkpoint
 from ..candidates import pool_radius, scene_center_radius
 from ..gaussians import FIELD_NAMES, GaussianMap
 from ..information import fisher_diag, trace_surrogate
@@ -45,6 +46,11 @@ __all__ = ["AnchorResult", "ascend", "distinct_best", "exact_psi_fn", "optimize_
            "optimize_anchor_validated"]
 
 
+POOL_CHUNK = 32
+"""Pool candidates whose psi is evaluated at once (the request's deadline is checked between
+chunks)."""
+
+
 @dataclass
 class AnchorResult:
     """Outcome of the anchor ascent.
@@ -61,7 +67,11 @@ class AnchorResult:
         modes: the anchors of distinct modes [M, 4, 4], best first (``c2w`` first; only it
             unless ``config.anchors`` > 1).
         mode_psi: psi at each of ``modes``.
-        extra: diagnostics (typical Fisher used, timings).
+        extra: diagnostics (typical Fisher used; ``timings_s``, the seconds of each stage:
+            ``visibility`` (the opacity maps), ``rates`` (the model fitted over the acquired
+            views, the importance sample), ``unexplored`` (unexplored space), ``starts``
+            (the pool's psi, the starts), ``ascent``); ``ascent_split``, the ascent's
+            evaluations with and without the gradient, and their seconds (:func:`ascend`).
     """
 
     c2w: Tensor
@@ -95,39 +105,61 @@ def ascend(
     envelope: PoolEnvelope | None,
     radius: float,
     batched: bool = True,
+    split: dict[str, float] | None = None,
 ) -> tuple[Tensor, Tensor, list[list[float]], int]:
     """Riemannian gradient ascent of psi from every start pose [S, 4, 4].
 
     ``psi_fn`` maps poses [B, 4, 4] to psi [B]; with ``batched=False`` it is called one pose
     at a time. Returns the final poses [S, 4, 4], their psi [S], the per-start psi traces
     (one entry per accepted step, never decreasing) and the number of psi evaluations.
+    ``split``, when given, receives the poses evaluated with their gradient
+    (``gradient_evaluations``) and without (``value_evaluations``), and the seconds of each
+    (``gradient_s``, ``value_s``).
     """
     dt = starts.dtype
+    tally = split if split is not None else {}
+    for key in ("gradient_evaluations", "value_evaluations", "gradient_s", "value_s"):
+        tally.setdefault(key, 0.0)
+
+    def values(poses: Tensor) -> Tensor:
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            out = evaluate(poses).detach()
+        tally["value_s"] += time.perf_counter() - t0
+        tally["value_evaluations"] += poses.shape[0]
+        return out
 
     def evaluate(poses: Tensor) -> Tensor:
         if batched:
             return psi_fn(poses)
-        return torch.stack([psi_fn(p.unsqueeze(0))[0] for p in poses])
+        out = []
+        for p in poses:
+            checkpoint()
+            out.append(psi_fn(p.unsqueeze(0))[0])
+        return torch.stack(out)
 
     def twist_grad(poses: Tensor) -> tuple[Tensor, Tensor]:
+        t0 = time.perf_counter()
         xi = torch.zeros(poses.shape[0], 6, dtype=dt, device=poses.device, requires_grad=True)
         moved = poses @ se3_exp(xi)
         if envelope is not None:
             moved = envelope.project(moved)
         val = evaluate(moved)
         (g,) = torch.autograd.grad(val.sum(), xi)
+        tally["gradient_s"] += time.perf_counter() - t0
+        tally["gradient_evaluations"] += poses.shape[0]
         return val.detach(), g.detach()
 
     poses = starts.detach().clone()
     if envelope is not None:
         poses = envelope.project(poses)
-    with torch.no_grad():
-        cur = evaluate(poses).detach()
+    cur = values(poses)
     evals = poses.shape[0]
     traces = [[float(v)] for v in cur]
     eta = torch.full((poses.shape[0],), config.step_size, dtype=dt, device=poses.device)
     active = torch.ones(poses.shape[0], dtype=torch.bool, device=poses.device)
     for _ in range(config.iterations):
+        checkpoint()
         if not bool(active.any()):
             break
         ids = torch.nonzero(active).squeeze(1)
@@ -139,6 +171,7 @@ def ascend(
         pending = step_ok.clone()
         loc_eta = eta[ids].clone()
         for _trial in range(config.backtracks + 1):
+            checkpoint()
             if not bool(pending.any()):
                 break
             pid = torch.nonzero(pending).squeeze(1)
@@ -147,7 +180,7 @@ def ascend(
                 trial = poses[ids[pid]] @ se3_exp(xi)
                 if envelope is not None:
                     trial = envelope.project(trial)
-                val = evaluate(trial).detach()
+            val = values(trial)
             evals += len(pid)
             ok = torch.isfinite(val) & (val >= cur[ids[pid]])
             for j, k in enumerate(pid.tolist()):
@@ -236,7 +269,14 @@ def optimize_anchor_validated(
             psi renders with it too; None: black).
     """
     timings: dict[str, float] = {}
-    t0 = time.perf_counter()
+    last = [time.perf_counter()]
+
+    def lap(stage: str) -> None:
+        now = time.perf_counter()
+        timings[stage] = timings.get(stage, 0.0) + (now - last[0])
+        last[0] = now
+        checkpoint()
+
     dt = gmap.dtype
     radius = envelope.radius if envelope is not None else pool_radius(candidates)
     extra: dict[str, Any] = {}
@@ -264,7 +304,7 @@ def optimize_anchor_validated(
             occ_tests=config.occlusion_tests,
             occluders=pick_occluders(gmap, config.occluders, generator),
         )
-    timings["visibility"] = time.perf_counter() - t0
+    lap("visibility")
     fitted = (
         typical is None
         and config.model in ("fitted", "directional")
@@ -307,6 +347,7 @@ def optimize_anchor_validated(
         c = information_weights(h_acc, typical, fields)
         proxy = ProxyPsi.build(gmap, c, prox_intr, num_samples=config.num_gaussians, **common)
         extra["model"] = "typical"
+    lap("rates")
     if fitted and config.unexplored:
         assert acquired is not None
         space = unexplored_space(gmap, acquired, proxy, cells=config.unexplored_cells,
@@ -316,11 +357,16 @@ def optimize_anchor_validated(
             proxy = proxy.extended(space.means, space.cov, per_gaussian * space.weight, rates)
         extra["unexplored_fraction"] = space.unexplored_fraction
         extra["unexplored_points"] = int(space.means.shape[0])
-    timings["proxy_build"] = time.perf_counter() - t0
+    lap("unexplored")
     # starts: best pool candidates under the proxy (+ the previous anchor)
     with torch.no_grad():
         pool = candidates.detach().to(dt)
-        pool_psi = proxy(envelope.project(pool) if envelope is not None else pool)
+        placed = envelope.project(pool) if envelope is not None else pool
+        parts = []
+        for i in range(0, placed.shape[0], POOL_CHUNK):  # a cancellation check per chunk
+            checkpoint()
+            parts.append(proxy(placed[i : i + POOL_CHUNK]))
+        pool_psi = torch.cat(parts)
     k = min(config.num_starts, pool.shape[0])
     separation = config.mode_separation * radius
     if config.anchors > 1:
@@ -333,20 +379,24 @@ def optimize_anchor_validated(
     # the ascent moves on SE(3): poses within the wire's tolerance start from the nearest
     # rigid transform
     starts = project_to_se3(starts)
-    timings["starts"] = time.perf_counter() - t0 - timings["proxy_build"]
+    lap("starts")
+    split: dict[str, float] = {}
     if config.psi == "proxy":
         poses, vals, traces, evals = ascend(
-            proxy, starts, config=config, envelope=envelope, radius=radius, batched=True
+            proxy, starts, config=config, envelope=envelope, radius=radius, batched=True,
+            split=split,
         )
     else:
         exact = exact_psi_fn(gmap, h_acc, intrinsics, config, fields, background=background)
         poses, vals, traces, evals = ascend(
-            exact, starts, config=config, envelope=envelope, radius=radius, batched=False
+            exact, starts, config=config, envelope=envelope, radius=radius, batched=False,
+            split=split,
         )
     win = int(torch.argmax(vals))
     modes = distinct_best(poses, vals, config.anchors, separation, radius)
-    timings["ascent"] = time.perf_counter() - t0 - timings["proxy_build"] - timings["starts"]
+    lap("ascent")
     extra["timings_s"] = timings
+    extra["ascent_split"] = split
     extra["start_indices"] = [int(i) for i in best]
     extra["proxy_samples"] = int(proxy.means.shape[0])
     return AnchorResult(
@@ -402,6 +452,7 @@ def exact_psi_fn(
     def psi(c2w: Tensor) -> Tensor:
         out = []
         for pose in c2w:
+            checkpoint()
             cam = Camera(c2w=pose, intrinsics=small)
             fd = fisher_diag(gmap, cam, fields=fields, background=background)
             out.append(trace_surrogate(fd, h_sel))

@@ -13,16 +13,19 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
 from ..camera import Intrinsics
+from ..cancel import checkpoint
 from ..gaussians import GaussianMap
-from .proxy import DIRECTION_KINDS, ProxyPsi, direction_factors, local_axes
+from .proxy import DIRECTION_KINDS, ProxyPsi, local_axes
 from .visibility import OpacityMaps
 
 __all__ = [
     "FIELD_KINDS",
+    "lower_median",
     "DirectionalRates",
     "FittedRates",
     "directional_rates",
@@ -33,6 +36,19 @@ __all__ = [
     "typical_fisher_from_h_acc",
     "typical_fisher_from_views",
 ]
+
+
+def lower_median(x: Tensor) -> Tensor:
+    """``x.median()`` of a non-empty tensor (the lower of the two middle values), by a
+    selection (numpy's introselect) on the CPU instead of a sort; NaNs and other devices go
+    to torch."""
+    if x.device.type != "cpu" or x.dtype not in (torch.float32, torch.float64):
+        return x.median()
+    a = x.detach().reshape(-1).numpy()
+    if np.isnan(a).any():
+        return x.median()
+    k = (a.size - 1) // 2
+    return torch.as_tensor(np.partition(a, k)[k], dtype=x.dtype)
 
 
 def prior_floor(flat: Tensor, lam: float | None) -> Tensor:
@@ -159,6 +175,7 @@ def observation_rates(
     w_sum = torch.zeros(n, dtype=dt, device=dev)
     seen: list[Tensor] = []
     for i in range(0, poses.shape[0], chunk):
+        checkpoint()
         w = full(poses[i : i + chunk], per_sample=True)  # [B, N]
         w_sum += w.sum(0)
         seen.append(w[w > 1e-6])
@@ -272,13 +289,12 @@ def directional_rates(
     w_sum = torch.zeros(n, len(DIRECTION_KINDS), dtype=dt, device=dev)
     seen: list[Tensor] = []
     for i in range(0, poses.shape[0], chunk):
-        p = poses[i : i + chunk]
-        w = full(p, per_sample=True)  # [B, N]
-        f = direction_factors(full.means.to(dt), p[:, :3, 3], axes)  # [B, N, 7]
-        w_sum += (w.unsqueeze(-1) * f).sum(0)
+        checkpoint()
+        w, wf = full.terms_and_factors(poses[i : i + chunk], axes)  # [B, N], [N, 7]
+        w_sum += wf
         seen.append(w[w > 1e-6])
     pos = torch.cat(seen) if seen else torch.zeros(0, dtype=dt, device=dev)
-    f_typ = float(pos.median()) if pos.numel() else 1.0
+    f_typ = float(lower_median(pos)) if pos.numel() else 1.0
     # the floor of each factor: a quarter of a typical view, at the factor's mean over a
     # uniform direction (2/3 for 1 - c^2)
     floor = 0.25 * f_typ * torch.tensor([1.0] + [2.0 / 3.0] * 6, dtype=dt, device=dev)
@@ -291,7 +307,7 @@ def directional_rates(
     seen_slot = w_slot >= floor[kinds]
     g = excess / w_slot.clamp_min(1e-30)
     g_med = torch.stack([
-        g[seen_slot[:, q], q].median() if bool(seen_slot[:, q].any())
+        lower_median(g[seen_slot[:, q], q]) if bool(seen_slot[:, q].any())
         else torch.zeros((), dtype=dt, device=dev)
         for q in range(flat.shape[1])
     ])

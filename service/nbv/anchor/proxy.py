@@ -15,12 +15,15 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
 from agilegs.config.selection import POINT_ZBUFFER
 
+from .. import backend
 from ..camera import Intrinsics
 from ..gaussians import GaussianMap
 from ..projection import covariance_3d
@@ -241,8 +244,135 @@ class ProxyPsi:
             vis += (s_ok & (sz <= covered[k_d][sc] * (1.0 + tol))).to(dt)
         return vis / len(self.occ_tests)
 
+    def uses_kernel(self, c2w: Tensor) -> bool:
+        """Whether :meth:`__call__` runs the compiled kernel for poses ``c2w`` (the backend
+        allows it: :func:`agilegs.service.nbv.backend.resolve`; and the visibility is the
+        transmittance or none: the z-buffer test has no kernel)."""
+        if self.grid is None and self.occluders is not None:
+            return False
+        if self.rate is not None and self.rate.ndim == 2 and self.axes is None:
+            return False
+        return backend.resolve(None, (c2w, self.means))
+
     def __call__(self, c2w: Tensor, per_sample: bool = False) -> Tensor:
         """psi for poses [B, 4, 4] -> [B] (differentiable in the poses, but for visibility).
+
+        The compiled kernel (:mod:`agilegs.service.nbv.kernels.proxy`) serves where
+        :meth:`uses_kernel` says so, differentiable in the poses through its analytic
+        gradient; :meth:`reference` is the pure-torch path, which it equals.
+        """
+        if self.uses_kernel(c2w):
+            if per_sample:
+                if c2w.requires_grad and torch.is_grad_enabled():
+                    return self.reference(c2w, per_sample=True)
+                return self._kernel(c2w, want_grad=False, per_sample=True)[0]
+            return _ProxyKernel.apply(c2w, self)
+        return self.reference(c2w, per_sample)
+
+    def _kernel_inputs(self) -> dict[str, Any]:
+        """The samples, the model and the visibility as the kernel's float64 arrays (built
+        once per proxy)."""
+        cached = getattr(self, "_knp", None)
+        if cached is not None:
+            return cached
+        f64 = torch.float64
+
+        def arr(t: Tensor) -> np.ndarray:
+            return np.ascontiguousarray(t.detach().to(f64).cpu().numpy())
+
+        s = self.means.shape[0]
+        k = self.intrinsics
+        if self.rate is None:
+            mode, rate = 0, np.zeros((s, 1))
+        elif self.rate.ndim == 1:
+            mode, rate = 1, arr(self.rate.reshape(-1, 1))
+        else:
+            mode, rate = 2, arr(self.rate)
+        kinds = (np.ascontiguousarray(self.slot_kinds.cpu().numpy().astype(np.int64))
+                 if mode == 2 and self.slot_kinds is not None else np.zeros(1, dtype=np.int64))
+        axes = (arr(self.axes.reshape(-1, 9)) if mode == 2 and self.axes is not None
+                else np.zeros((1, 9)))
+        grid = self.grid
+        if grid is not None:
+            occ, mass = arr(grid.means), arr(grid.mass)
+            c = grid.center.detach().to(f64).cpu()
+            vis = np.array([float(c[0]), float(c[1]), float(c[2]), grid.half_depth, 1.0])
+            cells, bins = grid.cells, grid.bins
+        else:
+            occ, mass = np.zeros((0, 3)), np.zeros(0)
+            vis = np.array([0.0, 0.0, 0.0, 1.0, 0.0])
+            cells, bins = 1, 1
+        out = dict(
+            intr=np.array([k.fx, k.fy, k.cx, k.cy, float(k.width), float(k.height),
+                           float(self.near), float(self.edge)]),
+            means=arr(self.means), sigma6=arr(self.sigma6.T), weight=arr(self.weight),
+            rate=rate, kinds=kinds, axes=axes, mode=mode, occ=occ, mass=mass, vis_prm=vis,
+            cells=int(cells), bins=int(bins),
+        )
+        self._knp = out
+        return out
+
+    def terms_and_factors(self, c2w: Tensor, axes: Tensor) -> tuple[Tensor, Tensor]:
+        """The per-sample terms from poses [B, 4, 4] -> [B, S], and the terms times each
+        direction factor (:func:`direction_factors` with the samples' local axes ``axes``
+        [S, 3, 3]) summed over the poses -> [S, 7]; through the kernel where
+        :meth:`uses_kernel` says so (no gradient)."""
+        if self.uses_kernel(c2w):
+            terms, acc = self._kernel(c2w, want_grad=False, per_sample=True, axes=axes)
+            assert acc is not None
+            return terms, acc
+        dt = c2w.dtype
+        w = self.reference(c2w, per_sample=True)
+        f = direction_factors(self.means.to(dt), c2w[:, :3, 3], axes.to(dt))
+        return w, (w.unsqueeze(-1) * f).sum(0)
+
+    def _kernel(self, c2w: Tensor, want_grad: bool, per_sample: bool = False,
+                axes: Tensor | None = None) -> tuple[Tensor, Tensor | None]:
+        """The kernel at poses [B, 4, 4]: psi [B] (or the per-sample terms [B, S]) and, with
+        ``want_grad``, d psi / d c2w [B, 4, 4] (zero in the last row); with ``per_sample``
+        and ``axes`` [S, 3, 3], the terms and their sum over the poses times each direction
+        factor [S, 7] (:meth:`terms_and_factors`)."""
+        kin = self._kernel_inputs()
+        b = c2w.shape[0]
+        pose = c2w.detach().to(torch.float64).cpu()
+        cams = np.ascontiguousarray(
+            torch.cat([pose[:, :3, :3].reshape(b, 9), pose[:, :3, 3]], dim=1).numpy())
+        psi = np.zeros(b)
+        grad = np.zeros((b, 12) if want_grad else (1, 12))
+        s = int(kin["means"].shape[0])
+        terms = np.zeros((b, s) if per_sample else (1, 1))
+        fn = backend.kernel_module().proxy_psi
+        accumulate = per_sample and axes is not None
+        acc = np.zeros((s, 7) if accumulate else (1, 7))
+        ax = (np.ascontiguousarray(axes.detach().to(torch.float64).cpu().reshape(-1, 9).numpy())
+              if accumulate and axes is not None else kin["axes"])
+
+        def part(b0: int, b1: int) -> None:
+            fn(cams, kin["intr"], kin["means"], kin["sigma6"], kin["weight"], kin["rate"],
+               kin["kinds"], ax, kin["mode"], kin["occ"], kin["mass"],
+               kin["vis_prm"], kin["cells"], kin["bins"], want_grad, per_sample, b0, b1, psi,
+               grad, terms, accumulate, acc)
+
+        if accumulate:
+            part(0, b)  # the poses add to the same rows: one thread
+        else:
+            backend.run_in_parts(part, b)
+        dt, dev = c2w.dtype, c2w.device
+        if per_sample:
+            return (torch.from_numpy(terms).to(device=dev, dtype=dt),
+                    torch.from_numpy(acc).to(device=dev, dtype=dt) if accumulate else None)
+        out = torch.from_numpy(psi).to(device=dev, dtype=dt)
+        if not want_grad:
+            return out, None
+        g = torch.zeros(b, 4, 4, dtype=dt, device=dev)
+        gt = torch.from_numpy(grad).to(device=dev, dtype=dt)
+        g[:, :3, :3] = gt[:, :9].reshape(b, 3, 3)
+        g[:, :3, 3] = gt[:, 9:]
+        return out, g
+
+    def reference(self, c2w: Tensor, per_sample: bool = False) -> Tensor:
+        """The pure-torch psi for poses [B, 4, 4] -> [B] (differentiable in the poses, but
+        for the z-buffer visibility): the reference the kernel is tested against.
 
         ``per_sample``: return the unweighted per-sample terms footprint x inside x visible
         [B, S] instead of their weighted sum.
@@ -288,6 +418,12 @@ class ProxyPsi:
         cc = k.fy * k.fy * iz2 * (qyy - 2 * ty * qyz + ty * ty * qzz) + 0.3
         foot = torch.sqrt((a * cc - bb * bb).clamp_min(1e-12))
         terms = foot * self._inside(x, y, z) * self.visibility(c2w, (x, y, z))
+        return self._reduce(c2w, terms, per_sample)
+
+    def _reduce(self, c2w: Tensor, terms: Tensor, per_sample: bool) -> Tensor:
+        """The model's sum over the samples of the per-sample terms [B, S] -> [B] (or the
+        terms as they are, ``per_sample``)."""
+        dt = c2w.dtype
         if per_sample:
             return terms
         if self.rate is not None and self.rate.ndim == 2:
@@ -359,6 +495,25 @@ class ProxyPsi:
 DIRECTION_KINDS = ("isotropic", "world_x", "world_y", "world_z", "local_0", "local_1",
                    "local_2")
 """The direction factors of :func:`direction_factors`, in order."""
+
+
+class _ProxyKernel(torch.autograd.Function):
+    """psi of poses [B, 4, 4] -> [B] through the compiled kernel, with its analytic gradient
+    in the poses."""
+
+    @staticmethod
+    def forward(ctx: Any, c2w: Tensor, proxy: ProxyPsi) -> Tensor:  # type: ignore[override]
+        want = bool(ctx.needs_input_grad[0])
+        psi, grad = proxy._kernel(c2w, want_grad=want)
+        ctx.save_for_backward(grad if grad is not None else torch.zeros(0))
+        return psi
+
+    @staticmethod
+    def backward(ctx: Any, grad_out: Tensor) -> tuple[Tensor | None, None]:  # type: ignore[override]
+        (grad,) = ctx.saved_tensors
+        if grad.numel() == 0:
+            return None, None
+        return grad_out[:, None, None] * grad, None
 
 
 def local_axes(quats: Tensor) -> Tensor:

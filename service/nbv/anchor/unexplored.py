@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from ..cancel import checkpoint
 from ..candidates import scene_center_radius
 from ..gaussians import GaussianMap
 from .proxy import ProxyPsi
@@ -98,6 +99,7 @@ def unexplored_space(
     observed = torch.zeros(points.shape[0], dtype=dt, device=dev)
     poses = acquired.detach().to(dt)
     for i in range(0, poses.shape[0], chunk):
+        checkpoint()
         observed = torch.maximum(observed, probe.seen(poses[i : i + chunk]).amax(0))
     unexplored = (1.0 - observed).clamp(0, 1)
     # the map's density: Gaussians whose centres fall in observed cells, per observed cell

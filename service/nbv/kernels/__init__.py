@@ -41,7 +41,9 @@ Python threads (:mod:`agilegs.service.nbv.backend`). No numba threading layer is
 
 from .binning import bin_count, bin_fill, reduce_entries, visible_order
 from .common import CAM, FWD, MOMENTS, REC
+from .coverage import coverage_terms
 from .projection import PHI_INDEX, fisher_chain, jacobians, project, project_backward
+from .proxy import proxy_psi
 from .walks import composite_backward, composite_forward, fisher_tiles
 
 __all__ = [
@@ -53,12 +55,14 @@ __all__ = [
     "bin_count",
     "bin_fill",
     "composite_backward",
+    "coverage_terms",
     "composite_forward",
     "fisher_chain",
     "fisher_tiles",
     "jacobians",
     "project",
     "project_backward",
+    "proxy_psi",
     "reduce_entries",
     "visible_order",
 ]

@@ -36,11 +36,12 @@ def _anchor(ctx: SelectionContext, lat: dict[str, float], out: dict[str, Any]) -
     cfg = ctx.config
     dt = ctx.gmap.dtype
     with timed(lat, "anchor"):
-        envelope = (
-            PoolEnvelope.from_pool(ctx.pool, ctx.aim, cfg.anchor.envelope_margin)
-            if cfg.anchor.envelope
-            else None
-        )
+        with timed(lat, "anchor.envelope"):
+            envelope = (
+                PoolEnvelope.from_pool(ctx.pool, ctx.aim, cfg.anchor.envelope_margin)
+                if cfg.anchor.envelope
+                else None
+            )
         warm = ctx.state.get("anchor_c2w") if cfg.anchor.warm_start else None
         if warm is not None and (
             not isinstance(warm, Tensor) or warm.shape != (4, 4) or not torch.isfinite(warm).all()
@@ -83,6 +84,17 @@ def _anchor(ctx: SelectionContext, lat: dict[str, float], out: dict[str, Any]) -
             background=ctx.background,
         )
         out["state"]["anchor_c2w"] = res.c2w.clone()
+    # the anchor's stages, apart: "anchor.<stage>" (within "anchor", not added to it)
+    for stage, sec in res.extra.get("timings_s", {}).items():
+        lat[f"anchor.{stage}"] = sec * 1e3
+    split = res.extra.get("ascent_split", {})
+    if split:
+        lat["anchor.ascent.gradients"] = split["gradient_s"] * 1e3
+        lat["anchor.ascent.values"] = split["value_s"] * 1e3
+        out["details"]["ascent_evaluations"] = {
+            "gradient": int(split["gradient_evaluations"]),
+            "value": int(split["value_evaluations"]),
+        }
     out["psi_trace"] = list(res.psi_trace)
     if res.modes is not None and res.modes.shape[0] > 1:
         out["modes"] = (res.modes, res.mode_psi)

@@ -1,0 +1,429 @@
+"""The anchor's rasterization-free ψ (:class:`agilegs.service.nbv.anchor.proxy.ProxyPsi`) and
+its gradient in the camera pose, per pose: the deep opacity map of the pose
+(:class:`agilegs.service.nbv.anchor.visibility.OpacityMaps`), then every sample's footprint ×
+in-frustum × transmittance term, its model's log form, and the weighted sum.
+
+The rules are the pure-torch reference's, step for step (same formulas, same clamps, the
+softplus depth with torch's threshold, ``grid_sample``'s trilinear read with border padding
+and align_corners, whose coordinates pass gradient only strictly inside the grid). Arithmetic
+is float64 whatever the inputs' dtype. The gradient is taken w.r.t. the pose's rotation
+(columns: the camera axes in world) and centre, with the deep opacity map held fixed (the
+reference deposits it without gradient).
+
+Layouts: ``cams`` [B, 12] (c2w rotation row-major, then the centre); ``intr`` [8] (fx, fy,
+cx, cy, width, height, near, edge); ``means`` [S, 3]; ``sigma6`` [S, 6] (xx, yy, zz, 2xy,
+2xz, 2yz); ``weight`` [S]; ``rate`` [S, Q] (mode 1: Q = 1); ``kinds`` [Q] (mode 2: the
+direction factor of each slot, 0-6); ``axes`` [S, 9] (mode 2: the local axes as the columns of
+a row-major 3 × 3); visibility: ``occ`` [M, 3], ``mass`` [M], ``vis_prm`` [5] (centre x, y,
+z, half depth, 1 when there is a grid else 0) and the grid's ``cells`` and ``bins``.
+Modes: 0 linear (Σ w T), 1 log (Σ w log(1 + r T)), 2 directional (Σ w Σ_q log(1 + r_q f_q T)).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .common import jit as _jit
+
+_SOFTPLUS_THRESHOLD = 20.0
+
+
+@_jit
+def _sig(x: float) -> float:
+    if x > 37.0:  # exp(-x) below half an ulp of 1: the quotient is 1.0 exactly
+        return 1.0
+    if x >= 0.0:
+        return 1.0 / (1.0 + math.exp(-x))
+    e = math.exp(x)
+    return e / (1.0 + e)
+
+
+@_jit
+def _deposit(cam: np.ndarray, intr: np.ndarray, occ: np.ndarray, mass: np.ndarray,
+             vis_prm: np.ndarray, g: int, nb: int, grid: np.ndarray, tmp: np.ndarray,
+             cum: np.ndarray) -> float:
+    """The pose's deep opacity map: cumulated optical depth [nb + 1, g, g] into ``cum``;
+    returns z0, the depth of the first slice's near end."""
+    fx, fy, cx, cy, wd, ht = intr[0], intr[1], intr[2], intr[3], intr[4], intr[5]
+    r00, r01, r02 = cam[0], cam[1], cam[2]
+    r10, r11, r12 = cam[3], cam[4], cam[5]
+    r20, r21, r22 = cam[6], cam[7], cam[8]
+    t0, t1, t2 = cam[9], cam[10], cam[11]
+    half = vis_prm[3]
+    zc = (vis_prm[0] - t0) * r02 + (vis_prm[1] - t1) * r12 + (vis_prm[2] - t2) * r22
+    z0 = zc - half
+    dz = 2.0 * half / nb
+    ex_t = r00 * t0 + r10 * t1 + r20 * t2
+    ey_t = r01 * t0 + r11 * t1 + r21 * t2
+    ez_t = r02 * t0 + r12 * t1 + r22 * t2
+    cell_px = (wd / g) * (ht / g)
+    grid[:] = 0.0
+    for j in range(occ.shape[0]):
+        px, py, pz = occ[j, 0], occ[j, 1], occ[j, 2]
+        ox = (r00 * px + r10 * py + r20 * pz) - ex_t
+        oy = (r01 * px + r11 * py + r21 * pz) - ey_t
+        oz = (r02 * px + r12 * py + r22 * pz) - ez_t
+        if not oz > 1e-6:
+            continue
+        cu = math.floor((fx * ox / oz + cx) / wd * g)
+        cv = math.floor((fy * oy / oz + cy) / ht * g)
+        if cu < 0 or cu >= g or cv < 0 or cv >= g:
+            continue
+        slab = math.floor((oz - z0) / dz)
+        slab = min(max(slab, 0.0), nb - 1.0)
+        grid[int(slab), int(cv), int(cu)] += mass[j] / (oz * oz) / cell_px
+    # the [1, 2, 1] / 4 blur along the rows, then along the columns (zero outside)
+    for k in range(nb):
+        for i in range(g):
+            for c in range(g):
+                s = 0.5 * grid[k, i, c]
+                if i > 0:
+                    s += 0.25 * grid[k, i - 1, c]
+                if i < g - 1:
+                    s += 0.25 * grid[k, i + 1, c]
+                tmp[k, i, c] = s
+        for i in range(g):
+            for c in range(g):
+                s = 0.5 * tmp[k, i, c]
+                if c > 0:
+                    s += 0.25 * tmp[k, i, c - 1]
+                if c < g - 1:
+                    s += 0.25 * tmp[k, i, c + 1]
+                grid[k, i, c] = s
+    for i in range(g):
+        for c in range(g):
+            cum[0, i, c] = 0.0
+    for k in range(nb):
+        for i in range(g):
+            for c in range(g):
+                cum[k + 1, i, c] = cum[k, i, c] + grid[k, i, c]
+    return z0
+
+
+@_jit
+def _axis(ix: float, size: int) -> tuple[int, int, float, float]:
+    """The border-padded, align_corners linear read of an axis at coordinate ``ix``
+    (already within [0, size - 1]): the two indices, the far one's weight, and whether the
+    coordinate passes gradient (strictly inside)."""
+    i0 = int(math.floor(ix))
+    if i0 > size - 1:
+        i0 = size - 1
+    if i0 < 0:
+        i0 = 0
+    f = ix - i0
+    i1 = i0 + 1
+    if i1 > size - 1:
+        i1 = size - 1  # weight f is 0 there
+    inside = 1.0 if (ix > 0.0 and ix < size - 1.0) else 0.0
+    return i0, i1, f, inside
+
+
+@_jit
+def proxy_psi(cams: np.ndarray, intr: np.ndarray, means: np.ndarray, sigma6: np.ndarray,
+              weight: np.ndarray, rate: np.ndarray, kinds: np.ndarray, axes: np.ndarray,
+              mode: int, occ: np.ndarray, mass: np.ndarray, vis_prm: np.ndarray, cells: int,
+              bins: int, want_grad: bool, per_sample: bool, b0: int, b1: int,
+              psi: np.ndarray, grad: np.ndarray, terms_out: np.ndarray,
+              accumulate: bool, acc_out: np.ndarray) -> None:
+    """ψ of poses b0..b1-1 into ``psi`` [B]; with ``want_grad`` ∂ψ/∂(rotation, centre) into
+    ``grad`` [B, 12] (the layout of ``cams``); with ``per_sample`` the unweighted terms
+    footprint × inside × visible into ``terms_out`` [B, S] (ψ is then not reduced) and, with
+    ``accumulate`` too, every term times each of the sample's seven direction factors (with
+    ``axes``) added to ``acc_out`` [S, 7] (one thread: the poses add to the same rows)."""
+    fx, fy, cx, cy, wd, ht, near, edge = (intr[0], intr[1], intr[2], intr[3], intr[4],
+                                          intr[5], intr[6], intr[7])
+    beta = 20.0 / near
+    has_grid = vis_prm[4] > 0.5
+    g = cells
+    nb = bins
+    grid = np.zeros((nb, g, g))
+    tmp = np.zeros((nb, g, g))
+    cum = np.zeros((nb + 1, g, g))
+    dz = 2.0 * vis_prm[3] / nb
+    nq = rate.shape[1]
+    f7 = np.empty(7)
+    gf7 = np.empty(7)
+    dd = np.empty(3)
+    for b in range(b0, b1):
+        cam = cams[b]
+        z0 = 0.0
+        if has_grid:
+            z0 = _deposit(cam, intr, occ, mass, vis_prm, g, nb, grid, tmp, cum)
+        ex0, ex1, ex2 = cam[0], cam[3], cam[6]
+        ey0, ey1, ey2 = cam[1], cam[4], cam[7]
+        ez0, ez1, ez2 = cam[2], cam[5], cam[8]
+        t0, t1, t2 = cam[9], cam[10], cam[11]
+        ex_t = ex0 * t0 + ex1 * t1 + ex2 * t2
+        ey_t = ey0 * t0 + ey1 * t1 + ey2 * t2
+        ez_t = ez0 * t0 + ez1 * t1 + ez2 * t2
+        total = 0.0
+        gex0 = gex1 = gex2 = 0.0
+        gey0 = gey1 = gey2 = 0.0
+        gez0 = gez1 = gez2 = 0.0
+        gt0 = gt1 = gt2 = 0.0
+        for s in range(means.shape[0]):
+            m0, m1, m2 = means[s, 0], means[s, 1], means[s, 2]
+            x = (ex0 * m0 + ex1 * m1 + ex2 * m2) - ex_t
+            y = (ey0 * m0 + ey1 * m1 + ey2 * m2) - ey_t
+            z = (ez0 * m0 + ez1 * m1 + ez2 * m2) - ez_t
+            # softplus depth above the near plane
+            arg = beta * (z - near)
+            if arg > _SOFTPLUS_THRESHOLD:
+                zs = near + (z - near)
+                dzs = 1.0
+            else:
+                zs = near + math.log1p(math.exp(arg)) / beta
+                dzs = _sig(arg)
+            izs = 1.0 / zs
+            tx = x / zs
+            ty = y / zs
+            # footprint: the quadratic forms of the camera axes
+            sxx, syy, szz = sigma6[s, 0], sigma6[s, 1], sigma6[s, 2]
+            sxy, sxz, syz = 0.5 * sigma6[s, 3], 0.5 * sigma6[s, 4], 0.5 * sigma6[s, 5]
+            sx0 = sxx * ex0 + sxy * ex1 + sxz * ex2
+            sx1 = sxy * ex0 + syy * ex1 + syz * ex2
+            sx2 = sxz * ex0 + syz * ex1 + szz * ex2
+            sy0 = sxx * ey0 + sxy * ey1 + sxz * ey2
+            sy1 = sxy * ey0 + syy * ey1 + syz * ey2
+            sy2 = sxz * ey0 + syz * ey1 + szz * ey2
+            sz0 = sxx * ez0 + sxy * ez1 + sxz * ez2
+            sz1 = sxy * ez0 + syy * ez1 + syz * ez2
+            sz2 = sxz * ez0 + syz * ez1 + szz * ez2
+            qxx = ex0 * sx0 + ex1 * sx1 + ex2 * sx2
+            qxy = ex0 * sy0 + ex1 * sy1 + ex2 * sy2
+            qxz = ex0 * sz0 + ex1 * sz1 + ex2 * sz2
+            qyy = ey0 * sy0 + ey1 * sy1 + ey2 * sy2
+            qyz = ey0 * sz0 + ey1 * sz1 + ey2 * sz2
+            qzz = ez0 * sz0 + ez1 * sz1 + ez2 * sz2
+            iz2 = 1.0 / (zs * zs)
+            ff, fg, gg = fx * fx, fx * fy, fy * fy
+            pa = qxx - 2 * tx * qxz + tx * tx * qzz
+            pb = qxy - tx * qyz - ty * qxz + tx * ty * qzz
+            pc = qyy - 2 * ty * qyz + ty * ty * qzz
+            a = ff * iz2 * pa + 0.3
+            bb = fg * iz2 * pb
+            cc = gg * iz2 * pc + 0.3
+            det = a * cc - bb * bb
+            foot = math.sqrt(det if det > 1e-12 else 1e-12)
+            # the smooth in-frustum test
+            u = fx * x / zs + cx
+            v = fy * y / zs + cy
+            s0 = _sig((z - near) / (0.25 * near))
+            s1 = _sig(u / edge)
+            s2 = _sig((wd - u) / edge)
+            s3 = _sig(v / edge)
+            s4 = _sig((ht - v) / edge)
+            inside = s0 * s1 * s2 * s3 * s4
+            # the transmittance from the deep opacity map
+            vis = 1.0
+            tu = 0.0
+            tv = 0.0
+            td = 0.0
+            zt = z if z > 1e-6 else 1e-6
+            if has_grid:
+                iu = (fx * x / zt + cx) / wd * g - 0.5
+                iv = (fy * y / zt + cy) / ht * g - 0.5
+                idp = (z - z0) / dz - 1.0
+                iu_c = min(max(iu, 0.0), g - 1.0)
+                iv_c = min(max(iv, 0.0), g - 1.0)
+                id_c = min(max(idp, 0.0), float(nb))
+                u0, u1, fu, in_u = _axis(iu_c, g)
+                v0, v1, fv, in_v = _axis(iv_c, g)
+                d0, d1, fd, in_d = _axis(id_c, nb + 1)
+                c000 = cum[d0, v0, u0]
+                c001 = cum[d0, v0, u1]
+                c010 = cum[d0, v1, u0]
+                c011 = cum[d0, v1, u1]
+                c100 = cum[d1, v0, u0]
+                c101 = cum[d1, v0, u1]
+                c110 = cum[d1, v1, u0]
+                c111 = cum[d1, v1, u1]
+                e00 = c000 + fu * (c001 - c000)
+                e01 = c010 + fu * (c011 - c010)
+                e10 = c100 + fu * (c101 - c100)
+                e11 = c110 + fu * (c111 - c110)
+                e0 = e00 + fv * (e01 - e00)
+                e1 = e10 + fv * (e11 - e10)
+                tau = e0 + fd * (e1 - e0)
+                vis = math.exp(-tau)
+                if want_grad:
+                    # d tau / d (iu, iv, id), zero where the coordinate is clamped
+                    dtu = ((1 - fd) * ((1 - fv) * (c001 - c000) + fv * (c011 - c010))
+                           + fd * ((1 - fv) * (c101 - c100) + fv * (c111 - c110)))
+                    dtv = (1 - fd) * (e01 - e00) + fd * (e11 - e10)
+                    dtd = e1 - e0
+                    tu = dtu * in_u
+                    tv = dtv * in_v
+                    td = dtd * in_d
+            term = foot * inside * vis
+            if per_sample:
+                terms_out[b, s] = term
+                if accumulate:
+                    v0_ = m0 - t0
+                    v1_ = m1 - t1
+                    v2_ = m2 - t2
+                    nrm = math.sqrt(v0_ * v0_ + v1_ * v1_ + v2_ * v2_)
+                    nrm = nrm if nrm > 1e-12 else 1e-12
+                    d0_ = v0_ / nrm
+                    d1_ = v1_ / nrm
+                    d2_ = v2_ / nrm
+                    acc_out[s, 0] += term
+                    acc_out[s, 1] += term * (1.0 - d0_ * d0_)
+                    acc_out[s, 2] += term * (1.0 - d1_ * d1_)
+                    acc_out[s, 3] += term * (1.0 - d2_ * d2_)
+                    for j in range(3):
+                        cj = d0_ * axes[s, j] + d1_ * axes[s, 3 + j] + d2_ * axes[s, 6 + j]
+                        acc_out[s, 4 + j] += term * (1.0 - cj * cj)
+                continue
+            # the model's log form and its derivative in the term (and direction factors)
+            gterm = 0.0
+            w = weight[s]
+            if mode == 0:
+                total += w * term
+                gterm = w
+            elif mode == 1:
+                r = rate[s, 0]
+                total += w * math.log1p(term * r)
+                gterm = w * r / (1.0 + term * r)
+            else:
+                v0_ = m0 - t0
+                v1_ = m1 - t1
+                v2_ = m2 - t2
+                nrm = math.sqrt(v0_ * v0_ + v1_ * v1_ + v2_ * v2_)
+                nrm = nrm if nrm > 1e-12 else 1e-12
+                dd[0] = v0_ / nrm
+                dd[1] = v1_ / nrm
+                dd[2] = v2_ / nrm
+                f7[0] = 1.0
+                for k in range(3):
+                    f7[1 + k] = 1.0 - dd[k] * dd[k]
+                for j in range(3):
+                    cj = dd[0] * axes[s, j] + dd[1] * axes[s, 3 + j] + dd[2] * axes[s, 6 + j]
+                    f7[4 + j] = 1.0 - cj * cj
+                # sum_q log(1 + x_q) as one log1p of prod_q (1 + x_q) - 1, accumulated as
+                # p + x + p x (no cancellation for small x)
+                acc = 0.0
+                for k in range(7):
+                    gf7[k] = 0.0
+                for q in range(nq):
+                    kq = kinds[q]
+                    tf = term * f7[kq]
+                    r = rate[s, q]
+                    xq = tf * r
+                    acc = acc + xq + acc * xq
+                    if want_grad:
+                        den = 1.0 / (1.0 + xq)
+                        gterm += f7[kq] * r * den
+                        gf7[kq] += term * r * den
+                total += w * math.log1p(acc)
+                if want_grad:
+                    gterm *= w
+                    # direction factors -> the unit ray d -> the centre t
+                    gd0 = -2.0 * dd[0] * gf7[1] * w
+                    gd1 = -2.0 * dd[1] * gf7[2] * w
+                    gd2 = -2.0 * dd[2] * gf7[3] * w
+                    for j in range(3):
+                        a0, a1, a2 = axes[s, j], axes[s, 3 + j], axes[s, 6 + j]
+                        cj = dd[0] * a0 + dd[1] * a1 + dd[2] * a2
+                        k2 = -2.0 * cj * gf7[4 + j] * w
+                        gd0 += k2 * a0
+                        gd1 += k2 * a1
+                        gd2 += k2 * a2
+                    if math.sqrt(v0_ * v0_ + v1_ * v1_ + v2_ * v2_) > 1e-12:
+                        dot = gd0 * dd[0] + gd1 * dd[1] + gd2 * dd[2]
+                        gt0 -= (gd0 - dot * dd[0]) / nrm
+                        gt1 -= (gd1 - dot * dd[1]) / nrm
+                        gt2 -= (gd2 - dot * dd[2]) / nrm
+                    else:
+                        gt0 -= gd0 / nrm
+                        gt1 -= gd1 / nrm
+                        gt2 -= gd2 / nrm
+            if not want_grad or gterm == 0.0:
+                continue
+            # term = foot * inside * vis
+            g_foot = gterm * inside * vis
+            g_in = gterm * foot * vis
+            g_vis = gterm * foot * inside
+            gx = 0.0
+            gy = 0.0
+            gz = 0.0
+            g_zs = 0.0
+            # footprint
+            if det > 1e-12:
+                ga = g_foot * cc / (2.0 * foot)
+                gc = g_foot * a / (2.0 * foot)
+                gb = -g_foot * bb / foot
+                izs3 = -2.0 * iz2 * izs
+                g_zs += (ga * ff * pa + gb * fg * pb + gc * gg * pc) * izs3
+                g_tx = ga * ff * iz2 * (-2 * qxz + 2 * tx * qzz) + gb * fg * iz2 * (-qyz + ty * qzz)
+                g_ty = gb * fg * iz2 * (-qxz + tx * qzz) + gc * gg * iz2 * (-2 * qyz + 2 * ty * qzz)
+                g_qxx = ga * ff * iz2
+                g_qxy = gb * fg * iz2
+                g_qyy = gc * gg * iz2
+                g_qxz = ga * ff * iz2 * (-2 * tx) - gb * fg * iz2 * ty
+                g_qyz = -gb * fg * iz2 * tx + gc * gg * iz2 * (-2 * ty)
+                g_qzz = ga * ff * iz2 * tx * tx + gb * fg * iz2 * tx * ty + gc * gg * iz2 * ty * ty
+                gx += g_tx * izs
+                gy += g_ty * izs
+                g_zs += -(g_tx * tx + g_ty * ty) * izs
+                gex0 += 2 * g_qxx * sx0 + g_qxy * sy0 + g_qxz * sz0
+                gex1 += 2 * g_qxx * sx1 + g_qxy * sy1 + g_qxz * sz1
+                gex2 += 2 * g_qxx * sx2 + g_qxy * sy2 + g_qxz * sz2
+                gey0 += g_qxy * sx0 + 2 * g_qyy * sy0 + g_qyz * sz0
+                gey1 += g_qxy * sx1 + 2 * g_qyy * sy1 + g_qyz * sz1
+                gey2 += g_qxy * sx2 + 2 * g_qyy * sy2 + g_qyz * sz2
+                gez0 += g_qxz * sx0 + g_qyz * sy0 + 2 * g_qzz * sz0
+                gez1 += g_qxz * sx1 + g_qyz * sy1 + 2 * g_qzz * sz1
+                gez2 += g_qxz * sx2 + g_qyz * sy2 + 2 * g_qzz * sz2
+            # in-frustum test
+            gi = g_in * inside
+            dlu = ((1.0 - s1) - (1.0 - s2)) / edge
+            dlv = ((1.0 - s3) - (1.0 - s4)) / edge
+            gx += gi * dlu * fx * izs
+            gy += gi * dlv * fy * izs
+            gz += gi * (1.0 - s0) / (0.25 * near)
+            g_zs += gi * (dlu * (-fx * x * iz2) + dlv * (-fy * y * iz2))
+            # transmittance
+            if has_grid:
+                gtau = -g_vis * vis
+                gu = gtau * tu * g / wd
+                gv = gtau * tv * g / ht
+                zt_ok = 1.0 if z >= 1e-6 else 0.0
+                izt = 1.0 / zt
+                gx += gu * fx * izt
+                gy += gv * fy * izt
+                gz += (-(gu * fx * x + gv * fy * y) * izt * izt) * zt_ok
+                gz += gtau * td / dz
+            gz += g_zs * dzs
+            # camera coordinates -> the camera axes and the centre
+            q0 = m0 - t0
+            q1 = m1 - t1
+            q2 = m2 - t2
+            gex0 += gx * q0
+            gex1 += gx * q1
+            gex2 += gx * q2
+            gey0 += gy * q0
+            gey1 += gy * q1
+            gey2 += gy * q2
+            gez0 += gz * q0
+            gez1 += gz * q1
+            gez2 += gz * q2
+            gt0 -= gx * ex0 + gy * ey0 + gz * ez0
+            gt1 -= gx * ex1 + gy * ey1 + gz * ez1
+            gt2 -= gx * ex2 + gy * ey2 + gz * ez2
+        psi[b] = total
+        if want_grad:
+            grad[b, 0] = gex0
+            grad[b, 3] = gex1
+            grad[b, 6] = gex2
+            grad[b, 1] = gey0
+            grad[b, 4] = gey1
+            grad[b, 7] = gey2
+            grad[b, 2] = gez0
+            grad[b, 5] = gez1
+            grad[b, 8] = gez2
+            grad[b, 9] = gt0
+            grad[b, 10] = gt1
+            grad[b, 11] = gt2
