@@ -111,7 +111,9 @@ ORBIT_SCALE = 2.6  # camera distance / the object's 98% radius (as the benchmark
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     a = parser.add_argument
     a("--scene", default="spot",
-      help="spot or teapot (bundled), or a .splat / .ply file (default spot)")
+      help="spot or teapot (bundled), a .splat / .ply file, or a posed capture (a COLMAP "
+           "model, a transforms.json or a rosbag2: the robot replays its photographs; "
+           "docs/your-data.md) (default spot)")
     a("--events", type=int, default=None,
       help=f"selection events per method (default {FULL.events}; --quick {QUICK.events})")
     a("--steps-per-view", type=int, default=None,
@@ -182,6 +184,7 @@ class Robot:
         self.test_images, _ = render_references(self.gt, test, self.intrinsics, BACKGROUND)
         self.render_references = render_references
         self._torch = torch
+        self.summary = f"{self.gt.num_gaussians} Gaussians"
 
     def capture(self, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """RGB uint8 [H, W, 3] and depth float32 [H, W] (0: background) at ``pose`` [4, 4]."""
@@ -239,7 +242,7 @@ def mapper_options(size: DemoSize, robot: Robot) -> dict[str, Any]:
     return {
         "steps_per_view": size.steps_per_view,
         "config": {
-            "background": list(BACKGROUND),
+            "background": list(getattr(robot, "background", BACKGROUND)),
             "sh_degree": 0,
             "sh_degree_interval": None,
             "densify_from": size.densify_every,
@@ -312,14 +315,16 @@ def run(args: argparse.Namespace) -> int:
             require_viser()
             logging.getLogger("websockets").setLevel(logging.WARNING)  # viser's chatter
         t_start = time.perf_counter()
-        robot = Robot(args.scene, size, int(args.seed))
+        from agilegs.service.capture_robot import make_robot
+
+        robot, size = make_robot(args.scene, size, int(args.seed), Path(args.out))
     except (ValueError, OSError, RuntimeError) as exc:  # RuntimeError: the viewer's extra
         console.print(f"agilegs demo: {exc}", soft_wrap=True, markup=False)
         return 2
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    console.print(f"[bold]agilegs demo[/bold]: scene {args.scene} ({robot.gt.num_gaussians} "
-                  f"Gaussians), {size.width}x{size.width} images, pool {size.pool_size}, "
+    console.print(f"[bold]agilegs demo[/bold]: scene {args.scene} ({robot.summary}), "
+                  f"{size.width}x{size.width} images, pool {size.pool_size}, "
                   f"{size.test_count} test views, {size.initial_views} initial views, "
                   f"{size.events} events, {size.steps_per_view} mapper steps per view",
                   soft_wrap=True)
@@ -419,6 +424,7 @@ def _loop(url: str, robot: Robot, size: DemoSize, seed: int, console: Console,
     with Client(url, timeout=600.0) as c:
         for key, _name in METHODS:
             c.create_session(intrinsics, id=sids[key], frames=frames,
+                             gaussians=getattr(robot, "initial_gaussians", None),
                              init_gaussians=size.init_gaussians, seed=seed,
                              defaults={"method": key, "shortlist_size": size.shortlist_size,
                                        "seed": seed},
