@@ -172,7 +172,7 @@ def load_transforms_scene(path: Path, opt: SceneOptions) -> BenchScene:
             files["test"] = folder / "transforms_test.json"
     first = next(iter(files.values()))
     # the downscale that brings the first frame to the target width
-    probe = load_transforms(first, background=opt.background, load_images=False)
+    probe = load_transforms(first, background=opt.background, load_images=False, quiet=True)
     if not probe.views:
         raise ValueError(f"scene {first}: no frames")
     scale = probe.views[0].camera.width / opt.width
@@ -252,7 +252,7 @@ def load_colmap_scene(path: Path, opt: SceneOptions) -> BenchScene:
     if images is None:
         raise ValueError(f"scene {path}: no images folder (images, images_2, ...) next to the "
                          f"COLMAP model {model}")
-    probe, _, _ = load_colmap(model, None)
+    probe, _, _ = load_colmap(model, None, quiet=True)
     if not probe:
         raise ValueError(f"scene {path}: the COLMAP model has no images")
     scale = probe[0].camera.width / opt.width
@@ -260,8 +260,6 @@ def load_colmap_scene(path: Path, opt: SceneOptions) -> BenchScene:
                                         background=opt.background)
     pool_views, test_views = _split_views(views, opt)
     if points.shape[0] == 0:
-        log.warning("scene %s: the COLMAP model has no 3D points; random initial points",
-                    path)
         points, colors = _random_points(
             torch.stack([v.camera.c2w.float() for v in views]), opt)
         init = "random"

@@ -419,10 +419,11 @@ def read_points3d_binary(path: PathLike) -> tuple[np.ndarray, np.ndarray, np.nda
     return ids, xyz, rgb
 
 
-def read_colmap_model(model_dir: PathLike) -> ColmapModel:
+def read_colmap_model(model_dir: PathLike, *, quiet: bool = False) -> ColmapModel:
     """Read a COLMAP sparse model folder (``.bin`` files preferred, else ``.txt``).
 
-    ``points3D`` may be missing (the model then has no points; a warning is logged).
+    ``points3D`` may be missing (the model then has no points; a warning is logged unless
+    ``quiet``).
     """
     d = Path(model_dir)
     if not d.is_dir():
@@ -444,7 +445,8 @@ def read_colmap_model(model_dir: PathLike) -> ColmapModel:
     if pfile.is_file():
         ids, xyz, rgb = reader(pfile)
     else:
-        log.warning("%s: no %s, the model has no 3D points", d, pfile.name)
+        if not quiet:
+            log.warning("%s: no %s, the model has no 3D points", d, pfile.name)
         ids = np.zeros(0, dtype=np.int64)
         xyz = np.zeros((0, 3))
         rgb = np.zeros((0, 3), dtype=np.uint8)
@@ -463,6 +465,7 @@ def load_colmap(
     *,
     downscale: float = 1,
     background: Sequence[float] = (0.0, 0.0, 0.0),
+    quiet: bool = False,
 ) -> tuple[list[View], Tensor, Tensor]:
     """Read a COLMAP model as views, sorted by image name, and its sparse point cloud.
 
@@ -477,6 +480,7 @@ def load_colmap(
         downscale: divide the camera size by this factor (rounded); intrinsics follow and
             images of another size are resized.
         background: RGB an alpha channel (if any) is composited on (``View.alpha`` keeps it).
+        quiet: log nothing (a probe before the real load).
 
     Returns:
         (views, points [P, 3] float32, colors [P, 3] float32 in [0, 1]).
@@ -485,9 +489,9 @@ def load_colmap(
         FileNotFoundError: no model, or none of its images in ``images_dir``.
         ValueError: malformed files or an unsupported camera model.
     """
-    model = read_colmap_model(model_dir)
+    model = read_colmap_model(model_dir, quiet=quiet)
     d = Path(model_dir)
-    for cam in model.cameras.values():
+    for cam in model.cameras.values() if not quiet else ():
         dist = cam.distortion(f"{d}: ")
         if not dist.is_identity:
             raw, new = cam.raw_intrinsics(f"{d}: "), cam.intrinsics(f"{d}: ")
@@ -518,8 +522,9 @@ def load_colmap(
                 ipath, cam.raw_intrinsics(), cam.distortion(), (tw, th), background=background)
         views.append(View(name=im.name, camera=camera, image=image, alpha=alpha))
     if missing:
-        log.warning("%s: %d of %d images are not in %s and were skipped (first: %s)", d,
-                    len(missing), len(model.images), images_dir, missing[0])
+        if not quiet:
+            log.warning("%s: %d of %d images are not in %s and were skipped (first: %s)", d,
+                        len(missing), len(model.images), images_dir, missing[0])
         if not views:
             raise FileNotFoundError(f"{d}: none of the model's {len(missing)} images is in "
                                     f"{images_dir} (first: {missing[0]})")

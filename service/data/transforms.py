@@ -171,6 +171,7 @@ def load_transforms(
     downscale: float = 1,
     load_images: bool = True,
     depth_scale: float = 1000.0,
+    quiet: bool = False,
 ) -> TransformsCapture:
     """Read a ``transforms*.json`` file of any of the three dialects (module docstring).
 
@@ -184,6 +185,7 @@ def load_transforms(
             the JSON's ``w``/``h`` or the image header).
         depth_scale: a frame's optional ``depth_file_path`` image is divided by this to give
             depth in scene units (``.npy`` depth files are taken as is).
+        quiet: log nothing (a probe before the real load).
 
     Raises:
         ValueError: malformed JSON, missing keys, a non-4x4 or non-rigid transform, an
@@ -293,7 +295,7 @@ def load_transforms(
         name = str(fr["file_path"])
         views.append(View(name=name, camera=cam, image=image, depth=depth, alpha=alpha))
         split.append(split_names.get(_norm_name(name)) if split_names else None)
-    if skipped:
+    if skipped and not quiet:
         log.warning("%s: %d of %d frames have no image and were skipped (first: %s)", p,
                     len(skipped), len(meta["frames"]), skipped[0])
     if not views and skipped:
@@ -305,7 +307,7 @@ def load_transforms(
         if not ply.is_file():
             raise FileNotFoundError(f"{p}: ply_file_path {ply} not found")
         points, colors = read_ply_points(ply)
-    for d in dists:
+    for d in dists if not quiet else ():
         log.info("%s: images with distortion %s undistorted to a pinhole camera", p,
                  d.describe())
     return TransformsCapture(views=views, split=split, points=points, colors=colors,
