@@ -13,7 +13,7 @@
   order (never thinned, so that ``--embodied K`` means the K frames nearest the robot's), at
   most 24 test frames, 10 initial views, one selection every 50 steps up to 40 views (30
   events), 1600 steps, densification up to step 1400, at most 8000 Gaussians, 1 torch thread.
-  On a splat scene it renders a pool of 180 like ``cpu_long``.
+  A splat scene is refused (its pool would be rendered): ``cpu_long`` is its profile.
 - ``tiny``: for tests, 32x32, 300 Gaussians, a pool of 16, 2 initial views, 3 selections of
   8 steps; runs in seconds.
 """

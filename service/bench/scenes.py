@@ -74,6 +74,10 @@ from .scene_model import (
 
 log = logging.getLogger(__name__)
 
+MAX_SPLAT_POOL = 5000
+"""Most cameras a splat scene's pool renders (a larger ``pool_size`` means "every frame" of a
+posed capture, as in the capture profile)."""
+
 __all__ = [
     "BenchScene",
     "SceneOptions",
@@ -210,6 +214,10 @@ def load_bench_scene(path: PathLike, options: SceneOptions | None = None, *,
     p = Path(path)
     kind = detect_scene_kind(p)
     if kind == "splat":
+        if opt.pool_size > MAX_SPLAT_POOL:
+            raise ValueError(f"scene {p} is a splat: its pool is rendered, and {opt.pool_size} "
+                             f"cameras (more than {MAX_SPLAT_POOL}) is a posed capture's "
+                             "setting (the capture profile); use cpu_long or --pool-size")
         scene = _load_splat_scene(p, opt)
     elif kind == "transforms":
         scene = load_transforms_scene(p, opt)

@@ -147,6 +147,10 @@ def test_the_capture_profile_keeps_every_frame_in_order() -> None:
     p = PROFILES["capture"]
     assert p.initial_views == 10 and p.num_events >= 30
     assert p.scene.pool_size >= 10_000 and p.threads == 1
+    from agilegs.service.data import bundled_scene
+
+    with pytest.raises(ValueError, match="is a splat.*cpu_long"):  # not 100,000 renders
+        load_bench_scene(bundled_scene("spot"), p.scene)
 
 
 @pytest.mark.slow
