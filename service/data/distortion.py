@@ -129,7 +129,8 @@ def distort_normalized(x: np.ndarray, y: np.ndarray, dist: Distortion) -> tuple[
 
 def _border_inside(intr: Intrinsics, dist: Distortion, s: float, n: int = 64) -> bool:
     """Whether every border pixel of the pinhole image with focal × ``s`` comes from inside
-    the photograph."""
+    the photograph, along rays on which the distortion is monotonic (no fold: a polynomial
+    model turns back beyond its valid radius, and a folded ray lands inside again)."""
     w, h = intr.width, intr.height
     t = np.linspace(0.0, 1.0, n)
     us = np.concatenate([t * w, t * w, np.zeros(n), np.full(n, w)])
@@ -140,7 +141,15 @@ def _border_inside(intr: Intrinsics, dist: Distortion, s: float, n: int = 64) ->
     ud = intr.fx * xd + intr.cx
     vd = intr.fy * yd + intr.cy
     tol = 1e-6
-    return bool(np.all((ud >= -tol) & (ud <= w + tol) & (vd >= -tol) & (vd <= h + tol)))
+    if not np.all((ud >= -tol) & (ud <= w + tol) & (vd >= -tol) & (vd <= h + tol)):
+        return False
+    # from the principal point out to each border point: the distorted radius must grow
+    frac = np.linspace(0.0, 1.0, 4 * n)[:, None]
+    rx, ry = frac * x[None], frac * y[None]
+    rxd, ryd = distort_normalized(rx, ry, dist)
+    radius = np.hypot(rxd, ryd)
+    rays = np.hypot(x, y) > 0  # a border point at the principal point has no ray
+    return bool(np.all(np.diff(radius[:, rays], axis=0) > 0.0))
 
 
 @functools.lru_cache(maxsize=64)

@@ -296,3 +296,16 @@ def test_transforms_errors_name_the_field(tmp_path: Path) -> None:
         {"frames": [base], "test_filenames": "images/a.png"}))
     with pytest.raises(ValueError, match="test_filenames must be a list"):
         load_transforms(tmp_path / "transforms.json")
+
+
+def test_a_folding_distortion_is_not_undistorted_beyond_its_fold() -> None:
+    """A strong barrel k1 turns the radius back beyond r = 1/sqrt(3|k1|): the pinhole view
+    stops before the fold, however much of the photograph lies past it."""
+    dist = Distortion("opencv", (-0.6, 0.0, 0.0, 0.0))
+    raw = Intrinsics(40.0, 40.0, 50.0, 50.0, 100, 100)
+    new = pinhole_for(raw, dist)
+    corner = np.hypot(50.0, 50.0) / new.fx  # normalised radius of the new image's corner
+    assert 0.9 / math.sqrt(3 * 0.6) < corner <= 1.01 / math.sqrt(3 * 0.6)
+    r = np.linspace(0.0, corner, 200)
+    rd, _ = distort_normalized(r, np.zeros_like(r), dist)
+    assert np.all(np.diff(rd) >= 0)
