@@ -13,7 +13,6 @@ point the cameras look at; it renders on black (a photograph is composited on no
 from __future__ import annotations
 
 import logging
-from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -21,9 +20,8 @@ if TYPE_CHECKING:
     import numpy as np
 
     from agilegs.service.bench.scene_model import BenchScene
-    from agilegs.service.demo import DemoSize
 
-__all__ = ["CaptureRobot", "is_capture", "make_robot"]
+__all__ = ["CaptureRobot", "is_capture", "load_capture"]
 
 log = logging.getLogger(__name__)
 
@@ -144,25 +142,12 @@ class CaptureRobot:
         return float(sum(vals) / len(vals))
 
 
-def make_robot(scene: str, size: DemoSize, seed: int, work_dir: Path) -> tuple[Any, DemoSize]:
-    """The demo's robot for ``--scene`` and the demo's size fitted to it: a splat scene's
-    rendering ``Robot``, or a :class:`CaptureRobot` whose pool and test views are the
-    capture's (the events capped by the pool)."""
-    from agilegs.service.demo import Robot
-
-    if not is_capture(scene):
-        return Robot(scene, size, seed), size
+def load_capture(scene: str, width: int, test_count: int, seed: int) -> BenchScene:
+    """The capture at ``scene`` as the demo sees it: images ``width`` pixels wide, every pool
+    frame kept in capture order, at most ``test_count`` test frames."""
     from agilegs.service.bench.scene_model import SceneOptions
     from agilegs.service.bench.scenes import load_bench_scene
 
-    opts = SceneOptions(width=size.width, height=size.width, pool_size=100_000,
-                        test_count=size.test_count, seed=seed)
-    sc = load_bench_scene(scene, opts)
-    if sc.pool_size < size.initial_views + 1:
-        raise ValueError(f"--scene: the capture's pool ({sc.pool_size} frames) is smaller than "
-                         f"{size.initial_views} initial views and one event")
-    robot: Any = CaptureRobot(sc, work_dir, size.init_gaussians, seed)
-    fitted = replace(size, pool_size=sc.pool_size, test_count=int(sc.test_poses.shape[0]),
-                     width=sc.intrinsics.width,
-                     events=min(size.events, sc.pool_size - size.initial_views))
-    return robot, fitted
+    opts = SceneOptions(width=width, height=width, pool_size=100_000, test_count=test_count,
+                        seed=seed)
+    return load_bench_scene(scene, opts)

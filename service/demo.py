@@ -51,7 +51,7 @@ if TYPE_CHECKING:
 
     from agilegs.client import Client
 
-__all__ = ["DemoSize", "FULL", "QUICK", "add_arguments", "attribution", "run"]
+__all__ = ["DemoSize", "FULL", "QUICK", "add_arguments", "attribution", "make_robot", "run"]
 
 log = logging.getLogger(__name__)
 
@@ -223,6 +223,26 @@ class Robot:
         return float(sum(vals) / len(vals))
 
 
+def make_robot(scene: str, size: DemoSize, seed: int, work_dir: Path) -> tuple[Any, DemoSize]:
+    """The robot for ``--scene`` and the demo's size fitted to it: a splat scene's rendering
+    :class:`Robot`, or a :class:`~agilegs.service.capture_robot.CaptureRobot` that replays a
+    posed capture, whose pool and test views are the capture's (the events capped by the
+    pool; its starting map is written to ``work_dir``)."""
+    from agilegs.service.capture_robot import CaptureRobot, is_capture, load_capture
+
+    if not is_capture(scene):
+        return Robot(scene, size, seed), size
+    sc = load_capture(scene, size.width, size.test_count, seed)
+    if sc.pool_size < size.initial_views + 1:
+        raise ValueError(f"--scene: the capture's pool ({sc.pool_size} frames) is smaller than "
+                         f"{size.initial_views} initial views and one event")
+    robot = CaptureRobot(sc, work_dir, size.init_gaussians, seed)
+    fitted = replace(size, pool_size=sc.pool_size, test_count=int(sc.test_poses.shape[0]),
+                     width=sc.intrinsics.width,
+                     events=min(size.events, sc.pool_size - size.initial_views))
+    return robot, fitted
+
+
 def session_id(method: str) -> str:
     """The demo's session of a method (``demo-agile-plus``)."""
     return f"demo-{method.replace('_', '-')}"
@@ -315,8 +335,6 @@ def run(args: argparse.Namespace) -> int:
             require_viser()
             logging.getLogger("websockets").setLevel(logging.WARNING)  # viser's chatter
         t_start = time.perf_counter()
-        from agilegs.service.capture_robot import make_robot
-
         robot, size = make_robot(args.scene, size, int(args.seed), Path(args.out))
     except (ValueError, OSError, RuntimeError) as exc:  # RuntimeError: the viewer's extra
         console.print(f"agilegs demo: {exc}", soft_wrap=True, markup=False)

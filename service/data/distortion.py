@@ -178,8 +178,10 @@ def pinhole_for(intr: Intrinsics, dist: Distortion) -> Intrinsics:
     return Intrinsics(intr.fx * hi, intr.fy * hi, intr.cx, intr.cy, intr.width, intr.height)
 
 
-@functools.lru_cache(maxsize=16)
+@functools.lru_cache(maxsize=2)
 def _maps(intr: Intrinsics, dist: Distortion) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV's undistortion maps (2 × [H, W] float32, 100 MB for a 12-megapixel photograph:
+    the last two are kept, enough for a capture with one camera)."""
     import cv2
 
     new = pinhole_for(intr, dist)
