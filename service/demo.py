@@ -8,7 +8,10 @@ folder, HTTP only) and plays a simulated robot written with the client SDK
    project, or a ``.splat`` / ``.ply`` path), subsampled; the robot renders every frame it
    "captures" from it (RGB as PNG, and depth). The candidate pool is a seeded human-like
    capture around the object (:func:`~agilegs.service.nbv.candidates.capture_pool`); the
-   held-out test views lie on orbits between the pool's rings.
+   held-out test views lie on orbits between the pool's rings. With a posed capture as
+   ``--scene`` (COLMAP, transforms.json, rosbag2) the robot replays it instead
+   (:class:`~agilegs.service.capture_robot.CaptureRobot`): the pool is its frames, a chosen
+   frame returns its photograph, the test views are its held-out frames.
 2. Two sessions, AGILE-GS+ and Random, are created from the same initial RGB-D frames (the
    server initialises each map by back-projecting the depth and its mapper trains it), with
    the same pool (candidate ids = pool indices) and the same mapper settings.
