@@ -154,6 +154,23 @@ def test_the_capture_profile_keeps_every_frame_in_order() -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize(("name", "frames", "points"),
+                         [("skull_photos", 65, 3133), ("brighton_beach", 18, 3478)])
+def test_the_captures_posed_by_structure_from_motion_load(name: str, frames: int,
+                                                           points: int) -> None:
+    root = Path(__file__).resolve().parents[2] / "service" / "data" / "scenes" / name
+    sc = load_bench_scene(root, PROFILES["capture"].scene)
+    assert sc.kind == "colmap" and sc.pool_size + sc.test_poses.shape[0] == frames
+    assert sc.info["init"] == "sparse" and sc.init_points is not None
+    assert sc.init_points.shape == (points, 3) and sc.background == (0.0, 0.0, 0.0)
+    assert sc.intrinsics.width == 96 and sc.pool_images.std() > 0.05
+    # the points lie in front of the cameras that saw them: most project into every view
+    c2w = sc.pool_poses.double()
+    cam = (sc.init_points.double()[None] - c2w[:, None, :3, 3]) @ c2w[:, :3, :3]  # [V, P, 3]
+    assert (cam[..., 2] > 0).double().mean() > 0.9
+
+
+@pytest.mark.slow
 def test_the_buddha_capture_loads() -> None:
     root = Path(__file__).resolve().parents[2] / "service" / "data" / "scenes" / "buddha"
     sc = load_bench_scene(root, PROFILES["capture"].scene)

@@ -19,7 +19,7 @@ OBJECTS = ("bob", "boot", "fish", "koala", "penguin", "skull", "spot", "stanford
 """The benchmark's splat objects (docs/benchmarks.md); with the capture (plant) and the posed
 scene (floor), its twelve scenes."""
 
-CAPTURES = ("buddha",)
+CAPTURES = ("buddha", "skull_photos", "brighton_beach")
 """Real captures (photographs with poses), each with its licence file and README."""
 
 
@@ -66,7 +66,8 @@ def test_the_twelve_scenes_are_here_and_intact() -> None:
         assert (SCENES / scene / "LICENSE.md").is_file()
         assert (SCENES / scene / "README.md").is_file()
         text = (SCENES / scene / "sparse" / "0" / "images.txt").read_text()
-        names = [ln.split()[-1] for ln in text.splitlines() if ln and not ln.startswith("#")]
+        body = [ln for ln in text.splitlines() if not ln.startswith("#")]
+        names = [ln.split()[-1] for ln in body[0::2]]  # IMAGE_ID ... NAME, then its POINTS2D
         assert names and all((SCENES / scene / "images" / n).is_file() for n in names)
 
 
