@@ -8,7 +8,10 @@ folder, HTTP only) and plays a simulated robot written with the client SDK
    project, or a ``.splat`` / ``.ply`` path), subsampled; the robot renders every frame it
    "captures" from it (RGB as PNG, and depth). The candidate pool is a seeded human-like
    capture around the object (:func:`~agilegs.service.nbv.candidates.capture_pool`); the
-   held-out test views lie on orbits between the pool's rings.
+   held-out test views lie on orbits between the pool's rings. With a posed capture as
+   ``--scene`` (COLMAP, transforms.json, rosbag2) the robot replays it instead
+   (:class:`~agilegs.service.capture_robot.CaptureRobot`): the pool is its frames, a chosen
+   frame returns its photograph, the test views are its held-out frames.
 2. Two sessions, AGILE-GS+ and Random, are created from the same initial RGB-D frames (the
    server initialises each map by back-projecting the depth and its mapper trains it), with
    the same pool (candidate ids = pool indices) and the same mapper settings.
@@ -53,7 +56,7 @@ if TYPE_CHECKING:
 
     from agilegs.client import Client
 
-__all__ = ["DemoSize", "FULL", "QUICK", "add_arguments", "attribution", "run"]
+__all__ = ["DemoSize", "FULL", "QUICK", "add_arguments", "attribution", "make_robot", "run"]
 
 log = logging.getLogger(__name__)
 
@@ -112,7 +115,9 @@ ORBIT_SCALE = 2.6  # camera distance / the object's 98% radius (as the benchmark
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     a = parser.add_argument
     a("--scene", default="spot",
-      help="spot or teapot (bundled), or a .splat / .ply file (default spot)")
+      help="spot or teapot (bundled), a .splat / .ply file, or a posed capture (a COLMAP "
+           "model, a transforms.json or a rosbag2: the robot replays its photographs; "
+           "docs/your-data.md) (default spot)")
     a("--events", type=int, default=None,
       help=f"selection events per method (default {FULL.events}; --quick {QUICK.events})")
     a("--steps-per-view", type=int, default=None,
@@ -183,6 +188,7 @@ class Robot:
         self.test_images, _ = render_references(self.gt, test, self.intrinsics, BACKGROUND)
         self.render_references = render_references
         self._torch = torch
+        self.summary = f"{self.gt.num_gaussians} Gaussians"
 
     def capture(self, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """RGB uint8 [H, W, 3] and depth float32 [H, W] (0: background) at ``pose`` [4, 4]."""
@@ -221,6 +227,26 @@ class Robot:
         return float(sum(vals) / len(vals))
 
 
+def make_robot(scene: str, size: DemoSize, seed: int, work_dir: Path) -> tuple[Any, DemoSize]:
+    """The robot for ``--scene`` and the demo's size fitted to it: a splat scene's rendering
+    :class:`Robot`, or a :class:`~agilegs.service.capture_robot.CaptureRobot` that replays a
+    posed capture, whose pool and test views are the capture's (the events capped by the
+    pool; its starting map is written to ``work_dir``)."""
+    from agilegs.service.capture_robot import CaptureRobot, is_capture, load_capture
+
+    if not is_capture(scene):
+        return Robot(scene, size, seed), size
+    sc = load_capture(scene, size.width, size.test_count, seed)
+    if sc.pool_size < size.initial_views + 1:
+        raise ValueError(f"--scene: the capture's pool ({sc.pool_size} frames) is smaller than "
+                         f"{size.initial_views} initial views and one event")
+    robot = CaptureRobot(sc, work_dir, size.init_gaussians, seed)
+    fitted = replace(size, pool_size=sc.pool_size, test_count=int(sc.test_poses.shape[0]),
+                     width=sc.intrinsics.width,
+                     events=min(size.events, sc.pool_size - size.initial_views))
+    return robot, fitted
+
+
 def session_id(method: str) -> str:
     """The demo's session of a method (``demo-agile-plus``)."""
     return f"demo-{method.replace('_', '-')}"
@@ -240,7 +266,7 @@ def mapper_options(size: DemoSize, robot: Robot) -> dict[str, Any]:
     return {
         "steps_per_view": size.steps_per_view,
         "config": {
-            "background": list(BACKGROUND),
+            "background": list(getattr(robot, "background", BACKGROUND)),
             "sh_degree": 0,
             "sh_degree_interval": None,
             "densify_from": size.densify_every,
@@ -313,14 +339,14 @@ def run(args: argparse.Namespace) -> int:
             require_viser()
             logging.getLogger("websockets").setLevel(logging.WARNING)  # viser's chatter
         t_start = time.perf_counter()
-        robot = Robot(args.scene, size, int(args.seed))
+        robot, size = make_robot(args.scene, size, int(args.seed), Path(args.out))
     except (ValueError, OSError, RuntimeError) as exc:  # RuntimeError: the viewer's extra
         console.print(f"agilegs demo: {exc}", soft_wrap=True, markup=False)
         return 2
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    console.print(f"[bold]agilegs demo[/bold]: scene {args.scene} ({robot.gt.num_gaussians} "
-                  f"Gaussians), {size.width}x{size.width} images, pool {size.pool_size}, "
+    console.print(f"[bold]agilegs demo[/bold]: scene {args.scene} ({robot.summary}), "
+                  f"{size.width}x{size.width} images, pool {size.pool_size}, "
                   f"{size.test_count} test views, {size.initial_views} initial views, "
                   f"{size.events} events, {size.steps_per_view} mapper steps per view",
                   soft_wrap=True)
@@ -421,6 +447,7 @@ def _loop(url: str, robot: Robot, size: DemoSize, seed: int, console: Console,
     with Client(url, timeout=600.0) as c:
         for key, _name in METHODS:
             c.create_session(intrinsics, id=sids[key], frames=frames,
+                             gaussians=getattr(robot, "initial_gaussians", None),
                              init_gaussians=size.init_gaussians, seed=seed,
                              defaults={"method": key, "shortlist_size": size.shortlist_size,
                                        "seed": seed},

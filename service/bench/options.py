@@ -21,7 +21,7 @@ __all__ = [
     "add_value_arguments",
 ]
 
-PROFILE_NAMES = ("cpu", "cpu_long", "paper", "tiny")
+PROFILE_NAMES = ("capture", "cpu", "cpu_long", "paper", "tiny")
 """The profiles of :data:`agilegs.service.bench.profiles.PROFILES`."""
 
 DEFAULT_CONFIGS = ("default", "typical", "unconditioned", "point_zbuffer", "mixed_zbuffer")
@@ -30,7 +30,9 @@ DEFAULT_CONFIGS = ("default", "typical", "unconditioned", "point_zbuffer", "mixe
 _PROFILE_HELP = {
     "run": "paper: 10 initial views, +1 per 200 steps, 30K steps (GPU); cpu: 64x64, pool 180, "
            "4 initial, +1 per 50 steps to 12 views, 500 steps; cpu_long: 96x96, the whole "
-           "ground truth, 10 initial, +1 per 50 steps to 40 views, 1800 steps; tiny: for tests",
+           "ground truth, 10 initial, +1 per 50 steps to 40 views, 1800 steps; capture: a posed "
+           "capture's own frames in order as the pool, 96 px wide, 10 initial, +1 per 50 steps "
+           "to 40 views, 1600 steps; tiny: for tests",
     "other": "the protocol profile, as for bench run (default cpu)",
 }
 

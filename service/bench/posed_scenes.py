@@ -47,8 +47,14 @@ def _posed_scene(
     init_points: Tensor | None,
     init_colors: Tensor | None,
     info: dict[str, Any],
+    background: tuple[float, float, float] | None = None,
 ) -> BenchScene:
+    """``background``: what the map renders on; None: the profile's when an image has an
+    alpha channel or a mask, else black (a photograph is composited on nothing)."""
     total_pool, total_test = len(pool_views), len(test_views)
+    if background is None:
+        has_alpha = any(getattr(v, "alpha", None) is not None for v in pool_views + test_views)
+        background = opt.background if has_alpha else (0.0, 0.0, 0.0)
     pool_views = _thin(pool_views, opt.pool_size)
     test_views = _thin(test_views, opt.test_count)
     if not pool_views or not test_views:
@@ -79,6 +85,7 @@ def _posed_scene(
         pool_depths = torch.stack([_resized_depth(v.depth, h, w) for v in pool_views])
         init_points = init_colors = None  # the mapper back-projects the depth maps
         info = dict(info, init="depth")
+    _log_start(source, info, init_points, background)
     test_images = torch.stack([v.image.float().clamp(0, 1) for v in test_views]) if all(
         v.image.shape[:2] == test_views[0].image.shape[:2] for v in test_views
     ) else None
@@ -101,7 +108,7 @@ def _posed_scene(
         test_poses=test_poses,
         test_images=test_images,
         test_intrinsics=test_intr,
-        background=opt.background,
+        background=background,
         init_points=init_points,
         init_colors=init_colors,
         center=center,
@@ -109,6 +116,24 @@ def _posed_scene(
         up=up_from_poses(pool_poses),
         info=info,
     )
+
+
+_STARTS = {
+    "sparse": "the capture's {n} structure-from-motion points (COLMAP points3D)",
+    "ply": "the capture's {n} structure-from-motion points (ply_file_path)",
+    "random": "{n} random points in a ball around the point the cameras look at (the capture "
+              "has no structure-from-motion points and no depth)",
+    "depth": "the depth maps of the acquired views (back-projected)",
+}
+
+
+def _log_start(source: str, info: dict[str, Any], points: Tensor | None,
+               background: tuple[float, float, float]) -> None:
+    n = 0 if points is None else int(points.shape[0])
+    log.info("scene %s: the map starts from %s; background %s", source,
+             _STARTS[str(info.get("init", "random"))].format(n=n),
+             "black (photographs: composited on nothing)" if tuple(background) == (0, 0, 0)
+             else list(background))
 
 
 def _resized_depth(depth: Tensor, h: int, w: int) -> Tensor:
@@ -134,7 +159,7 @@ def _random_points(poses: Tensor, opt: SceneOptions) -> tuple[Tensor, Tensor]:
 
 
 def load_transforms_scene(path: Path, opt: SceneOptions) -> BenchScene:
-    from agilegs.service.data.transforms import load_transforms_json
+    from agilegs.service.data.transforms import load_transforms
 
     folder = path.parent if path.is_file() else path
     if path.is_file():
@@ -147,22 +172,51 @@ def load_transforms_scene(path: Path, opt: SceneOptions) -> BenchScene:
             files["test"] = folder / "transforms_test.json"
     first = next(iter(files.values()))
     # the downscale that brings the first frame to the target width
-    probe = load_transforms_json(first, background=opt.background, load_images=False)
-    if not probe:
+    probe = load_transforms(first, background=opt.background, load_images=False, quiet=True)
+    if not probe.views:
         raise ValueError(f"scene {first}: no frames")
-    scale = probe[0].camera.width / opt.width
-    load = {k: load_transforms_json(f, background=opt.background, downscale=scale)
+    scale = probe.views[0].camera.width / opt.width
+    load = {k: load_transforms(f, background=opt.background, downscale=scale)
             for k, f in files.items()}
-    if "all" in load:
-        pool_views, test_views = _split_views(load["all"], opt)
+    split_from = "every 8th frame"
+    if "all" in load and load["all"].has_split:
+        cap = load["all"]
+        pool_views = [v for v, s in zip(cap.views, cap.split, strict=True) if s != "test"]
+        test_views = [v for v, s in zip(cap.views, cap.split, strict=True) if s == "test"]
+        split_from = "the capture's test_filenames"
+    elif "all" in load:
+        pool_views, test_views = _split_views(load["all"].views, opt)
     elif "test" in load:
-        pool_views, test_views = load["train"], load["test"]
+        pool_views, test_views = load["train"].views, load["test"].views
+        split_from = "transforms_test.json"
     else:
-        pool_views, test_views = _split_views(load["train"], opt)
-    poses = torch.stack([v.camera.c2w.float() for v in pool_views + test_views])
-    pts, cols = _random_points(poses, opt)
+        pool_views, test_views = _split_views(load["train"].views, opt)
+    log.info("scene %s: test views from %s (%d), pool %d frames in capture order", folder,
+             split_from, len(test_views), len(pool_views))
+    ply = next((c for c in load.values() if c.points is not None and c.points.shape[0]), None)
+    info: dict[str, Any] = {"split": split_from,
+                            "skipped_frames": sum(len(c.skipped) for c in load.values()),
+                            "distortion": sorted({d for c in load.values()
+                                                  for d in c.distortions})}
+    if ply is not None:
+        assert ply.points is not None and ply.colors is not None
+        pts, cols = _subsample(ply.points, ply.colors, opt)
+        info.update(init="ply", sparse_points=int(pts.shape[0]))
+    else:
+        poses = torch.stack([v.camera.c2w.float() for v in pool_views + test_views])
+        pts, cols = _random_points(poses, opt)
+        info.update(init="random")
     return _posed_scene(scene_name(folder), "transforms", str(first), pool_views, test_views,
-                        opt, pts, cols, {"init": "random"})
+                        opt, pts, cols, info)
+
+
+def _subsample(points: Tensor, colors: Tensor, opt: SceneOptions) -> tuple[Tensor, Tensor]:
+    """At most ``opt.max_init_points`` of the points (seeded, order kept)."""
+    if opt.max_init_points is not None and points.shape[0] > opt.max_init_points:
+        g = torch.Generator().manual_seed(opt.seed)
+        idx = torch.randperm(points.shape[0], generator=g)[: opt.max_init_points].sort().values
+        points, colors = points[idx], colors[idx]
+    return points, colors
 
 
 def _images_dir(root: Path, target_width: int) -> Path | None:
@@ -198,7 +252,7 @@ def load_colmap_scene(path: Path, opt: SceneOptions) -> BenchScene:
     if images is None:
         raise ValueError(f"scene {path}: no images folder (images, images_2, ...) next to the "
                          f"COLMAP model {model}")
-    probe, _, _ = load_colmap(model, None)
+    probe, _, _ = load_colmap(model, None, quiet=True)
     if not probe:
         raise ValueError(f"scene {path}: the COLMAP model has no images")
     scale = probe[0].camera.width / opt.width
@@ -206,17 +260,17 @@ def load_colmap_scene(path: Path, opt: SceneOptions) -> BenchScene:
                                         background=opt.background)
     pool_views, test_views = _split_views(views, opt)
     if points.shape[0] == 0:
-        log.warning("scene %s: the COLMAP model has no 3D points; random initial points",
-                    path)
         points, colors = _random_points(
             torch.stack([v.camera.c2w.float() for v in views]), opt)
-    elif opt.max_init_points is not None and points.shape[0] > opt.max_init_points:
-        g = torch.Generator().manual_seed(opt.seed)
-        idx = torch.randperm(points.shape[0], generator=g)[: opt.max_init_points].sort().values
-        points, colors = points[idx], colors[idx]
+        init = "random"
+    else:
+        points, colors = _subsample(points, colors, opt)
+        init = "sparse"
+    info: dict[str, Any] = {"init": init, "images_dir": str(images), "split": "every 8th frame"}
+    if init == "sparse":
+        info["sparse_points"] = int(points.shape[0])
     return _posed_scene(scene_name(path), "colmap", str(model), pool_views, test_views, opt,
-                        points, colors, {"init": "sparse", "images_dir": str(images),
-                                         "sparse_points": int(points.shape[0])})
+                        points, colors, info)
 
 
 def load_bag_scene(path: Path, opt: SceneOptions, topics: Any = None) -> BenchScene:

@@ -8,6 +8,12 @@
   2500 Gaussians in the map, 1 torch thread. The pool is large enough that the shortlist
   (N = 10) is a small part of it, as in the paper (FisherRF's cost is proportional to the
   pool, AGILE-GS+'s to N).
+- ``capture``: the paper's shape on a posed capture (COLMAP, transforms.json, rosbag2):
+  96-pixel-wide images, the pool is every frame of the capture but the test ones, in capture
+  order (never thinned, so that ``--embodied K`` means the K frames nearest the robot's), at
+  most 24 test frames, 10 initial views, one selection every 50 steps up to 40 views (30
+  events), 1600 steps, densification up to step 1400, at most 8000 Gaussians, 1 torch thread.
+  A splat scene is refused (its pool would be rendered): ``cpu_long`` is its profile.
 - ``tiny``: for tests, 32x32, 300 Gaussians, a pool of 16, 2 initial views, 3 selections of
   8 steps; runs in seconds.
 """
@@ -150,6 +156,19 @@ PROFILES: dict[str, Profile] = {
         depth="all",
         curve_every=2,
         mapper=dict(_SMALL_MAPPER, densify_until=1500, max_gaussians=8000),
+        threads=1,
+    ),
+    "capture": Profile(
+        name="capture",
+        scene=SceneOptions(width=96, height=96, fov_deg=50.0, max_gaussians=None,
+                           pool_size=100_000, test_count=24, orbit_scale=1.8),
+        initial_views=10,
+        interval=50,
+        total_steps=1600,
+        view_budget=40,
+        depth="all",
+        curve_every=2,
+        mapper=dict(_SMALL_MAPPER, densify_until=1400, max_gaussians=8000),
         threads=1,
     ),
     "tiny": Profile(

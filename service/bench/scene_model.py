@@ -52,7 +52,9 @@ class SceneOptions:
         pool_elevations_deg: splat scenes: elevations of the pool's orbits (10, 30, 50).
         test_elevations_deg: splat scenes: elevations of the test orbits (20, 40: between
             the pool's rings, so no test camera is in the pool).
-        background: RGB in [0, 1] behind splat renders and of RGBA images (white).
+        background: RGB in [0, 1] behind splat renders and of RGBA or masked images (white);
+            a posed set whose images have neither alpha nor masks renders on black instead
+            (a photograph is composited on nothing).
         test_every: posed sets without a given split: every this-th frame is a test frame (8).
         random_init_points: transforms.json scenes: random initial points (5000).
         random_init_radius: transforms.json scenes: radius of the initial-point ball, times

@@ -12,11 +12,14 @@ Three kinds of scene, detected from the path (:func:`detect_scene_kind`):
   centre, at ``orbit_scale`` times its 98% radius, with near-duplicates and jitter); the
   held-out test cameras lie on exact orbits at ``test_elevations_deg`` (between the pool's
   rings), at evenly spaced azimuths, looking at the centre: no test camera is in the pool.
-- ``transforms``: a posed image set in the NeRF-synthetic layout. A folder (or file) with one
-  ``transforms.json``: the pool is every frame but every 8th, the test set every 8th frame
-  (the Mip-NeRF 360 convention, ``i % 8 == 0``). A folder with ``transforms_train.json`` and
-  ``transforms_test.json``: the given split. Initial points are random, uniform in a ball
-  around the point the cameras look at (the least-squares crossing of their optical axes) of
+- ``transforms``: a posed image set, ``transforms.json`` in the NeRF-synthetic, instant-ngp or
+  nerfstudio dialect (:mod:`agilegs.service.data.transforms`). A folder (or file) with one
+  ``transforms.json``: the capture's own split when it names one (``test_filenames``),
+  else the pool is every frame but every 8th, the test set every 8th frame (the Mip-NeRF
+  360 convention, ``i % 8 == 0``). A folder with ``transforms_train.json`` and
+  ``transforms_test.json``: the given split. Initial points are the capture's
+  ``ply_file_path`` points where it has them, else random, uniform in a ball around the
+  point the cameras look at (the least-squares crossing of their optical axes) of
   ``random_init_radius`` times the cameras' median distance to it (3DGS initialises
   NeRF-synthetic scenes with random points in a cube, too), unless every pool frame has a
   depth map (``depth_file_path``): then the depth maps go to the mapper like the splat
@@ -33,6 +36,9 @@ Three kinds of scene, detected from the path (:func:`detect_scene_kind`):
   every 8th, the pool the rest; random initial points as for ``transforms`` (the depth when
   every pool frame has one).
 
+Distorted photographs are undistorted to a pinhole camera, frames without an image skipped (one
+warning), and the log says what the map starts from. A posed set renders on black unless its
+images have an alpha channel or a mask (then on ``SceneOptions.background``).
 For posed image sets the images are resized to ``SceneOptions.width`` (aspect kept) and, when
 the set is larger than the profile allows, the pool and the test set are thinned evenly
 (capture order kept). The selectors need one set of intrinsics for the whole pool: the first
@@ -73,6 +79,10 @@ from .scene_model import (
 )
 
 log = logging.getLogger(__name__)
+
+MAX_SPLAT_POOL = 5000
+"""Most cameras a splat scene's pool renders (a larger ``pool_size`` means "every frame" of a
+posed capture, as in the capture profile)."""
 
 __all__ = [
     "BenchScene",
@@ -210,6 +220,10 @@ def load_bench_scene(path: PathLike, options: SceneOptions | None = None, *,
     p = Path(path)
     kind = detect_scene_kind(p)
     if kind == "splat":
+        if opt.pool_size > MAX_SPLAT_POOL:
+            raise ValueError(f"scene {p} is a splat: its pool is rendered, and {opt.pool_size} "
+                             f"cameras (more than {MAX_SPLAT_POOL}) is a posed capture's "
+                             "setting (the capture profile); use cpu_long or --pool-size")
         scene = _load_splat_scene(p, opt)
     elif kind == "transforms":
         scene = load_transforms_scene(p, opt)

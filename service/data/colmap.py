@@ -1,11 +1,12 @@
 """COLMAP models (``cameras``, ``images``, ``points3D`` as ``.txt`` or ``.bin``) as posed views.
 
 An image stores the world-to-camera rotation as a quaternion (w, x, y, z) and translation t,
-already in OpenCV axes; c2w = [Rᵀ | -Rᵀ t]. Models SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL,
-RADIAL and OPENCV are read; their distortion coefficients are ignored (a warning is logged
-when one is non-zero: undistort the images first, e.g. with ``colmap image_undistorter``, for
-exact results). Malformed files raise ``ValueError`` naming the file and the line (text) or
-record (binary).
+already in OpenCV axes; c2w = [Rᵀ | -Rᵀ t]. Camera models SIMPLE_PINHOLE, PINHOLE,
+SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV, SIMPLE_RADIAL_FISHEYE, RADIAL_FISHEYE and
+OPENCV_FISHEYE are read; images of a distorted camera are undistorted to a pinhole camera
+(:mod:`agilegs.service.data.distortion`), FOV and THIN_PRISM_FISHEYE are refused. Images the
+model lists but the folder lacks are skipped, with one warning that counts them. Malformed
+files raise ``ValueError`` naming the file and the line (text) or record (binary).
 """
 
 from __future__ import annotations
@@ -25,7 +26,8 @@ from torch import Tensor
 from agilegs.schemas.geometry import matrix_to_quaternion_xyzw, quaternion_xyzw_to_matrix
 from agilegs.service.nbv.camera import Camera, Intrinsics
 
-from .images import PathLike, View, load_image, target_size
+from .distortion import Distortion, colmap_distortion, pinhole_for
+from .images import PathLike, View, load_capture_image, target_size
 
 log = logging.getLogger(__name__)
 
@@ -93,7 +95,10 @@ COLMAP_CAMERA_MODELS: dict[int, _CameraModelSpec] = {
     )
 }
 _MODEL_BY_NAME = {s.name: s for s in COLMAP_CAMERA_MODELS.values()}
-_SUPPORTED = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+_SUPPORTED = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV",
+              "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE", "OPENCV_FISHEYE")
+_ONE_FOCAL = ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "SIMPLE_RADIAL_FISHEYE",
+              "RADIAL_FISHEYE")
 
 
 @dataclass
@@ -106,32 +111,36 @@ class ColmapCamera:
     height: int
     params: tuple[float, ...]
 
-    def pinhole(self, where: str = "") -> tuple[float, float, float, float, tuple[float, ...]]:
-        """(fx, fy, cx, cy, distortion coefficients) of a supported model."""
+    def pinhole(self, where: str = "") -> tuple[float, float, float, float]:
+        """(fx, fy, cx, cy) of a supported model (the photograph's pinhole part)."""
         p = self.params
-        if self.model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
-            return p[0], p[0], p[1], p[2], tuple(p[3:])
-        if self.model in ("PINHOLE", "OPENCV"):
-            return p[0], p[1], p[2], p[3], tuple(p[4:])
-        raise ValueError(
-            f"{where}camera {self.camera_id}: unsupported camera model {self.model} "
-            f"(supported: {', '.join(_SUPPORTED)}; undistort the images first)"
-        )
-
-    def intrinsics(self, where: str = "") -> Intrinsics:
-        fx, fy, cx, cy, dist = self.pinhole(where)
-        if any(abs(d) > 0 for d in dist):
-            log.warning(
-                "%scamera %d (%s): distortion %s ignored (treated as a pinhole camera)",
-                where,
-                self.camera_id,
-                self.model,
-                [round(d, 6) for d in dist],
+        if self.model not in _SUPPORTED:
+            raise ValueError(
+                f"{where}camera {self.camera_id}: unsupported camera model {self.model} "
+                f"(supported: {', '.join(_SUPPORTED)}; undistort the images first)"
             )
+        if self.model in _ONE_FOCAL:
+            return p[0], p[0], p[1], p[2]
+        return p[0], p[1], p[2], p[3]
+
+    def distortion(self, where: str = "") -> Distortion:
+        """The model's lens distortion."""
+        try:
+            return colmap_distortion(self.model, self.params)
+        except ValueError as exc:
+            raise ValueError(f"{where}camera {self.camera_id}: {exc}") from exc
+
+    def raw_intrinsics(self, where: str = "") -> Intrinsics:
+        """The photograph's pinhole part at the model's size (before undistortion)."""
+        fx, fy, cx, cy = self.pinhole(where)
         try:
             return Intrinsics(fx, fy, cx, cy, self.width, self.height)
         except ValueError as exc:
             raise ValueError(f"{where}camera {self.camera_id}: {exc}") from exc
+
+    def intrinsics(self, where: str = "") -> Intrinsics:
+        """The pinhole camera its images are undistorted to (the raw one without distortion)."""
+        return pinhole_for(self.raw_intrinsics(where), self.distortion(where))
 
 
 @dataclass
@@ -410,10 +419,11 @@ def read_points3d_binary(path: PathLike) -> tuple[np.ndarray, np.ndarray, np.nda
     return ids, xyz, rgb
 
 
-def read_colmap_model(model_dir: PathLike) -> ColmapModel:
+def read_colmap_model(model_dir: PathLike, *, quiet: bool = False) -> ColmapModel:
     """Read a COLMAP sparse model folder (``.bin`` files preferred, else ``.txt``).
 
-    ``points3D`` may be missing (the model then has no points; a warning is logged).
+    ``points3D`` may be missing (the model then has no points; a warning is logged unless
+    ``quiet``).
     """
     d = Path(model_dir)
     if not d.is_dir():
@@ -435,7 +445,8 @@ def read_colmap_model(model_dir: PathLike) -> ColmapModel:
     if pfile.is_file():
         ids, xyz, rgb = reader(pfile)
     else:
-        log.warning("%s: no %s, the model has no 3D points", d, pfile.name)
+        if not quiet:
+            log.warning("%s: no %s, the model has no 3D points", d, pfile.name)
         ids = np.zeros(0, dtype=np.int64)
         xyz = np.zeros((0, 3))
         rgb = np.zeros((0, 3), dtype=np.uint8)
@@ -453,9 +464,13 @@ def load_colmap(
     images_dir: PathLike | None = None,
     *,
     downscale: float = 1,
-    background: Sequence[float] = (1.0, 1.0, 1.0),
+    background: Sequence[float] = (0.0, 0.0, 0.0),
+    quiet: bool = False,
 ) -> tuple[list[View], Tensor, Tensor]:
     """Read a COLMAP model as views, sorted by image name, and its sparse point cloud.
+
+    Each view's camera is the pinhole camera its image was undistorted to; images the model
+    lists but ``images_dir`` lacks are skipped (one warning counts them).
 
     Args:
         model_dir: folder with cameras/images/points3D as ``.bin`` or ``.txt``
@@ -464,14 +479,27 @@ def load_colmap(
             ``View.image`` as None (poses and intrinsics only).
         downscale: divide the camera size by this factor (rounded); intrinsics follow and
             images of another size are resized.
-        background: RGB an alpha channel (if any) is composited on.
+        background: RGB an alpha channel (if any) is composited on (``View.alpha`` keeps it).
+        quiet: log nothing (a probe before the real load).
 
     Returns:
         (views, points [P, 3] float32, colors [P, 3] float32 in [0, 1]).
+
+    Raises:
+        FileNotFoundError: no model, or none of its images in ``images_dir``.
+        ValueError: malformed files or an unsupported camera model.
     """
-    model = read_colmap_model(model_dir)
+    model = read_colmap_model(model_dir, quiet=quiet)
     d = Path(model_dir)
+    for cam in model.cameras.values() if not quiet else ():
+        dist = cam.distortion(f"{d}: ")
+        if not dist.is_identity:
+            raw, new = cam.raw_intrinsics(f"{d}: "), cam.intrinsics(f"{d}: ")
+            log.info("%s: camera %d (%s, distortion %s): images undistorted to a pinhole "
+                     "camera, focal length x%.4f", d, cam.camera_id, cam.model,
+                     dist.describe(), new.fx / raw.fx)
     views: list[View] = []
+    missing: list[str] = []
     for im in sorted(model.images.values(), key=lambda m: m.name):
         where = f"{d}: image {im.image_id} ({im.name}): "
         cam = model.cameras[im.camera_id]
@@ -484,13 +512,22 @@ def load_colmap(
         tw, th = target_size(cam.width, cam.height, downscale)
         if (tw, th) != (cam.width, cam.height):
             camera = camera.with_resolution(tw, th)
-        image = None
+        image = alpha = None
         if images_dir is not None:
             ipath = Path(images_dir) / im.name
             if not ipath.is_file():
-                raise FileNotFoundError(f"{where}image file {ipath} not found")
-            image = load_image(ipath, background=background, size=(tw, th))
-        views.append(View(name=im.name, camera=camera, image=image))
+                missing.append(im.name)
+                continue
+            image, alpha = load_capture_image(
+                ipath, cam.raw_intrinsics(), cam.distortion(), (tw, th), background=background)
+        views.append(View(name=im.name, camera=camera, image=image, alpha=alpha))
+    if missing:
+        if not quiet:
+            log.warning("%s: %d of %d images are not in %s and were skipped (first: %s)", d,
+                        len(missing), len(model.images), images_dir, missing[0])
+        if not views:
+            raise FileNotFoundError(f"{d}: none of the model's {len(missing)} images is in "
+                                    f"{images_dir} (first: {missing[0]})")
     points = torch.from_numpy(model.points.astype(np.float32)).reshape(-1, 3)
     colors = torch.from_numpy(model.colors.astype(np.float32) / 255.0).reshape(-1, 3)
     return views, points, colors

@@ -18,13 +18,23 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from agilegs.service.nbv.camera import Camera
+from agilegs.service.nbv.camera import Camera, Intrinsics
+
+from .distortion import Distortion
 
 log = logging.getLogger(__name__)
 
 PathLike = str | os.PathLike[str]
 
-__all__ = ["PathLike", "View", "image_size", "load_depth", "load_image", "target_size"]
+__all__ = [
+    "PathLike",
+    "View",
+    "image_size",
+    "load_capture_image",
+    "load_depth",
+    "load_image",
+    "target_size",
+]
 
 
 @dataclass
@@ -36,12 +46,16 @@ class View:
         camera: pinhole camera, c2w in OpenCV axes.
         image: RGB [H, W, 3] float32 in [0, 1], or None when images were not loaded.
         depth: depth along the optical axis (camera z) [H, W], 0 where unknown, or None.
+        alpha: coverage [H, W] in [0, 1] of the image's alpha channel and/or its mask (1: the
+            pixel shows the scene; the image is composited on the background by it), or None
+            when the image has neither.
     """
 
     name: str
     camera: Camera
     image: Tensor | None = None
     depth: Tensor | None = None
+    alpha: Tensor | None = None
 
 
 # ----------------------------------------------------------------------------- images
@@ -90,6 +104,101 @@ def load_image(
         a = arr[..., 3:4]
         arr = arr[..., :3] * a + bg * (1.0 - a)
     return torch.from_numpy(np.ascontiguousarray(arr[..., :3]))
+
+
+def _read_u8(path: Path) -> np.ndarray:
+    """An image file as uint8 [H, W, 3] or [H, W, 4] (with its alpha channel)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            im.load()
+            has_alpha = im.mode in ("RGBA", "LA", "PA") or (
+                im.mode == "P" and "transparency" in im.info
+            )
+            img: Image.Image = im
+            if im.mode in ("I;16", "I;16B", "I;16L", "I"):  # 16-bit grey
+                grey = np.asarray(im, dtype=np.float32) / 65535.0
+                img = Image.fromarray(np.clip(grey * 255.0 + 0.5, 0, 255).astype(np.uint8))
+            return np.asarray(img.convert("RGBA" if has_alpha else "RGB"), dtype=np.uint8)
+    except FileNotFoundError:
+        raise
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read image ({exc})") from exc
+
+
+def _read_mask_u8(path: Path, size: tuple[int, int]) -> np.ndarray:
+    """A mask file (0: ignore, non-zero: keep; the first channel of a colour file) as uint8
+    [H, W] in {0, 255} at ``size`` = (width, height) (nearest neighbour)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            m = np.asarray(im.convert("L").resize(size, Image.Resampling.NEAREST)
+                           if im.size != size else im.convert("L"))
+    except FileNotFoundError:
+        raise
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read mask ({exc})") from exc
+    return np.where(m > 127, 255, 0).astype(np.uint8)
+
+
+def load_capture_image(
+    path: PathLike,
+    intrinsics: Intrinsics,
+    distortion: Distortion,
+    size: tuple[int, int],
+    *,
+    background: Sequence[float] = (0.0, 0.0, 0.0),
+    mask_path: PathLike | None = None,
+) -> tuple[Tensor, Tensor | None]:
+    """Read a captured photograph as the pinhole image of :func:`pinhole_for` at ``size``.
+
+    The file may be smaller than ``intrinsics`` say (e.g. Mip-NeRF 360's ``images_4``): the
+    intrinsics are scaled to the file's size first. The image (and its alpha channel and
+    mask) is undistorted at the file's resolution, then resized to ``size`` (PIL LANCZOS) and
+    composited on ``background`` by its alpha × mask.
+
+    Args:
+        path: image file.
+        intrinsics: the photograph's pinhole part (the size the poses were solved at).
+        distortion: its lens distortion.
+        size: (width, height) of the result.
+        background: RGB in [0, 1] where alpha × mask < 1.
+        mask_path: optional mask file (0: not the scene).
+
+    Returns:
+        (RGB [H, W, 3] float32 in [0, 1], alpha × mask [H, W] float32 or None when the image
+        has neither).
+    """
+    from PIL import Image
+
+    from .distortion import undistort_image
+
+    p = Path(path)
+    arr = _read_u8(p)
+    fh, fw = arr.shape[:2]
+    intr = intrinsics
+    if (fw, fh) != (intr.width, intr.height):
+        intr = intr.scaled(fw, fh)
+    if mask_path is not None:
+        m = _read_mask_u8(Path(mask_path), (fw, fh))
+        if arr.shape[2] == 4:
+            m = ((arr[..., 3].astype(np.uint16) * m) // 255).astype(np.uint8)
+        arr = np.concatenate([arr[..., :3], m[..., None]], axis=2)
+    has_alpha = arr.shape[2] == 4
+    arr, _ = undistort_image(np.ascontiguousarray(arr), intr, distortion)
+    img = Image.fromarray(arr, "RGBA" if has_alpha else "RGB")
+    if img.size != (size[0], size[1]):
+        img = img.resize((size[0], size[1]), Image.Resampling.LANCZOS)
+    out = np.asarray(img, dtype=np.float32) / 255.0
+    alpha = None
+    if has_alpha:
+        bg = np.asarray(background, dtype=np.float32).reshape(1, 1, 3)
+        a = out[..., 3:4]
+        out = out[..., :3] * a + bg * (1.0 - a)
+        alpha = torch.from_numpy(np.ascontiguousarray(a[..., 0]))
+    return torch.from_numpy(np.ascontiguousarray(out[..., :3])), alpha
 
 
 def image_size(path: Path) -> tuple[int, int]:

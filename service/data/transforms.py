@@ -1,10 +1,26 @@
-"""NeRF-synthetic ``transforms.json`` image sets (Blender; also the instant-ngp variant with
-``fl_x``, ``fl_y``, ``cx``, ``cy``, ``w``, ``h``).
+"""``transforms.json`` captures: NeRF-synthetic (Blender), instant-ngp (colmap2nerf) and
+nerfstudio (ns-process-data) dialects.
 
-``transform_matrix`` is camera-to-world in OpenGL axes (x right, y up, z backward); it is
-converted to the project's OpenCV axes (x right, y down, z forward) by flipping the camera's y
-and z axes (negating columns 1 and 2 of the rotation). RGBA images are composited on
-``background``. Malformed files raise ``ValueError`` naming the file and the frame.
+- Intrinsics: ``camera_angle_x`` (and ``camera_angle_y``), or ``fl_x``, ``fl_y``, ``cx``,
+  ``cy``, ``w``, ``h``; each key per frame or at the top (a frame's own value wins).
+- Distortion: nerfstudio's ``camera_model`` (``OPENCV``, the default, with ``k1 k2 k3 p1 p2``;
+  ``OPENCV_FISHEYE`` with ``k1 k2 k3 k4``; ``PINHOLE``), instant-ngp's ``k1 k2 k3 p1 p2`` and
+  ``is_fisheye``. Distorted images are undistorted to a pinhole camera
+  (:mod:`agilegs.service.data.distortion`); the view's camera is that pinhole camera.
+- ``transform_matrix`` is camera-to-world in OpenGL axes (x right, y up, z backward); it is
+  converted to the project's OpenCV axes (x right, y down, z forward) by flipping the camera's
+  y and z axes (negating columns 1 and 2 of the rotation).
+- Frames whose image file is missing are skipped, with one warning that counts them
+  (colmap2nerf users delete blurred frames).
+- ``mask_path`` (nerfstudio; 0 = not the scene) and an image's alpha channel make
+  ``View.alpha``; the image is composited on ``background`` by it.
+- ``depth_file_path``: a depth map per frame; ``ply_file_path``: the capture's
+  structure-from-motion points (in the frames' world); ``train_filenames`` /
+  ``val_filenames`` / ``test_filenames`` (nerfstudio): the capture's own split.
+- Keys the loader has no use for (``aabb_scale``, ``scale``, ``offset``, ``sharpness``,
+  ``applied_transform``, ...) are ignored.
+
+Malformed files raise ``ValueError`` naming the file and the frame.
 """
 
 from __future__ import annotations
@@ -14,8 +30,9 @@ import logging
 import math
 import os
 from collections.abc import Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -23,11 +40,44 @@ from torch import Tensor
 
 from agilegs.service.nbv.camera import Camera, Intrinsics
 
-from .images import PathLike, View, image_size, load_depth, load_image, target_size
+from .distortion import NO_DISTORTION, Distortion, pinhole_for
+from .images import PathLike, View, image_size, load_capture_image, load_depth, target_size
 
 log = logging.getLogger(__name__)
 
-__all__ = ["load_transforms_json", "opengl_to_opencv_c2w"]
+__all__ = ["TransformsCapture", "load_transforms", "load_transforms_json",
+           "opengl_to_opencv_c2w", "read_ply_points"]
+
+Split = Literal["train", "test"]
+
+
+@dataclass
+class TransformsCapture:
+    """A loaded ``transforms.json``.
+
+    Attributes:
+        views: one per frame with an image, in file order, c2w in OpenCV axes.
+        split: per view, ``"train"`` / ``"test"`` when the file names a split, else None.
+        points: the ``ply_file_path`` points [P, 3] float32, or None.
+        colors: their colours [P, 3] float32 in [0, 1], or None.
+        skipped: file paths of the frames skipped for a missing image.
+        distortions: the distinct lens distortions undistorted (described).
+    """
+
+    views: list[View]
+    split: list[Split | None]
+    points: Tensor | None = None
+    colors: Tensor | None = None
+    skipped: list[str] = field(default_factory=list)
+    distortions: list[str] = field(default_factory=list)
+
+    @property
+    def has_split(self) -> bool:
+        return any(s is not None for s in self.split)
+
+    @property
+    def has_alpha(self) -> bool:
+        return any(v.alpha is not None for v in self.views)
 
 
 def opengl_to_opencv_c2w(c2w: Tensor) -> Tensor:
@@ -37,17 +87,17 @@ def opengl_to_opencv_c2w(c2w: Tensor) -> Tensor:
     return out
 
 
-def _find_frame_image(base: Path, file_path: str) -> Path:
+def _find_frame_image(base: Path, file_path: str) -> Path | None:
     p = (base / file_path).resolve() if not os.path.isabs(file_path) else Path(file_path)
     if p.suffix and p.is_file():
         return p
-    for ext in (".png", ".jpg", ".jpeg", ".JPG", ".PNG", ".exr"):
+    for ext in (".png", ".jpg", ".jpeg", ".JPG", ".JPEG", ".PNG", ".exr"):
         q = p.with_name(p.name + ext)
         if q.is_file():
             return q
     if p.is_file():
         return p
-    raise FileNotFoundError(f"image {file_path!r} not found under {base} (tried common extensions)")
+    return None
 
 
 def _num(value: Any, what: str, where: str) -> float:
@@ -60,34 +110,87 @@ def _num(value: Any, what: str, where: str) -> float:
     return v
 
 
-def load_transforms_json(
+def _distortion(get: Any, where: str) -> Distortion:
+    """The frame's lens distortion from nerfstudio's / instant-ngp's keys."""
+    def coef(key: str) -> float:
+        v = get(key)
+        return 0.0 if v is None else _num(v, key, where)
+
+    model = get("camera_model")
+    model = "OPENCV_FISHEYE" if model is None and get("is_fisheye") else model
+    model = str(model).upper() if model is not None else "OPENCV"
+    if model in ("PINHOLE", "SIMPLE_PINHOLE"):
+        return NO_DISTORTION
+    if model == "OPENCV":
+        if coef("k4") != 0.0:
+            raise ValueError(f"{where}: k4 (an r^8 term) is not supported for camera_model "
+                             "OPENCV")
+        d = Distortion("opencv", (coef("k1"), coef("k2"), coef("p1"), coef("p2"), coef("k3")))
+    elif model == "OPENCV_FISHEYE":
+        if coef("p1") != 0.0 or coef("p2") != 0.0:
+            raise ValueError(f"{where}: p1/p2 (tangential) are not part of camera_model "
+                             "OPENCV_FISHEYE")
+        d = Distortion("fisheye", (coef("k1"), coef("k2"), coef("k3"), coef("k4")))
+    else:
+        raise ValueError(f"{where}: camera_model {model!r} is not supported (OPENCV, "
+                         "OPENCV_FISHEYE, PINHOLE)")
+    return NO_DISTORTION if d.is_identity else d
+
+
+def read_ply_points(path: PathLike) -> tuple[Tensor, Tensor]:
+    """Points of a ``.ply`` point cloud: (xyz [P, 3] float32, rgb [P, 3] float32 in [0, 1];
+    grey 0.5 when the file has no colours)."""
+    from plyfile import PlyData
+
+    p = Path(path)
+    try:
+        ply = PlyData.read(str(p))
+        v = ply["vertex"]
+        xyz = np.stack([np.asarray(v[k], dtype=np.float64) for k in ("x", "y", "z")], axis=1)
+    except (KeyError, ValueError, OSError) as exc:
+        raise ValueError(f"{p}: not a point cloud with x, y, z vertices ({exc})") from exc
+    names = set(v.data.dtype.names or ())
+    if {"red", "green", "blue"} <= names:
+        rgb = np.stack([np.asarray(v[k], dtype=np.float64) for k in ("red", "green", "blue")],
+                       axis=1) / 255.0
+    else:
+        rgb = np.full_like(xyz, 0.5)
+    ok = np.isfinite(xyz).all(axis=1)
+    return (torch.from_numpy(xyz[ok].astype(np.float32)),
+            torch.from_numpy(np.clip(rgb[ok], 0, 1).astype(np.float32)))
+
+
+def _norm_name(name: str) -> str:
+    return os.path.normpath(name.removeprefix("./"))
+
+
+def load_transforms(
     path: PathLike,
     *,
     background: Sequence[float] = (1.0, 1.0, 1.0),
     downscale: float = 1,
     load_images: bool = True,
     depth_scale: float = 1000.0,
-) -> list[View]:
-    """Read a NeRF-synthetic ``transforms_*.json`` file.
+    quiet: bool = False,
+) -> TransformsCapture:
+    """Read a ``transforms*.json`` file of any of the three dialects (module docstring).
 
     Args:
         path: the JSON file; ``frames[].file_path`` is relative to its folder, with or without
             an extension (``.png`` is tried first).
-        background: RGB in [0, 1] on which RGBA images are composited (NeRF-synthetic
-            convention: white).
+        background: RGB in [0, 1] on which images with an alpha channel or a mask are
+            composited (NeRF-synthetic convention: white).
         downscale: divide the image size by this factor (intrinsics follow).
         load_images: read the pixels (else ``View.image`` is None; the size still comes from
             the JSON's ``w``/``h`` or the image header).
         depth_scale: a frame's optional ``depth_file_path`` image is divided by this to give
             depth in scene units (``.npy`` depth files are taken as is).
-
-    Returns:
-        One :class:`View` per frame, in file order, c2w in OpenCV axes.
+        quiet: log nothing (a probe before the real load).
 
     Raises:
-        ValueError: malformed JSON, missing keys, a non-4x4 or non-rigid transform (naming the
-            file and frame index).
-        FileNotFoundError: a frame's image is missing.
+        ValueError: malformed JSON, missing keys, a non-4x4 or non-rigid transform, an
+            unsupported camera model (naming the file and frame index).
+        FileNotFoundError: no frame has its image; a named mask, depth or ply file is missing.
     """
     p = Path(path)
     try:
@@ -97,7 +200,22 @@ def load_transforms_json(
     if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list):
         raise ValueError(f"{p}: expected an object with a 'frames' list")
     base = p.parent
+    split_names: dict[str, Split] = {}
+    for key, tag in (("train_filenames", "train"), ("val_filenames", "test"),
+                     ("test_filenames", "test")):
+        names = meta.get(key)
+        if names is None:
+            continue
+        if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+            raise ValueError(f"{p}: {key} must be a list of file paths")
+        if key == "val_filenames" and meta.get("test_filenames"):
+            continue  # a named test split wins over the validation one
+        for n in names:
+            split_names[_norm_name(n)] = tag  # type: ignore[assignment]
     views: list[View] = []
+    split: list[Split | None] = []
+    skipped: list[str] = []
+    dists: dict[Distortion, None] = {}
     for i, fr in enumerate(meta["frames"]):
         where = f"{p}: frames[{i}]"
         if not isinstance(fr, dict):
@@ -119,7 +237,11 @@ def load_transforms_json(
         if not np.isfinite(m).all():
             raise ValueError(f"{where}: transform_matrix has non-finite values")
         c2w = opengl_to_opencv_c2w(torch.from_numpy(m)).float()
+        dist = _distortion(get, where)
         img_path = _find_frame_image(base, str(fr["file_path"]))
+        if img_path is None:
+            skipped.append(str(fr["file_path"]))
+            continue
         w, h = get("w"), get("h")
         if w is None or h is None:
             width, height = image_size(img_path)
@@ -143,21 +265,63 @@ def load_transforms_json(
         cx = _num(get("cx"), "cx", where) if get("cx") is not None else width / 2.0
         cy = _num(get("cy"), "cy", where) if get("cy") is not None else height / 2.0
         try:
-            cam = Camera.from_intrinsics(c2w, Intrinsics(fx, fy, cx, cy, width, height))
+            raw = Intrinsics(fx, fy, cx, cy, width, height)
+            cam = Camera.from_intrinsics(c2w, pinhole_for(raw, dist))
         except ValueError as exc:
             raise ValueError(f"{where}: {exc}") from exc
+        if not dist.is_identity:
+            dists[dist] = None
         tw, th = target_size(width, height, downscale)
         if (tw, th) != (width, height):
             cam = cam.with_resolution(tw, th)
-        image = None
+        mask_path = None
+        if fr.get("mask_path"):
+            mask_path = base / str(fr["mask_path"])
+            if not mask_path.is_file():
+                raise FileNotFoundError(f"{where}: mask {mask_path} not found")
+        image = alpha = None
         if load_images:
-            image = load_image(img_path, background=background, size=(tw, th))
+            image, alpha = load_capture_image(img_path, raw, dist, (tw, th),
+                                              background=background, mask_path=mask_path)
         depth = None
         if fr.get("depth_file_path"):
             dpath = base / str(fr["depth_file_path"])
             if not dpath.is_file():
                 raise FileNotFoundError(f"{where}: depth file {dpath} not found")
+            if not dist.is_identity:
+                raise ValueError(f"{where}: depth maps of a distorted camera are not supported "
+                                 "(undistort the capture first)")
             depth = load_depth(dpath, depth_scale, (tw, th))
         name = str(fr["file_path"])
-        views.append(View(name=name, camera=cam, image=image, depth=depth))
-    return views
+        views.append(View(name=name, camera=cam, image=image, depth=depth, alpha=alpha))
+        split.append(split_names.get(_norm_name(name)) if split_names else None)
+    if skipped and not quiet:
+        log.warning("%s: %d of %d frames have no image and were skipped (first: %s)", p,
+                    len(skipped), len(meta["frames"]), skipped[0])
+    if not views and skipped:
+        raise FileNotFoundError(f"{p}: none of the {len(skipped)} frames has its image "
+                                f"(first: {skipped[0]!r}, under {base})")
+    points = colors = None
+    if meta.get("ply_file_path"):
+        ply = base / str(meta["ply_file_path"])
+        if not ply.is_file():
+            raise FileNotFoundError(f"{p}: ply_file_path {ply} not found")
+        points, colors = read_ply_points(ply)
+    for d in dists if not quiet else ():
+        log.info("%s: images with distortion %s undistorted to a pinhole camera", p,
+                 d.describe())
+    return TransformsCapture(views=views, split=split, points=points, colors=colors,
+                             skipped=skipped, distortions=[d.describe() for d in dists])
+
+
+def load_transforms_json(
+    path: PathLike,
+    *,
+    background: Sequence[float] = (1.0, 1.0, 1.0),
+    downscale: float = 1,
+    load_images: bool = True,
+    depth_scale: float = 1000.0,
+) -> list[View]:
+    """The views of :func:`load_transforms` (same arguments), in file order."""
+    return load_transforms(path, background=background, downscale=downscale,
+                           load_images=load_images, depth_scale=depth_scale).views

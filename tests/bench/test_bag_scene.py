@@ -34,7 +34,7 @@ def _frames(n: int, size: int, depth: bool) -> list[BagFrame]:
     out = []
     with torch.no_grad():
         for i, p in enumerate(poses):
-            r = render(gt, Camera(c2w=p, intrinsics=intr), background=torch.ones(3))
+            r = render(gt, Camera(c2w=p, intrinsics=intr), background=torch.zeros(3))
             rgb = (r.rgb.clamp(0, 1).numpy() * 255).round().astype(np.uint8)
             mm = (torch.where(r.alpha > 0.5, r.depth, torch.zeros_like(r.depth)).numpy()
                   * 1000).round().astype(np.uint16)

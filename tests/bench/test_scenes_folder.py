@@ -19,6 +19,9 @@ OBJECTS = ("bob", "boot", "fish", "koala", "penguin", "skull", "spot", "stanford
 """The benchmark's splat objects (docs/benchmarks.md); with the capture (plant) and the posed
 scene (floor), its twelve scenes."""
 
+CAPTURES = ("buddha", "skull_photos", "brighton_beach")
+"""Real captures (photographs with poses), each with its licence file and README."""
+
 
 def meta(scene: str) -> dict:
     return json.loads((SCENES / scene / "meta.json").read_text(encoding="utf-8"))
@@ -42,7 +45,7 @@ def rows() -> list[str]:
 
 def test_the_twelve_scenes_are_here_and_intact() -> None:
     assert sorted(p.name for p in SCENES.iterdir() if p.is_dir()) == sorted(
-        (*OBJECTS, "plant", "floor"))
+        (*OBJECTS, "plant", "floor", *CAPTURES))
     for scene in (*OBJECTS, "plant"):
         m = meta(scene)
         digests = {lod["file"]: lod["sha256"] for lod in m.get("lods", [])}
@@ -58,6 +61,14 @@ def test_the_twelve_scenes_are_here_and_intact() -> None:
         for key in ("file_path", "depth_file_path"):
             path = SCENES / "floor" / frame[key]
             assert path.is_file() or path.with_suffix(".png").is_file(), path
+    for scene in CAPTURES:
+        assert detect_scene_kind(SCENES / scene) == "colmap"
+        assert (SCENES / scene / "LICENSE.md").is_file()
+        assert (SCENES / scene / "README.md").is_file()
+        text = (SCENES / scene / "sparse" / "0" / "images.txt").read_text()
+        body = [ln for ln in text.splitlines() if not ln.startswith("#")]
+        names = [ln.split()[-1] for ln in body[0::2]]  # IMAGE_ID ... NAME, then its POINTS2D
+        assert names and all((SCENES / scene / "images" / n).is_file() for n in names)
 
 
 def test_the_readme_credits_every_scene_as_its_meta_says() -> None:

@@ -118,6 +118,15 @@ HOW: dict[tuple[str, str], How] = {
                     "in tests/client/test_ros2_bag.py"),
     ("docs/ros2.md", "agilegs bench service --pool 300"):
         How("parse", "a benchmark of minutes (its small run: tests/e2e/test_bench_service.py)"),
+    ("docs/your-data.md", "# COLMAP: frames from the video, then structure from motion "
+     "(sparse/0 and images/)"):
+        How("skip", "needs a video and ffmpeg, COLMAP, instant-ngp and nerfstudio (what they "
+                    "write is loaded in tests/service/test_captures.py and "
+                    "tests/bench/test_capture_scenes.py)"),
+    ("docs/your-data.md", "agilegs bench run --scene service/data/scenes/buddha --profile cpu "
+     "--methods random,agile_plus --seeds 0 --out out/buddha"):
+        How("parse", "minutes of CPU (the demo on this capture: "
+                     "tests/e2e/test_demo_capture.py)"),
     ("docs/benchmarks.md", "S=service/data/scenes"): BENCH,
     ("docs/benchmarks.md", "agilegs bench run --scene $S/plant --scene $S/boot --scene "
      "$S/koala --scene $S/floor \\"): BENCH,

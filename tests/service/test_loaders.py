@@ -31,13 +31,20 @@ CAMERAS = [
     (3, "OPENCV", 4, 48, 36, (60.0, 61.0, 24.0, 18.0, 0.0, 0.0, 0.0, 0.0)),
     (4, "SIMPLE_PINHOLE", 0, 20, 20, (25.0, 10.0, 10.0)),
     (5, "RADIAL", 3, 20, 16, (22.0, 10.0, 8.0, 0.0, 0.0)),
+    (6, "FULL_OPENCV", 6, 40, 30, (50.0, 51.0, 20.0, 15.0, -0.05, 0.01, 0.001, -0.001,
+                                   0.0, 0.0, 0.0, 0.0)),
+    (7, "SIMPLE_RADIAL_FISHEYE", 8, 40, 30, (30.0, 20.0, 15.0, 0.02)),
+    (8, "RADIAL_FISHEYE", 9, 40, 30, (30.0, 20.0, 15.0, 0.0, 0.0)),
+    (9, "OPENCV_FISHEYE", 5, 40, 30, (30.0, 31.0, 20.0, 15.0, 0.01, -0.01, 0.0, 0.0)),
 ]
+DISTORTED = {2, 6, 7, 9}
 
 
 def _random_images(seed: int = 0):
     rng = np.random.default_rng(seed)
     images = []
-    names = ["frame_c.png", "frame_a.png", "frame_d.png", "frame_b.png", "frame_e.png"]
+    names = ["frame_c.png", "frame_a.png", "frame_d.png", "frame_b.png", "frame_e.png",
+             "frame_f.png", "frame_i.png", "frame_h.png", "frame_g.png"]
     for k, name in enumerate(names):
         q = rng.normal(size=4)
         q /= np.linalg.norm(q)
@@ -133,12 +140,17 @@ def _check_model(views: list[View], points, colors, images, pts) -> None:
         assert v.camera.c2w.dtype == torch.float32
         _, model, _, w, h, params = cams[cid]
         assert (v.camera.width, v.camera.height) == (w, h)
-        if model in ("PINHOLE", "OPENCV"):
+        if model in ("PINHOLE", "OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE"):
             fx, fy, cx, cy = params[:4]
         else:
             fx, fy, cx, cy = params[0], params[0], params[1], params[2]
-        assert v.camera.fx == pytest.approx(fx)
-        assert v.camera.fy == pytest.approx(fy)
+        if cid in DISTORTED:  # undistorted to a pinhole camera: focal lengths scaled alike
+            s = v.camera.fx / fx
+            assert s != pytest.approx(1.0, abs=1e-4) and 0.5 < s < 2.0
+            assert v.camera.fy == pytest.approx(fy * s)
+        else:
+            assert v.camera.fx == pytest.approx(fx)
+            assert v.camera.fy == pytest.approx(fy)
         assert (v.camera.cx, v.camera.cy) == (pytest.approx(cx), pytest.approx(cy))
         assert v.image is None and v.depth is None
     np.testing.assert_allclose(points.numpy(), np.array([p[1] for p in pts]), atol=1e-6)
@@ -151,12 +163,14 @@ def test_colmap_model_poses_intrinsics_points(tmp_path: Path, fmt: str, caplog) 
     images, pts = _random_images(), _random_points()
     writer = write_text_model if fmt == "text" else write_binary_model
     writer(tmp_path / "sparse", CAMERAS, images, pts)
-    with caplog.at_level(logging.WARNING):
+    with caplog.at_level(logging.INFO):
         views, points, colors = load_colmap(tmp_path / "sparse")
     _check_model(views, points, colors, images, pts)
-    # SIMPLE_RADIAL with k = 0.01 warns; zero distortion does not
-    warned = [r for r in caplog.records if "distortion" in r.getMessage()]
-    assert warned and all("SIMPLE_RADIAL" in r.getMessage() for r in warned)
+    # each distorted camera says it is undistorted; zero distortion says nothing
+    said = [r.getMessage() for r in caplog.records if "undistorted" in r.getMessage()]
+    assert len(said) == len(DISTORTED)
+    for cid, model, *_ in CAMERAS:
+        assert any(f"camera {cid} ({model}," in m for m in said) == (cid in DISTORTED)
     model = read_colmap_model(tmp_path / "sparse")
     assert model.images[10].num_points2d == 2 and model.images[11].num_points2d == 0
 
@@ -191,7 +205,7 @@ def test_colmap_pose_projects_points_like_colmap(tmp_path: Path) -> None:
         )
 
 
-def test_colmap_images_and_downscale(tmp_path: Path) -> None:
+def test_colmap_images_and_downscale(tmp_path: Path, caplog) -> None:
     cams = [(1, "PINHOLE", 1, 40, 30, (50.0, 52.0, 20.0, 15.0))]
     images = [
         (1, (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 1, "a.png"),
@@ -219,9 +233,16 @@ def test_colmap_images_and_downscale(tmp_path: Path) -> None:
         assert (v.camera.fx, v.camera.fy, v.camera.cx, v.camera.cy) == (25.0, 26.0, 10.0, 7.5)
         expect = Image.fromarray(raw[v.name]).resize((20, 15), Image.Resampling.LANCZOS)
         np.testing.assert_allclose(v.image.numpy(), np.asarray(expect) / 255.0, atol=1e-6)
-    # missing image file
+    # a missing image file is skipped, with one warning that counts it
     (img_dir / "a.png").unlink()
-    with pytest.raises(FileNotFoundError, match="a.png"):
+    with caplog.at_level(logging.WARNING):
+        views3, _, _ = load_colmap(tmp_path / "sparse", img_dir)
+    assert [v.name for v in views3] == ["sub/b.png"]
+    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warned) == 1 and "1 of 2 images" in warned[0] and "a.png" in warned[0]
+    # none left: an error naming the first
+    (img_dir / "sub" / "b.png").unlink()
+    with pytest.raises(FileNotFoundError, match="none of the model's 2 images.*a.png"):
         load_colmap(tmp_path / "sparse", img_dir)
 
 
@@ -253,10 +274,10 @@ def test_colmap_malformed_text(tmp_path: Path) -> None:
 
 
 def test_colmap_unsupported_and_missing_camera(tmp_path: Path) -> None:
-    cams = [(1, "OPENCV_FISHEYE", 5, 20, 20, (10.0, 10.0, 10.0, 10.0, 0.1, 0.0, 0.0, 0.0))]
+    cams = [(1, "FOV", 7, 20, 20, (10.0, 10.0, 10.0, 10.0, 0.1))]
     images = [(1, (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 1, "a.png")]
     write_binary_model(tmp_path / "m", cams, images, [])
-    with pytest.raises(ValueError, match="unsupported camera model OPENCV_FISHEYE"):
+    with pytest.raises(ValueError, match="camera 1: camera model FOV is not supported"):
         load_colmap(tmp_path / "m")
     images = [(1, (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 7, "a.png")]
     write_binary_model(tmp_path / "n", CAMERAS[:1], images, [])
@@ -269,7 +290,7 @@ def test_colmap_malformed_binary(tmp_path: Path) -> None:
     write_binary_model(d, CAMERAS, _random_images(), _random_points())
     data = (d / "images.bin").read_bytes()
     (d / "images.bin").write_bytes(data[:-30])
-    with pytest.raises(ValueError, match=r"images\.bin: image record 4.*truncated"):
+    with pytest.raises(ValueError, match=r"images\.bin: image record 8.*truncated"):
         load_colmap(d)
     (d / "images.bin").write_bytes(data)
     cam = bytearray((d / "cameras.bin").read_bytes())
@@ -392,9 +413,10 @@ def test_transforms_json_errors(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="camera_angle_x"):
         load_transforms_json(path)
     bad = json.loads(json.dumps(meta))
-    bad["frames"][0]["file_path"] = "./train/missing"
+    for fr in bad["frames"]:
+        fr["file_path"] = "./train/missing"
     path.write_text(json.dumps(bad))
-    with pytest.raises(FileNotFoundError, match="missing"):
+    with pytest.raises(FileNotFoundError, match="none of the 3 frames.*missing"):
         load_transforms_json(path)
     path.write_text("{not json")
     with pytest.raises(ValueError, match="invalid JSON at line 1"):
