@@ -39,14 +39,20 @@ machine). The estimate is therefore the model's sum times :data:`MEMORY_MARGIN` 
 machine as long as the allocator adds less than that; tests/nbv/test_budget.py measures it in
 fresh processes under several allocator settings (one arena, the default, two threads).
 
-The time coefficients were fitted to calls in fresh processes on this project's 2-core CPU
-with one thread (within 2x of the measured time, docs/maths.md); they size the wait, they do
-not bound it.
+The time coefficients were fitted to calls in fresh processes on this project's reference
+2-core CPU with one thread (within 2x of the measured time, docs/maths.md). Another machine,
+or the same one under load, runs slower or faster by a factor the coefficients cannot know:
+:class:`SpeedCalibration` learns it from the selections a process has timed (the largest
+measured / estimated ratio of the recent ones), and its :meth:`~SpeedCalibration.bound` is the
+estimate times that factor times :data:`TIME_MARGIN`, the bound that admission compares with
+its limit.
 """
 
 from __future__ import annotations
 
 import math
+import threading
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -55,6 +61,8 @@ __all__ = [
     "ALLOCATOR_BYTES",
     "MEMORY_MARGIN",
     "KINDS",
+    "TIME_MARGIN",
+    "SpeedCalibration",
     "PASS_FRACTION",
     "TORCH_PAIR_BYTES",
     "Estimate",
@@ -88,6 +96,9 @@ MEMORY_MARGIN = 1.25
 """The memory estimate is the model's sum times this (see the module docstring)..."""
 ALLOCATOR_BYTES = 8 << 20
 """... plus this."""
+TIME_MARGIN = 2.0
+"""A time bound is the estimate times the machine's factor times this: the coefficients are
+within 2x of the measured time on the reference CPU, between calls of one kind."""
 COVER_CHUNK = 1 << 16  # cover.gaussian_coverage's block of Gaussians
 COVER_BINS = 128
 
@@ -302,3 +313,50 @@ def mean_footprint(gmap: object, camera: object, *, tile_size: int = 8) -> float
     wx = torch.minimum(2 * hx + 1, 2 * r + tile_size).clamp(max=camera.width)
     wy = torch.minimum(2 * hy + 1, 2 * r + tile_size).clamp(max=camera.height)
     return float((wx * wy).mean())
+
+
+class SpeedCalibration:
+    """This machine's speed against the reference CPU, learnt from timed computations.
+
+    :meth:`observe` records measured / estimated seconds of a computation whose estimate is at
+    least ``min_seconds`` (shorter ones are dominated by fixed costs); :attr:`factor` is the
+    largest of the last ``window`` ratios (1 before any), at least ``floor``; :meth:`bound`
+    is ``seconds x factor x TIME_MARGIN``. Thread-safe.
+    """
+
+    def __init__(self, window: int = 32, min_seconds: float = 0.05, floor: float = 0.25
+                 ) -> None:
+        if window < 1:
+            raise ValueError(f"window must be >= 1, got {window!r}")
+        if not (min_seconds >= 0 and floor > 0):
+            raise ValueError("min_seconds must be >= 0 and floor > 0")
+        self._ratios: deque[float] = deque(maxlen=window)
+        self._lock = threading.Lock()
+        self.min_seconds = min_seconds
+        self.floor = floor
+
+    def observe(self, estimated_s: float, measured_s: float) -> None:
+        """Record one computation (its up-front estimate and its measured wall time, s)."""
+        if not (math.isfinite(estimated_s) and math.isfinite(measured_s)):
+            return
+        if estimated_s < self.min_seconds or estimated_s <= 0 or measured_s < 0:
+            return
+        with self._lock:
+            self._ratios.append(measured_s / estimated_s)
+
+    @property
+    def samples(self) -> int:
+        """How many ratios the window holds."""
+        with self._lock:
+            return len(self._ratios)
+
+    @property
+    def factor(self) -> float:
+        """The largest recent measured / estimated ratio (1 before any), at least ``floor``."""
+        with self._lock:
+            worst = max(self._ratios) if self._ratios else 1.0
+        return max(worst, self.floor)
+
+    def bound(self, seconds: float) -> float:
+        """An estimate in seconds of the reference CPU as a bound on this machine (s)."""
+        return seconds * self.factor * TIME_MARGIN

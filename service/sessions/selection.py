@@ -25,7 +25,7 @@ from agilegs.schemas.errors import ErrorCode
 
 from ..errors import ServiceError, conflict, invalid, too_large, validation_error
 from ..nbv.backend import default_backend, kernels_available
-from ..nbv.budget import KINDS, Estimate, estimate
+from ..nbv.budget import KINDS, Estimate, SpeedCalibration, estimate
 from ..nbv.errors import InputError
 from ..nbv.selectors import Selection, select_validated
 from ..records import SessionRecord, ViewRecord
@@ -41,7 +41,7 @@ from .transitions import (
     with_pool,
 )
 
-__all__ = ["RENDER_WIDTHS", "TOP_LEVEL", "Selected", "check_cost", "check_render_widths",
+__all__ = ["RENDER_WIDTHS", "SPEED", "TOP_LEVEL", "Selected", "check_cost", "check_render_widths",
            "resolve_config", "select_estimate", "select_response", "select_step"]
 
 TOP_LEVEL = ("shortlist_size", "shortlist", "embodied_k", "seed", "fields")
@@ -57,6 +57,11 @@ _ARGUMENT_FIELDS = {
     "acquired": "views",
 }
 
+
+SPEED = SpeedCalibration()
+"""This process's speed against the reference CPU, learnt from the selections it timed: a
+select's time estimate is bounded by ``SPEED.bound`` before it is compared with
+``max_select_seconds``."""
 
 RENDER_WIDTHS = (("anchor", "resolution"), ("cover_resolution",))
 """Paths of the SelectConfig fields that set a render's width; its square must stay within the
@@ -106,29 +111,33 @@ def select_estimate(rec: SessionRecord, method: str, config: SelectConfig) -> Es
                     backend="numba" if kernels else "torch")
 
 
-def check_cost(rec: SessionRecord, method: str, config: SelectConfig, limits: Limits) -> None:
+def check_cost(rec: SessionRecord, method: str, config: SelectConfig, limits: Limits,
+               speed: SpeedCalibration | None = None) -> Estimate | None:
     """422 ``limit_exceeded`` naming ``max_select_seconds`` or ``max_select_bytes``, with the
-    estimate, when the select's up-front estimate exceeds it."""
+    estimate, when the select's up-front bound exceeds it: the time estimate as ``speed``
+    (default :data:`SPEED`) bounds it on this machine, the memory estimate with its margin.
+    Returns the estimate."""
     if method not in KINDS:
-        return
+        return None
     est = select_estimate(rec, method, config)
+    seconds = (speed or SPEED).bound(est.seconds)
     over = None
-    if est.seconds > limits.max_select_seconds:
-        over = ("max_select_seconds", f"{est.seconds:.3g} s", f"{limits.max_select_seconds:g} s")
+    if seconds > limits.max_select_seconds:
+        over = ("max_select_seconds", f"{seconds:.3g} s", f"{limits.max_select_seconds:g} s")
     elif est.peak_bytes > limits.max_select_bytes:
         over = ("max_select_bytes", f"{est.peak_bytes / 2**20:.0f} MiB",
                 f"{limits.max_select_bytes / 2**20:.0f} MiB")
     if over is None:
-        return
+        return est
     name, got, limit = over
     intr = rec.intrinsics
     raise ServiceError(
         422, ErrorCode.LIMIT_EXCEEDED,
         f"a {method} select over {len(rec.pool_ids)} candidates of {len(rec.gmap)} Gaussians "
-        f"at {intr['width']}x{intr['height']} is estimated at {got} ({est.seconds:.3g} s, "
+        f"at {intr['width']}x{intr['height']} is estimated at {got} ({seconds:.3g} s, "
         f"{est.peak_bytes / 2**20:.0f} MiB peak), over {name} ({limit}): use a cheaper method, "
         "a smaller pool or embodied_k, or a smaller map", "body.method", limit=name,
-        estimate={"peak_bytes": float(est.peak_bytes), "seconds": float(est.seconds)})
+        estimate={"peak_bytes": float(est.peak_bytes), "seconds": float(seconds)})
 
 
 @dataclass(frozen=True)
@@ -192,7 +201,7 @@ def select_step(rec: SessionRecord, req: m.SelectRequest, limits: Limits, *,
         "seed": req.seed if req.seed is not None else d["seed"],
         "fields": tuple(fields) if fields else None,
     })
-    check_cost(rec, method, config, limits)
+    est = check_cost(rec, method, config, limits)
     dt = rec.gmap.dtype
     current = None
     current_pose = None
@@ -207,6 +216,7 @@ def select_step(rec: SessionRecord, req: m.SelectRequest, limits: Limits, *,
         current_pose = torch.from_numpy(rec.views[-1].pose).to(dt)
     acquired = (torch.from_numpy(np.stack([v.pose for v in rec.views])).to(dt)
                 if rec.views else None)
+    t0 = time.perf_counter()
     try:
         sel = select_validated(
             method, rec.gmap, rec.h_acc, torch.from_numpy(rec.pool_poses).to(dt),
@@ -216,6 +226,8 @@ def select_step(rec: SessionRecord, req: m.SelectRequest, limits: Limits, *,
         )
     except InputError as exc:
         raise invalid(_ARGUMENT_FIELDS.get(exc.argument, "body"), str(exc)) from None
+    if est is not None:
+        SPEED.observe(est.seconds, time.perf_counter() - t0)
     ids = rec.pool_ids
     chosen_id = int(ids[sel.index])
     chosen_pose = rec.pool_poses[sel.index]

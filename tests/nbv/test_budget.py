@@ -166,3 +166,25 @@ def test_measured_peaks_stay_under_the_estimate(kind: str, n: int, res: int, poo
     assert out["measured"] <= min(tight.peak_bytes, est.peak_bytes), (out, tight, est)
     # and not a vacuous one
     assert est.peak_bytes < 30 * out["measured"] + (64 << 20), (out, est)
+
+
+def test_speed_calibration_learns_the_slowest_recent_ratio() -> None:
+    from agilegs.service.nbv.budget import TIME_MARGIN, SpeedCalibration
+
+    speed = SpeedCalibration(window=3, min_seconds=0.05, floor=0.25)
+    assert speed.factor == 1.0 and speed.bound(2.0) == 2.0 * TIME_MARGIN
+    speed.observe(0.01, 5.0)  # too short an estimate to say anything: ignored
+    speed.observe(float("nan"), 1.0)
+    assert speed.factor == 1.0
+    speed.observe(1.0, 3.0)  # three times slower than the reference
+    speed.observe(1.0, 0.5)
+    assert speed.factor == pytest.approx(3.0)
+    assert speed.bound(2.0) == pytest.approx(2.0 * 3.0 * TIME_MARGIN)
+    speed.observe(1.0, 0.5)
+    speed.observe(1.0, 0.5)  # the slow one has left the window
+    assert speed.factor == pytest.approx(0.5)
+    for _ in range(3):
+        speed.observe(1.0, 0.01)  # never below the floor
+    assert speed.factor == pytest.approx(0.25)
+    with pytest.raises(ValueError, match="window"):
+        SpeedCalibration(window=0)

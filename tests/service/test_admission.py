@@ -236,6 +236,42 @@ def test_a_select_over_the_cost_limit_is_refused_with_its_estimate(api_factory: 
         assert r.status_code == 200  # a cheap one goes through
 
 
+def test_the_cost_limit_compares_the_time_bound_and_learns_the_machine(
+        api_factory: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    from agilegs.service.nbv.budget import TIME_MARGIN, SpeedCalibration
+    from agilegs.service.sessions import selection
+
+    speed = SpeedCalibration()
+    monkeypatch.setattr(selection, "SPEED", speed)
+    probe = api_factory(max_select_seconds=1e6)
+    sid = _session(probe, n=2000, pool=60)
+    rec = probe.server.registry.session(sid).record
+    cfg = selection.resolve_config(rec.defaults, m.SelectRequest(method="full_eig"), {})
+    raw = selection.select_estimate(rec, "full_eig", cfg).seconds
+    # a limit between the raw estimate and its bound: refused, the error carries the bound
+    api = api_factory(max_select_seconds=raw * (1 + TIME_MARGIN) / 2)
+    sid = _session(api, n=2000, pool=60)
+    with api.http(timeout=60) as h:
+        r = h.post(f"/v1/sessions/{sid}/select", json={"method": "full_eig"})
+        assert r.status_code == 422, r.text
+        err = r.json()["error"]
+        assert err["limit"] == "max_select_seconds"
+        assert err["estimate"]["seconds"] == pytest.approx(raw * TIME_MARGIN, rel=1e-6)
+    # a select that ran slower than its estimate raises the factor, and so the bound
+    with probe.http(timeout=120) as h:
+        r = h.post(f"/v1/sessions/{sid}/select", json={"method": "random"})
+        r = h.post(f"/v1/sessions/{_session(probe, n=2000, pool=60)}/select",
+                   json={"method": "full_eig"})
+        assert r.status_code == 200, r.text
+    assert speed.samples == 1  # the full_eig select was timed (random's estimate is too short)
+    speed.observe(1.0, 50.0)
+    assert speed.factor >= 50.0
+    with api.http(timeout=60) as h:
+        r = h.post(f"/v1/sessions/{sid}/select", json={"method": "full_eig"})
+        assert r.status_code == 422
+        assert r.json()["error"]["estimate"]["seconds"] >= raw * 50.0 * TIME_MARGIN * (1 - 1e-6)
+
+
 def test_deadlines_cancel_at_stage_boundaries(api_factory: Any) -> None:
     api = api_factory(max_select_seconds=1e6)
     sid = _session(api, n=1000, pool=400)
