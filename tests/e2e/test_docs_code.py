@@ -132,6 +132,8 @@ HOW: dict[tuple[str, str], How] = {
      "$S/koala --scene $S/floor \\"): BENCH,
     ("docs/benchmarks.md", "agilegs bench run $(for s in plant boot bob fish koala penguin floor "
      "skull spot stanford_bunny \\"): BENCH,
+    ("docs/benchmarks.md", "agilegs bench run --methods random,fisherrf,agile,agile_plus "
+     "--profile cpu --seeds 0,1 \\"): BENCH,
     ("docs/benchmarks.md", "agilegs bench value --scene $S/boot --scene $S/plant --scene "
      "$S/floor --horizon 100 \\"): BENCH,
     ("docs/benchmarks.md", "agilegs bench latency --scene $S/plant/plant.splat --pool 200 "
