@@ -235,7 +235,6 @@ def run(args: argparse.Namespace) -> int:
     from .state_dir import StateDirError
 
     settings = build_settings(args)
-    settings.warn_if_unsafe()
     tune_allocator()
     server = Server(settings, freeze_gc=True)
     try:
@@ -300,6 +299,7 @@ def _start(server: Server) -> int:
             raise
         sys.stderr.write(f"agilegs serve: {line}\n")
         return 2
+    server.settings.warn_if_unsafe()  # once serving: a refused start stays one line
     return 0
 
 
