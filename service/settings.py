@@ -89,7 +89,7 @@ class Settings(BaseSettings):
         default=2 << 30, ge=1 << 20, description="most decoded image and depth bytes of all "
         "requests in flight together (503 with Retry-After beyond)")
     max_select_seconds: float = Field(
-        default=120.0, gt=0, description="a select whose up-front time bound (the estimate "
+        default=240.0, gt=0, description="a select whose up-front time bound (the estimate "
         "on the reference CPU times this machine's measured factor times 2) exceeds this is "
         "refused (422 limit_exceeded)")
     max_select_bytes: int = Field(

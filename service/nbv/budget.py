@@ -42,15 +42,17 @@ fresh processes under several allocator settings (one arena, the default, two th
 The time coefficients were fitted to calls in fresh processes on this project's reference
 2-core CPU with one thread (within 2x of the measured time, docs/maths.md). Another machine,
 or the same one under load, runs slower or faster by a factor the coefficients cannot know:
-:class:`SpeedCalibration` learns it from the selections a process has timed (the largest
-measured / estimated ratio of the recent ones), and its :meth:`~SpeedCalibration.bound` is the
-estimate times that factor times :data:`TIME_MARGIN`, the bound that admission compares with
-its limit.
+:class:`SpeedCalibration` learns it from the selections a process has timed (the median
+measured / estimated ratio of the recent ones estimated at half a second or more: shorter ones,
+and the first call of a process that loads the compiled kernels, measure fixed costs), and
+its :meth:`~SpeedCalibration.bound` is the estimate times that factor times
+:data:`TIME_MARGIN`, the bound that admission compares with its limit.
 """
 
 from __future__ import annotations
 
 import math
+import statistics
 import threading
 from collections import deque
 from dataclasses import dataclass, field
@@ -319,12 +321,13 @@ class SpeedCalibration:
     """This machine's speed against the reference CPU, learnt from timed computations.
 
     :meth:`observe` records measured / estimated seconds of a computation whose estimate is at
-    least ``min_seconds`` (shorter ones are dominated by fixed costs); :attr:`factor` is the
-    largest of the last ``window`` ratios (1 before any), at least ``floor``; :meth:`bound`
-    is ``seconds x factor x TIME_MARGIN``. Thread-safe.
+    least ``min_seconds`` (shorter ones are dominated by fixed costs: the kernels' loading, the
+    request's own work); :attr:`factor` is the (high) median of the last ``window`` ratios (1
+    before any: one outlier, a call that waited on another, does not set it), at least
+    ``floor``; :meth:`bound` is ``seconds x factor x TIME_MARGIN``. Thread-safe.
     """
 
-    def __init__(self, window: int = 32, min_seconds: float = 0.05, floor: float = 0.25
+    def __init__(self, window: int = 32, min_seconds: float = 0.5, floor: float = 0.25
                  ) -> None:
         if window < 1:
             raise ValueError(f"window must be >= 1, got {window!r}")
@@ -352,10 +355,11 @@ class SpeedCalibration:
 
     @property
     def factor(self) -> float:
-        """The largest recent measured / estimated ratio (1 before any), at least ``floor``."""
+        """The high median of the recent measured / estimated ratios (1 before any), at least
+        ``floor``."""
         with self._lock:
-            worst = max(self._ratios) if self._ratios else 1.0
-        return max(worst, self.floor)
+            typical = statistics.median_high(self._ratios) if self._ratios else 1.0
+        return max(typical, self.floor)
 
     def bound(self, seconds: float) -> float:
         """An estimate in seconds of the reference CPU as a bound on this machine (s)."""

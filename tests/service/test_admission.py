@@ -244,13 +244,13 @@ def test_the_cost_limit_compares_the_time_bound_and_learns_the_machine(
     speed = SpeedCalibration()
     monkeypatch.setattr(selection, "SPEED", speed)
     probe = api_factory(max_select_seconds=1e6)
-    sid = _session(probe, n=2000, pool=60)
+    sid = _session(probe, n=2000, pool=120)
     rec = probe.server.registry.session(sid).record
     cfg = selection.resolve_config(rec.defaults, m.SelectRequest(method="full_eig"), {})
     raw = selection.select_estimate(rec, "full_eig", cfg).seconds
     # a limit between the raw estimate and its bound: refused, the error carries the bound
     api = api_factory(max_select_seconds=raw * (1 + TIME_MARGIN) / 2)
-    sid = _session(api, n=2000, pool=60)
+    sid = _session(api, n=2000, pool=120)
     with api.http(timeout=60) as h:
         r = h.post(f"/v1/sessions/{sid}/select", json={"method": "full_eig"})
         assert r.status_code == 422, r.text
@@ -260,11 +260,12 @@ def test_the_cost_limit_compares_the_time_bound_and_learns_the_machine(
     # a select that ran slower than its estimate raises the factor, and so the bound
     with probe.http(timeout=120) as h:
         r = h.post(f"/v1/sessions/{sid}/select", json={"method": "random"})
-        r = h.post(f"/v1/sessions/{_session(probe, n=2000, pool=60)}/select",
+        r = h.post(f"/v1/sessions/{_session(probe, n=2000, pool=120)}/select",
                    json={"method": "full_eig"})
         assert r.status_code == 200, r.text
     assert speed.samples == 1  # the full_eig select was timed (random's estimate is too short)
-    speed.observe(1.0, 50.0)
+    for _ in range(3):
+        speed.observe(1.0, 50.0)
     assert speed.factor >= 50.0
     with api.http(timeout=60) as h:
         r = h.post(f"/v1/sessions/{sid}/select", json={"method": "full_eig"})
