@@ -35,7 +35,8 @@ The memory model is what the code allocates; what the process's allocator adds t
 (arenas per thread, size classes, page rounding, the caches of glibc, the thread count) varies
 between machines and allocator settings (measured up to 9 % over the model on another
 machine). The estimate is therefore the model's sum times :data:`MEMORY_MARGIN` plus
-:data:`ALLOCATOR_BYTES`, the ``margin`` term of ``parts``: an upper bound of the peak on any
+:data:`ALLOCATOR_BYTES`, plus :data:`THREAD_ARENA_BYTES` for every compute thread beyond the
+first, the ``margin`` term of ``parts``: an upper bound of the peak on any
 machine as long as the allocator adds less than that; tests/nbv/test_budget.py measures it in
 fresh processes under several allocator settings (one arena, the default, two threads).
 
@@ -61,6 +62,7 @@ from typing import Literal
 __all__ = [
     "AGILE_BYTES_PER_GAUSSIAN",
     "ALLOCATOR_BYTES",
+    "THREAD_ARENA_BYTES",
     "MEMORY_MARGIN",
     "KINDS",
     "TIME_MARGIN",
@@ -97,7 +99,10 @@ AGILE_BYTES = 24 << 20
 MEMORY_MARGIN = 1.25
 """The memory estimate is the model's sum times this (see the module docstring)..."""
 ALLOCATOR_BYTES = 8 << 20
-"""... plus this."""
+"""... plus this ..."""
+THREAD_ARENA_BYTES = 64 << 20
+"""... plus this for every compute thread beyond the first: glibc gives each thread its own
+arena (up to 64 MiB on 64-bit), whose freed blocks another thread's peak cannot reuse."""
 TIME_MARGIN = 2.0
 """A time bound is the estimate times the machine's factor times this: the coefficients are
 within 2x of the measured time on the reference CPU, between calls of one kind."""
@@ -257,6 +262,7 @@ def estimate(
     dtype_bytes: int = 4,
     footprint: float | None = None,
     backend: Literal["numba", "torch"] = "numba",
+    threads: int = 1,
 ) -> Estimate:
     """Peak memory (an upper bound: the model with its margin) and time of a computation
     (see the module docstring).
@@ -275,6 +281,8 @@ def estimate(
         footprint: mean α ≥ 1/255 box area of a visible Gaussian in pixels (None:
             :func:`footprint_area`).
         backend: "numba" (the compiled kernels) or "torch".
+        threads: the compute threads the process runs it on (each beyond the first adds
+            :data:`THREAD_ARENA_BYTES` to the margin).
 
     Raises:
         ValueError: naming the argument, for an unknown kind or backend or a bad size.
@@ -282,7 +290,10 @@ def estimate(
     model = _model(kind, gaussians, pixels, pool=pool, shortlist=shortlist,
                    acquired=acquired, sh_coeffs=sh_coeffs, dtype_bytes=dtype_bytes,
                    footprint=footprint, backend=backend)
-    margin = math.ceil(model.peak_bytes * (MEMORY_MARGIN - 1.0)) + ALLOCATOR_BYTES
+    if not isinstance(threads, int) or isinstance(threads, bool) or threads < 1:
+        raise ValueError(f"threads must be an integer >= 1, got {threads!r}")
+    margin = (math.ceil(model.peak_bytes * (MEMORY_MARGIN - 1.0)) + ALLOCATOR_BYTES
+              + (threads - 1) * THREAD_ARENA_BYTES)
     return Estimate(model.peak_bytes + margin, model.seconds,
                     {**model.parts, "margin": margin})
 

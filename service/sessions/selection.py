@@ -108,7 +108,7 @@ def select_estimate(rec: SessionRecord, method: str, config: SelectConfig) -> Es
     return estimate(method, len(g), w * h, pool=pool,  # type: ignore[arg-type]
                     shortlist=config.shortlist_size, acquired=len(rec.views),
                     sh_coeffs=int(g.sh.shape[1]), dtype_bytes=g.means.element_size(),
-                    backend="numba" if kernels else "torch")
+                    backend="numba" if kernels else "torch", threads=torch.get_num_threads())
 
 
 def check_cost(rec: SessionRecord, method: str, config: SelectConfig, limits: Limits,
