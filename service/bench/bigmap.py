@@ -46,7 +46,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--json", dest="json_out", help="also write the results here")
 
 
-def _mem(pid: int) -> dict[str, float]:
+def proc_memory(pid: int) -> dict[str, float]:
+    """VmRSS and VmHWM (MiB) of process ``pid`` (Linux /proc)."""
     out = {}
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():
         key, _, value = line.partition(":")
@@ -55,7 +56,8 @@ def _mem(pid: int) -> dict[str, float]:
     return out
 
 
-def _reset_peak(pid: int) -> None:
+def reset_peak(pid: int) -> None:
+    """Reset process ``pid``'s VmHWM to its current RSS (where /proc allows)."""
     try:
         Path(f"/proc/{pid}/clear_refs").write_text("5")
     except OSError:  # not Linux, or not allowed: the peak is then the process's so far
@@ -130,12 +132,12 @@ def run(args: argparse.Namespace) -> int:
                 poses = _sphere_poses(centre, 2.5 * reach, args.pool)
 
                 def step(name: str, method: str, path: str, **kw: Any) -> httpx.Response:
-                    before = _mem(pid)
-                    _reset_peak(pid)
+                    before = proc_memory(pid)
+                    reset_peak(pid)
                     t0 = time.perf_counter()
                     r = h.request(method, path, **kw)
                     dt = time.perf_counter() - t0
-                    after = _mem(pid)
+                    after = proc_memory(pid)
                     row: dict[str, Any] = {"status": r.status_code, "seconds": dt,
                                            "rss_before_mib": before["VmRSS"],
                                            "peak_mib": max(after["VmHWM"], before["VmRSS"])}

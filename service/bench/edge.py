@@ -36,6 +36,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from .bigmap import proc_memory, reset_peak
+
 __all__ = ["add_arguments", "run"]
 
 
@@ -57,22 +59,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _say(line: str) -> None:
     sys.stdout.write(line + "\n")
     sys.stdout.flush()
-
-
-def _mem(pid: int) -> dict[str, float]:
-    out = {}
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        key, _, value = line.partition(":")
-        if key in ("VmRSS", "VmHWM"):
-            out[key] = int(value.split()[0]) / 1024.0
-    return out
-
-
-def _reset_peak(pid: int) -> None:
-    try:
-        Path(f"/proc/{pid}/clear_refs").write_text("5")
-    except OSError:
-        pass
 
 
 def _percentiles(ms: list[float]) -> dict[str, float]:
@@ -178,8 +164,8 @@ def _bodies(srv: Any, sid: str, args: argparse.Namespace) -> dict[str, Any]:
     pid = srv.proc.pid
     payload = b"\x00" * int(args.body_mib * 2**20)
     time.sleep(1.0)
-    idle = _mem(pid)
-    _reset_peak(pid)
+    idle = proc_memory(pid)
+    reset_peak(pid)
     statuses: list[int] = []
     lock = threading.Lock()
 
@@ -201,9 +187,9 @@ def _bodies(srv: Any, sid: str, args: argparse.Namespace) -> dict[str, Any]:
     for t in threads:
         t.join()
     wall = time.monotonic() - t0
-    peak = _mem(pid)["VmHWM"]
+    peak = proc_memory(pid)["VmHWM"]
     time.sleep(args.settle)
-    after = _mem(pid)["VmRSS"]
+    after = proc_memory(pid)["VmRSS"]
     counts: dict[str, int] = {}
     for s in statuses:
         counts[str(s)] = counts.get(str(s), 0) + 1

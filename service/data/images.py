@@ -13,6 +13,7 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -82,23 +83,15 @@ def load_image(
 
     p = Path(path)
     try:
-        with Image.open(p) as im:
-            im.load()
-            has_alpha = im.mode in ("RGBA", "LA", "PA") or (
-                im.mode == "P" and "transparency" in im.info
-            )
-            img: Image.Image = im
-            if im.mode in ("I;16", "I;16B", "I;16L", "I"):  # 16-bit grey
-                grey = np.asarray(im, dtype=np.float32) / 65535.0
-                img = Image.fromarray(np.clip(grey * 255.0 + 0.5, 0, 255).astype(np.uint8))
-            img = img.convert("RGBA" if has_alpha else "RGB")
-            if size is not None and img.size != (size[0], size[1]):
-                img = img.resize((size[0], size[1]), Image.Resampling.LANCZOS)
-            arr = np.asarray(img, dtype=np.float32) / 255.0
+        img = _decoded(p)
+        if size is not None and img.size != (size[0], size[1]):
+            img = img.resize((size[0], size[1]), Image.Resampling.LANCZOS)
+        arr = np.asarray(img, dtype=np.float32) / 255.0
     except FileNotFoundError:
         raise
     except OSError as exc:
         raise ValueError(f"{p}: cannot read image ({exc})") from exc
+    has_alpha = arr.shape[-1] == 4
     if has_alpha:
         bg = np.asarray(background, dtype=np.float32).reshape(1, 1, 3)
         a = arr[..., 3:4]
@@ -106,21 +99,27 @@ def load_image(
     return torch.from_numpy(np.ascontiguousarray(arr[..., :3]))
 
 
-def _read_u8(path: Path) -> np.ndarray:
-    """An image file as uint8 [H, W, 3] or [H, W, 4] (with its alpha channel)."""
+def _decoded(path: Path) -> Any:
+    """An image file decoded with PIL as an "RGB" image, or "RGBA" where it has an alpha
+    channel (16-bit grey scaled to 8 bits)."""
     from PIL import Image
 
+    with Image.open(path) as im:
+        im.load()
+        has_alpha = im.mode in ("RGBA", "LA", "PA") or (
+            im.mode == "P" and "transparency" in im.info
+        )
+        img: Image.Image = im
+        if im.mode in ("I;16", "I;16B", "I;16L", "I"):  # 16-bit grey
+            grey = np.asarray(im, dtype=np.float32) / 65535.0
+            img = Image.fromarray(np.clip(grey * 255.0 + 0.5, 0, 255).astype(np.uint8))
+        return img.convert("RGBA" if has_alpha else "RGB")
+
+
+def _read_u8(path: Path) -> np.ndarray:
+    """An image file as uint8 [H, W, 3] or [H, W, 4] (with its alpha channel)."""
     try:
-        with Image.open(path) as im:
-            im.load()
-            has_alpha = im.mode in ("RGBA", "LA", "PA") or (
-                im.mode == "P" and "transparency" in im.info
-            )
-            img: Image.Image = im
-            if im.mode in ("I;16", "I;16B", "I;16L", "I"):  # 16-bit grey
-                grey = np.asarray(im, dtype=np.float32) / 65535.0
-                img = Image.fromarray(np.clip(grey * 255.0 + 0.5, 0, 255).astype(np.uint8))
-            return np.asarray(img.convert("RGBA" if has_alpha else "RGB"), dtype=np.uint8)
+        return np.asarray(_decoded(path), dtype=np.uint8)
     except FileNotFoundError:
         raise
     except OSError as exc:
