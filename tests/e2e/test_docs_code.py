@@ -16,8 +16,9 @@ why:
 
 What stays the same everywhere but must differ on a shared machine: the HTTP port 8000, the
 Zenoh endpoint 7447 and the page port 8080 become free ports, ``./agilegs-state`` a temporary
-folder (:func:`substitute`). ``docs/notes/`` is left out: its dated pages record commands as
-they ran at their commit.
+folder (:func:`substitute`). The lab notebook (``notebook/``) is left out: its dated pages
+record commands as they ran at their commit. Every relative link of these pages, the
+notebook's and the scenes' READMEs resolves, to a file and, for a page, to a heading.
 """
 
 from __future__ import annotations
@@ -80,7 +81,7 @@ HOW: dict[tuple[str, str], How] = {
     ("README.md", "agilegs serve --host 127.0.0.1 --port 8000 --state-dir ./agilegs-state   "
      "# HTTP + Zenoh"): How("server", "the server the README's clients talk to"),
     ("README.md", "from dataclasses import asdict"): How("server"),
-    ("README.md", "import json"): How("server"),
+    ("docs/your-data.md", "import json"): How("server"),
     ("README.md", "curl -s -w '\\n' -X POST http://127.0.0.1:8000/v1/sessions -H "
      "'content-type: application/json' -d '{"): How("server"),
     ("docs/viewer.md", "from agilegs.client import Client"): How("server"),
@@ -132,8 +133,6 @@ HOW: dict[tuple[str, str], How] = {
      "$S/koala --scene $S/floor \\"): BENCH,
     ("docs/benchmarks.md", "agilegs bench run $(for s in plant boot bob fish koala penguin floor "
      "skull spot stanford_bunny \\"): BENCH,
-    ("docs/benchmarks.md", "agilegs bench run --methods random,fisherrf,agile,agile_plus "
-     "--profile cpu --seeds 0,1 \\"): BENCH,
     ("docs/benchmarks.md", "agilegs bench value --scene $S/boot --scene $S/plant --scene "
      "$S/floor --horizon 100 \\"): BENCH,
     ("docs/benchmarks.md", "agilegs bench latency --scene $S/plant/plant.splat --pool 200 "
@@ -156,15 +155,6 @@ HOW: dict[tuple[str, str], How] = {
      "full_eig,fisherrf,cover \\"):
         How("parse", "twenty minutes of a million-Gaussian session (its small run: "
                      "tests/e2e/test_bench_bigmap.py)"),
-    ("docs/benchmarks.md", "git worktree add /tmp/old e66334a && (cd /tmp/old && python3 -m "
-     "venv .venv && . .venv/bin/activate \\"):
-        How("skip", "builds an earlier commit in a worktree with its own install, then four "
-                    "servers and benchmarks of tens of minutes against them (the same "
-                    "benchmark, small: tests/e2e/test_bench_service.py)"),
-    ("docs/benchmarks.md", "for round in 1 2 3; do for dir in /tmp/old .; do (cd $dir && "
-     ".venv/bin/agilegs bench latency \\"):
-        How("skip", "runs in the earlier commit's worktree of the block above (the same "
-                    "benchmark, small: tests/bench/test_latency_bench.py)"),
     ("docs/benchmarks.md", "OMP_NUM_THREADS=1 agilegs bench edge --json edge.json"):
         How("parse", "1,000 connections and 64 bodies of 60 MiB, two minutes (its small run: "
                      "tests/e2e/test_bench_edge.py; its full run in the heavy lane)"),
@@ -195,6 +185,42 @@ def test_every_block_is_code_or_data_and_every_exception_is_a_block() -> None:
     keys = [b.key for b in CODE_BLOCKS]
     assert len(keys) == len(set(keys)), "two code blocks start with the same line"
     assert set(HOW) <= set(keys), sorted(set(HOW) - set(keys))
+
+
+LINKED = [*PAGES, *sorted(str(p.relative_to(ROOT)) for p in (ROOT / "notebook").rglob("*.md")),
+          *sorted(str(p.relative_to(ROOT)) for p in (ROOT / "service" / "data").rglob("*.md"))]
+
+
+def heading_anchors(text: str) -> set[str]:
+    """The anchors of a page's headings, as GitHub makes them (code blocks left out)."""
+    text = re.sub(r"^```.*?^```", "", text, flags=re.S | re.M)
+    return {re.sub(r"[^\w\- ]", "", m.group(1).strip().lower()).replace(" ", "-")
+            for m in re.finditer(r"^#+ (.+)$", text, re.M)}
+
+
+def test_heading_anchors_are_githubs() -> None:
+    assert heading_anchors("# The paper's shape (`cpu_long`)\n## Embodied (K = 5)\n"
+                           "```bash\n# a comment\n```\n") == {"the-papers-shape-cpu_long",
+                                                            "embodied-k--5"}
+
+
+@pytest.mark.parametrize("page", LINKED)
+def test_every_relative_link_resolves(page: str) -> None:
+    here = ROOT / page
+    text = here.read_text(encoding="utf-8")
+    broken = []
+    for m in re.finditer(r"\]\(([^)\s]+)\)", text):
+        url = m.group(1)
+        if re.match(r"[a-z][a-z0-9+.-]*:", url):  # http:, https:, mailto:
+            continue
+        path, _, anchor = url.partition("#")
+        target = (here.parent / path).resolve() if path else here
+        if not target.exists():
+            broken.append(url)
+        elif anchor and target.suffix == ".md" and anchor not in heading_anchors(
+                target.read_text(encoding="utf-8")):
+            broken.append(url)
+    assert not broken, f"{page}: links that lead nowhere: {broken}"
 
 
 def _how(block: Block) -> How:

@@ -4,7 +4,7 @@ Used for the captures of service/data/scenes/ made from unposed photograph sets 
 README gives the command). pycolmap is a tool for preparing data, not a dependency of the
 project: ``pip install pycolmap`` (4.2.1 made the scenes) in an environment of your own.
 
-    python docs/notes/sfm_capture.py SRC_DIR OUT_DIR [--sfm-size 480] [--size 240]
+    python notebook/sfm_capture.py SRC_DIR OUT_DIR [--sfm-size 480] [--size 240]
         [--every 1] [--matcher exhaustive|sequential] [--mapper incremental|global]
         [--features 4096] [--no-refine-distortion] [--threads 2]
 

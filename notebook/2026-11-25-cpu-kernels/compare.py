@@ -1,12 +1,16 @@
 """numba or C++ for the tile compositing: the measurement behind ../2026-11-25-cpu-kernels.md.
 
+A lab script of the notebook, not maintained with the package: it imports the package's
+internals as they were at commit 473da52 (private names included: ``render_bench._build``,
+the modules ``nbv.backend`` and ``nbv.kernel_ops``). To run it again, check out that commit.
+
 Builds the plant subsampled to 20k Gaussians at 128² (the kernels' projection and binning),
 then times the compositing forward (recording the composited pairs) and backward of
 agilegs.service.nbv.kernels against composite.cpp (the same loops in C++, -O3 -march=native,
 called through ctypes), interleaved, on 1 and 2 threads; checks that both give the same
 images and gradients; and reports the C++ build and load times.
 
-    python docs/notes/2026-11-25-cpu-kernels/compare.py [--scene ...] [--repeats 15]
+    python notebook/2026-11-25-cpu-kernels/compare.py [--scene ...] [--repeats 15]
 """
 
 from __future__ import annotations

@@ -1,6 +1,9 @@
 """Replay AGILE-GS's stages on snapshots of a progressive run: the measurement behind
 ../2026-11-25-seeking-what-the-map-lacks.md.
 
+A lab script of the notebook, not maintained with the package: it imports the benchmark's
+modules as they were at commit 0f47619. To run it again, check out that commit.
+
 ``snap`` runs the progressive protocol with one driver method and saves, at every
 acquisition event, the map, Ĥ, the candidates, the acquired poses and the full-pool EIG of
 every candidate. ``stages`` replays the selection of each variant on every saved event and
@@ -9,9 +12,9 @@ exact EIG, the EIG percentile of the pick and of the shortlist's best view, the 
 the pick (and the shortlist) to the nearest acquired view, and the shortlist's spread
 (mean pairwise angle), angles seen from the centre of the pool, in degrees.
 
-    python docs/notes/2026-11-25-seeking-what-the-map-lacks/trace.py snap \
+    python notebook/2026-11-25-seeking-what-the-map-lacks/trace.py snap \
         service/data/scenes/boot --driver agile@single --seed 0 --out boot.pt
-    python docs/notes/2026-11-25-seeking-what-the-map-lacks/trace.py stages \
+    python notebook/2026-11-25-seeking-what-the-map-lacks/trace.py stages \
         agile@single,agile@one_anchor,agile boot.pt
 """
 
