@@ -14,6 +14,10 @@ jit = njit(cache=True, nogil=True, error_model="numpy")
 """Every kernel: compiled on first use for the argument types, cached on disk, the GIL
 released, and no Python-style division checks."""
 
+inline = njit(cache=True, nogil=True, error_model="numpy", inline="always")
+"""A kernel's small helper (a step the kernels share): as :data:`jit`, and inlined into each
+kernel that calls it, so that it costs no call in an inner loop."""
+
 T_MIN = 1e-4
 LOWPASS = 0.3
 ALPHA_MIN_F64 = 1.0 / 255.0

@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from .common import REC, T_MIN
+from .common import inline as _inline
 from .common import jit as _jit
 
 
@@ -20,6 +21,37 @@ def _pixel_tables(tile: int) -> tuple[np.ndarray, np.ndarray]:
         col_of[p] = p % tile
         row_of[p] = p // tile
     return col_of, row_of
+
+
+@_inline
+def _tile(t: int, offsets: np.ndarray, tiles_x: int, tile: int, width: int,
+          height: int) -> tuple[int, int, int, int, int, int]:
+    """Tile t's pixel box [x0, x1) × [y0, y1) (clipped to the image) and its list entries
+    [start, start + length) in the records."""
+    x0 = (t % tiles_x) * tile
+    y0 = (t // tiles_x) * tile
+    start = offsets[t]
+    return x0, y0, min(x0 + tile, width), min(y0 + tile, height), start, offsets[t + 1] - start
+
+
+@_inline
+def _unwind(tr: np.ndarray, p: int, raw: float, amax: float) -> tuple[float, float, float,
+                                                                        float]:
+    """One composited pair taken back off tile pixel p, back to front: tr[p] holds the
+    transmittance behind the pair and becomes the one in front of it, T. Returns the pair's α
+    (clamped at ``amax``), 1 / (1 - α), T and its weight w = T α."""
+    al = float(min(raw, amax))
+    inv = 1.0 / (1.0 - al)
+    tp = tr[p] * inv
+    tr[p] = tp
+    return al, inv, tp, tp * al
+
+
+@_inline
+def _offset(xs: np.ndarray, ys: np.ndarray, x0: int, y0: int, col_of: np.ndarray,
+            row_of: np.ndarray, p: int, mx: float, my: float) -> tuple[float, float]:
+    """Tile pixel p's centre less the Gaussian's projected mean (mx, my): (dx, dy)."""
+    return float(xs[x0 + col_of[p]] - mx), float(ys[y0 + row_of[p]] - my)
 
 
 @_jit
@@ -140,12 +172,7 @@ def composite_forward(offsets: np.ndarray, rec: np.ndarray, rbox: np.ndarray, xs
     acc = np.empty((npix, nc))
     dacc = np.empty(npix)
     for t in range(part, n_tiles, nchunks):
-        x0 = (t % tiles_x) * tile
-        y0 = (t // tiles_x) * tile
-        x1 = min(x0 + tile, width)
-        y1 = min(y0 + tile, height)
-        start = offsets[t]
-        length = offsets[t + 1] - start
+        x0, y0, x1, y1, start, length = _tile(t, offsets, tiles_x, tile, width, height)
         for p in range(npix):
             tr[p] = 1.0
             last[p] = length
@@ -192,11 +219,7 @@ def composite_backward(offsets: np.ndarray, rec: np.ndarray, rbox: np.ndarray, x
     gcl = np.empty(nc)
     col_of, row_of = _pixel_tables(tile)
     for t in range(part, n_tiles, nchunks):
-        x0 = (t % tiles_x) * tile
-        y0 = (t // tiles_x) * tile
-        x1 = min(x0 + tile, width)
-        y1 = min(y0 + tile, height)
-        start = offsets[t]
+        x0, y0, x1, y1, start, _ = _tile(t, offsets, tiles_x, tile, width, height)
         for py in range(y0, y1):
             for px in range(x0, x1):
                 p = (py - y0) * tile + (px - x0)
@@ -226,13 +249,8 @@ def composite_backward(offsets: np.ndarray, rec: np.ndarray, rbox: np.ndarray, x
                 p = pp[j]
                 raw = pa[j]
                 j -= 1
-                dxf = float(xs[x0 + col_of[p]] - mx)
-                dyf = float(ys[y0 + row_of[p]] - my)
-                al = float(min(raw, amax))
-                inv = 1.0 / (1.0 - al)
-                tp = tr[p] * inv
-                tr[p] = tp
-                w = tp * al
+                dxf, dyf = _offset(xs, ys, x0, y0, col_of, row_of, p, mx, my)
+                al, inv, tp, w = _unwind(tr, p, raw, amax)
                 gd = pgd[p]
                 uu = gd * zg
                 for ch in range(nc):
@@ -299,12 +317,7 @@ def fisher_tiles(offsets: np.ndarray, rec: np.ndarray, rbox: np.ndarray, xs: np.
     dummy = np.empty((1, 1))
     dummy1 = np.empty(1)
     for t in range(part, n_tiles, nchunks):
-        x0 = (t % tiles_x) * tile
-        y0 = (t // tiles_x) * tile
-        x1 = min(x0 + tile, width)
-        y1 = min(y0 + tile, height)
-        start = offsets[t]
-        length = offsets[t + 1] - start
+        x0, y0, x1, y1, start, length = _tile(t, offsets, tiles_x, tile, width, height)
         for p in range(npix):
             tr[p] = 1.0
             last[p] = length
@@ -335,13 +348,8 @@ def fisher_tiles(offsets: np.ndarray, rec: np.ndarray, rbox: np.ndarray, xs: np.
                 p = pp[j]
                 raw = pa[j]
                 j -= 1
-                x = float(xs[x0 + col_of[p]] - mx)
-                y = float(ys[y0 + row_of[p]] - my)
-                al = float(min(raw, amax))
-                inv = 1.0 / (1.0 - al)
-                tp = tr[p] * inv
-                tr[p] = tp
-                w = tp * al
+                x, y = _offset(xs, ys, x0, y0, col_of, row_of, p, mx, my)
+                al, inv, tp, w = _unwind(tr, p, raw, amax)
                 tfp = tf[p]
                 d0 = tp * c0 - (s0[p] + tfp * bg0) * inv
                 d1 = tp * c1 - (s1[p] + tfp * bg1) * inv
