@@ -1,16 +1,25 @@
-"""The options of the ``agilegs bench`` commands whose modules import torch.
+"""The options of the ``agilegs bench`` commands whose modules import torch, and the preamble
+their ``run`` functions share.
 
 ``agilegs COMMAND --help`` and the parsing of a command line build only these parsers, so
 that they answer without importing torch, FastAPI or matplotlib; each command module
 exposes its function as ``add_arguments``. Everything here is standard library or
-:mod:`agilegs.schemas` (no torch).
+:mod:`agilegs.schemas` at import time (no torch); the preamble (:func:`int_list`,
+:func:`str_list`, :func:`flag_values`, :func:`use_threads`, :func:`protocol_profile`) turns
+the parsed options into values, a bad one into ``SystemExit`` with a line naming its flag.
 """
 
 from __future__ import annotations
 
 import argparse
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import TYPE_CHECKING
 
 from agilegs.service.data import bundled_scene
+
+if TYPE_CHECKING:
+    from .profiles import Profile
 
 __all__ = [
     "DEFAULT_CONFIGS",
@@ -19,6 +28,11 @@ __all__ = [
     "add_proxy_arguments",
     "add_run_arguments",
     "add_value_arguments",
+    "flag_values",
+    "int_list",
+    "protocol_profile",
+    "str_list",
+    "use_threads",
 ]
 
 PROFILE_NAMES = ("capture", "cpu", "cpu_long", "paper", "tiny")
@@ -143,3 +157,48 @@ def add_proxy_arguments(parser: argparse.ArgumentParser) -> None:
       help="comma-separated configurations: default, or agile variant options joined by + "
            "(e.g. typical+unconditioned)")
     a("--json", dest="json_out", default=None, help="write results here")
+
+
+# ----------------------------------------------------------------------------- the preamble
+def str_list(text: str) -> list[str]:
+    """The non-empty items of a comma-separated option."""
+    return [s.strip() for s in text.split(",") if s.strip()]
+
+
+def int_list(text: str, flag: str) -> list[int]:
+    """The integers of a comma-separated option; ``SystemExit`` naming ``flag`` otherwise."""
+    with flag_values(flag):
+        try:
+            return [int(s) for s in str_list(text)]
+        except ValueError:
+            raise ValueError(f"expected comma-separated integers, got {text!r}") from None
+
+
+@contextmanager
+def flag_values(flag: str) -> Iterator[None]:
+    """Turns a ``ValueError`` raised while reading ``flag``'s value into ``SystemExit``
+    with a line ``FLAG: reason``."""
+    try:
+        yield
+    except ValueError as exc:
+        raise SystemExit(f"{flag}: {exc}") from None
+
+
+def use_threads(threads: int) -> int:
+    """torch's thread count set to ``threads`` (0: left as it is); the count in effect."""
+    import torch
+
+    if threads > 0:
+        torch.set_num_threads(threads)
+    return torch.get_num_threads()
+
+
+def protocol_profile(args: argparse.Namespace) -> Profile:
+    """The protocol profile of ``args.profile`` with the overrides the command has
+    (:func:`~agilegs.service.bench.profiles.resolve_profile`), and torch's threads set to
+    ``--threads`` where the command has it and is not 0, else to the profile's."""
+    from .profiles import resolve_profile
+
+    profile = resolve_profile(args)
+    use_threads(getattr(args, "threads", 0) or profile.threads or 0)
+    return profile

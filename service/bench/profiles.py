@@ -191,14 +191,15 @@ PROFILES: dict[str, Profile] = {
 
 
 def resolve_profile(args: argparse.Namespace) -> Profile:
-    """The named profile with the command line's overrides applied (validated)."""
+    """The named profile with the command line's overrides applied (validated); an override
+    the command has no flag for (``bench value``, ``bench proxy``) is none."""
     p = PROFILES[args.profile]
     sc = p.scene
-    if args.pool_size is not None:
+    if getattr(args, "pool_size", None) is not None:
         sc = replace(sc, pool_size=args.pool_size)
-    if args.resolution is not None:
+    if getattr(args, "resolution", None) is not None:
         sc = replace(sc, width=args.resolution, height=args.resolution)
-    if args.max_gaussians is not None:
+    if getattr(args, "max_gaussians", None) is not None:
         sc = replace(sc, max_gaussians=args.max_gaussians)
     over: dict[str, Any] = {"scene": sc}
     for arg, name in (("initial_views", "initial_views"), ("interval", "interval"),

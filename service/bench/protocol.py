@@ -49,7 +49,7 @@ import logging
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, replace
+from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -78,6 +78,9 @@ from .scenes import BenchScene
 from .variants import Variant
 
 __all__ = [
+    "CurvePoint",
+    "EventRecord",
+    "PhaseTimes",
     "add_pool_view",
     "estimate_seconds",
     "evaluate",
@@ -213,6 +216,211 @@ def add_pool_view(mapper: Mapper, scene: BenchScene, i: int, profile: Profile, *
                     depth=None if depth is None else depth.to(dev), name=f"pool_{i}")
 
 
+@dataclass
+class PhaseTimes:
+    """Seconds a run spent training, selecting, recomputing Ĥ and evaluating (the record's
+    ``train_s``, ``select_s``, ``information_s`` and ``eval_s``)."""
+
+    train_s: float = 0.0
+    select_s: float = 0.0
+    information_s: float = 0.0
+    eval_s: float = 0.0
+
+
+@dataclass(frozen=True)
+class CurvePoint:
+    """A point of the PSNR curve: the test PSNR after ``step`` steps with ``views`` views."""
+
+    views: int
+    step: int
+    psnr: float
+
+
+@dataclass(frozen=True)
+class EventRecord:
+    """One selection event of a run (an entry of the record's ``events``)."""
+
+    event: int
+    step: int
+    views_before: int
+    choice: int
+    """The chosen pool index."""
+    shortlist: list[int]
+    """Pool indices."""
+    eligible: int
+    latency_ms: dict[str, float]
+    """``Selection.latency_ms``."""
+    select_wall_ms: float
+    select_cpu_ms: float
+    information_ms: float
+    """Ĥ recomputed from every acquired view on the current map."""
+    upkeep_ms: float
+    """``information_ms`` per acquired view (what an incremental Ĥ pays per committed view),
+    0 for the methods that do not read Ĥ."""
+    num_gaussians: int
+    scores: list[list[float]]
+    """[pool index, score] of every candidate with a finite score (the replay's)."""
+    anchor: list[list[float]] | None
+    """The anchor's camera-to-world pose [4, 4] (anchor methods)."""
+    anchor_psi: float | None
+    best_candidate_psi: float | None
+
+
+class _ProgressiveRun:
+    """The state of one run of the progressive protocol: the trainer, the session's record
+    (pool, acquired views, warm state), the step count, the PSNR curve, the events and the time
+    per phase."""
+
+    def __init__(self, scene: BenchScene, variant: Variant, seed: int, profile: Profile, *,
+                 embodied_k: int | None, device: torch.device,
+                 progress: ProgressFn | None) -> None:
+        self.scene, self.variant, self.seed, self.profile = scene, variant, seed, profile
+        self.embodied_k, self.device, self.progress = embodied_k, device, progress
+        self.t_run = time.perf_counter()
+        torch.manual_seed(seed)
+        d = scene.pool_size
+        pool_pos = scene.pool_poses[:, :3, 3]
+        extent = 1.1 * float((pool_pos - pool_pos.mean(0)).norm(dim=1).max())
+        mcfg = MapperConfig(**{
+            **profile.mapper,
+            "background": scene.background,
+            "seed": int(seed),
+            "scene_extent": max(extent, 1e-6),
+            "lr_means_steps": profile.total_steps,
+        })
+        self.mapper = Mapper(config=mcfg, device=device)
+        self.initial = initial_view_indices(d, profile.initial_views, seed)
+        if scene.init_points is not None:
+            self.mapper.init_from_points(scene.init_points, scene.init_colors)
+        for i in self.initial:
+            add_pool_view(self.mapper, scene, i, profile, first=True, device=device)
+        if self.mapper.num_gaussians == 0:
+            raise RuntimeError(f"scene {scene.name}: the initial views gave no Gaussians (no "
+                               "depth and no initial points)")
+        rec = run_record(scene, self.mapper.gmap, profile.lam)
+        for i in self.initial:  # Ĥ is recomputed at every event (see the module docstring)
+            rec, _ = acquire(rec, rec.pool_poses[pool_index(rec, i, "initial")],
+                             candidate_id=i, update_information=False)
+        self.rec = rec
+        self.acquired = list(self.initial)
+        self.budget = min(profile.view_budget or d, d)
+        self.background = torch.tensor(scene.background, dtype=torch.float32, device=device)
+        self.candidates_all = scene.pool_poses.to(device)
+        self.config = variant.config(SelectConfig(
+            embodied_k=embodied_k,
+            seed=int(seed),
+            fisher_background=tuple(float(c) for c in scene.background),  # type: ignore[arg-type]
+        ))
+        self.uses_information = get_method(variant.method).uses_information
+        self.events: list[EventRecord] = []
+        self.curve: list[CurvePoint] = []
+        self.times = PhaseTimes()
+        self.step = 0
+
+    def wants_event(self) -> bool:
+        """Another selection fits the view budget and the steps left."""
+        return (len(self.acquired) < self.budget
+                and self.step + self.profile.interval < self.profile.total_steps)
+
+    def train(self, n: int) -> None:
+        """``n`` training steps, in chunks of at most 10 between progress reports."""
+        t0 = time.perf_counter()
+        done = 0
+        while done < n:
+            k = min(10, n - done)
+            self.mapper.step(k)
+            done += k
+            self.step += k
+            if self.progress is not None:
+                self.progress(self.step, self.profile.total_steps,
+                              f"{len(self.acquired)} views, {self.mapper.num_gaussians} G")
+        self.times.train_s += time.perf_counter() - t0
+
+    def point_on_curve(self) -> None:
+        t0 = time.perf_counter()
+        q = evaluate(self.mapper.gmap, self.scene, device=self.device, with_lpips=False,
+                     full=False)
+        self.curve.append(CurvePoint(len(self.acquired), self.step, q["psnr"]))
+        self.times.eval_s += time.perf_counter() - t0
+
+    def select_event(self, on_event: Callable[[dict[str, Any]], None] | None) -> EventRecord:
+        """Recompute Ĥ on the current map, select from the remaining pool, acquire the choice
+        and give its view to the trainer."""
+        gmap = self.mapper.gmap
+        remaining = [int(i) for i in self.rec.pool_ids]
+        t0 = time.perf_counter()
+        h_acc = (recompute_information(self.rec, gmap) if self.uses_information
+                 else init_information(gmap, self.profile.lam))
+        self.rec = replace(self.rec, gmap=gmap, h_acc=h_acc)
+        h_ms = (time.perf_counter() - t0) * 1e3
+        cands = self.candidates_all[remaining].to(gmap.dtype)
+        acq_poses = self.candidates_all[self.acquired].to(gmap.dtype)
+        if on_event is not None:
+            on_event({
+                "gmap": gmap,
+                "mapper": self.mapper,
+                "step": self.step,
+                "candidates": cands,
+                "remaining": remaining,
+                "acquired_indices": list(self.acquired),
+                "acquired": acq_poses,
+                "intrinsics": self.scene.intrinsics,
+                "config": self.config,
+                "background": self.background.to(gmap.dtype),
+                "event": len(self.events),
+            })
+        t0 = time.perf_counter()
+        c0 = time.process_time()
+        sel = select(
+            self.variant.method, gmap, h_acc, cands, self.scene.intrinsics, config=self.config,
+            acquired=acq_poses,
+            current_pose=acq_poses[-1] if self.embodied_k is not None else None,
+            state=_on(self.device, self.rec.warm_state), lam=self.profile.lam,
+        )
+        wall_ms = (time.perf_counter() - t0) * 1e3
+        cpu_ms = (time.process_time() - c0) * 1e3
+        choice = remaining[sel.index]
+        ev = EventRecord(
+            event=len(self.events),
+            step=self.step,
+            views_before=len(self.acquired),
+            choice=choice,
+            shortlist=[remaining[i] for i in sel.shortlist],
+            eligible=len(sel.eligible),
+            latency_ms={k: float(v) for k, v in sel.latency_ms.items()},
+            select_wall_ms=wall_ms,
+            select_cpu_ms=cpu_ms,
+            information_ms=h_ms,
+            upkeep_ms=h_ms / len(self.acquired) if self.uses_information else 0.0,
+            num_gaussians=gmap.num_gaussians,
+            scores=[[remaining[i], float(v)] for i, v in sel.scores.items()
+                    if math.isfinite(float(v))],
+            anchor=None if sel.anchor_c2w is None else _matrix(sel.anchor_c2w),
+            anchor_psi=sel.details.get("anchor_psi"),
+            best_candidate_psi=sel.details.get("best_candidate_psi"),
+        )
+        self.events.append(ev)
+        self.times.select_s += wall_ms / 1e3
+        self.times.information_s += h_ms / 1e3
+        log.debug("%s seed %d event %d step %d: view %d in %.1f ms (+ %.1f ms for Ĥ)",
+                  self.variant.key, self.seed, ev.event, self.step, choice,
+                  sel.latency_ms["total"], h_ms)
+        self.rec, _ = acquire(self.rec, self.rec.pool_poses[sel.index], candidate_id=choice,
+                              update_information=False, next_state=sel.state)
+        self.acquired.append(choice)
+        add_pool_view(self.mapper, self.scene, choice, self.profile, device=self.device)
+        return ev
+
+    def final_evaluation(self) -> dict[str, Any]:
+        """The test views' PSNR / SSIM (/ LPIPS) of the final map; closes the curve."""
+        t0 = time.perf_counter()
+        final = evaluate(self.mapper.gmap, self.scene, device=self.device,
+                         with_lpips=lpips_available())
+        self.times.eval_s += time.perf_counter() - t0
+        self.curve.append(CurvePoint(len(self.acquired), self.step, final["psnr"]))
+        return final
+
+
 def run_progressive(
     scene: BenchScene,
     variant: Variant,
@@ -245,157 +453,25 @@ def run_progressive(
     Returns:
         The JSON-ready record (see the module docstring).
     """
-    dev = torch.device(device)
-    t_run = time.perf_counter()
-    torch.manual_seed(seed)
-    d = scene.pool_size
-    pool_pos = scene.pool_poses[:, :3, 3]
-    extent = 1.1 * float((pool_pos - pool_pos.mean(0)).norm(dim=1).max())
-    mcfg = MapperConfig(**{
-        **profile.mapper,
-        "background": scene.background,
-        "seed": int(seed),
-        "scene_extent": max(extent, 1e-6),
-        "lr_means_steps": profile.total_steps,
-    })
-    mapper = Mapper(config=mcfg, device=dev)
-    initial = initial_view_indices(d, profile.initial_views, seed)
-    if scene.init_points is not None:
-        mapper.init_from_points(scene.init_points, scene.init_colors)
+    run = _ProgressiveRun(scene, variant, seed, profile, embodied_k=embodied_k,
+                          device=torch.device(device), progress=progress)
+    while run.wants_event():
+        run.train(profile.interval)
+        if profile.curve_every and len(run.events) % profile.curve_every == 0:
+            run.point_on_curve()
+        run.select_event(on_event)
+    if profile.total_steps > run.step:
+        run.train(profile.total_steps - run.step)
+    final = run.final_evaluation()
+    return _run_summary(run, final)
 
-    def add(i: int, first: bool) -> None:
-        add_pool_view(mapper, scene, i, profile, first=first, device=dev)
 
-    for i in initial:
-        add(i, True)
-    if mapper.num_gaussians == 0:
-        raise RuntimeError(f"scene {scene.name}: the initial views gave no Gaussians (no depth "
-                           "and no initial points)")
-    rec = run_record(scene, mapper.gmap, profile.lam)
-    for i in initial:  # Ĥ is recomputed at every event (see the module docstring)
-        rec, _ = acquire(rec, rec.pool_poses[pool_index(rec, i, "initial")], candidate_id=i,
-                         update_information=False)
-    acquired = list(initial)
-    budget = min(profile.view_budget or d, d)
-    bg = torch.tensor(scene.background, dtype=torch.float32, device=dev)
-    candidates_all = scene.pool_poses.to(dev)
-    cfg = variant.config(SelectConfig(
-        embodied_k=embodied_k,
-        seed=int(seed),
-        fisher_background=tuple(float(c) for c in scene.background),  # type: ignore[arg-type]
-    ))
-    events: list[dict[str, Any]] = []
-    curve: list[dict[str, Any]] = []
-    times = {"train_s": 0.0, "select_s": 0.0, "information_s": 0.0, "eval_s": 0.0}
-    step = 0
-    total = profile.total_steps
-
-    def train(n: int) -> None:
-        nonlocal step
-        t0 = time.perf_counter()
-        chunk = max(1, min(n, 10))
-        done = 0
-        while done < n:
-            k = min(chunk, n - done)
-            mapper.step(k)
-            done += k
-            step += k
-            if progress is not None:
-                progress(step, total, f"{len(acquired)} views, {mapper.num_gaussians} G")
-        times["train_s"] += time.perf_counter() - t0
-
-    def point_on_curve() -> None:
-        t0 = time.perf_counter()
-        q = evaluate(mapper.gmap, scene, device=dev, with_lpips=False, full=False)
-        curve.append({"views": len(acquired), "step": step, "psnr": q["psnr"]})
-        times["eval_s"] += time.perf_counter() - t0
-
-    event = 0
-    while len(acquired) < budget and step + profile.interval < total:
-        train(profile.interval)
-        if profile.curve_every and event % profile.curve_every == 0:
-            point_on_curve()
-        gmap = mapper.gmap
-        remaining = [int(i) for i in rec.pool_ids]
-        t0 = time.perf_counter()
-        uses_information = get_method(variant.method).uses_information
-        h_acc = (recompute_information(rec, gmap) if uses_information
-                 else init_information(gmap, profile.lam))
-        rec = replace(rec, gmap=gmap, h_acc=h_acc)
-        h_ms = (time.perf_counter() - t0) * 1e3
-        cands = candidates_all[remaining].to(gmap.dtype)
-        acq_poses = candidates_all[acquired].to(gmap.dtype)
-        if on_event is not None:
-            on_event({
-                "gmap": gmap,
-                "mapper": mapper,
-                "step": step,
-                "candidates": cands,
-                "remaining": remaining,
-                "acquired_indices": list(acquired),
-                "acquired": acq_poses,
-                "intrinsics": scene.intrinsics,
-                "config": cfg,
-                "background": bg.to(gmap.dtype),
-                "event": event,
-            })
-        t0 = time.perf_counter()
-        c0 = time.process_time()
-        sel = select(
-            variant.method,
-            gmap,
-            h_acc,
-            cands,
-            scene.intrinsics,
-            config=cfg,
-            acquired=acq_poses,
-            current_pose=acq_poses[-1] if embodied_k is not None else None,
-            state=_on(dev, rec.warm_state),
-            lam=profile.lam,
-        )
-        wall_ms = (time.perf_counter() - t0) * 1e3
-        cpu_ms = (time.process_time() - c0) * 1e3
-        choice = remaining[sel.index]
-        events.append({
-            "event": event,
-            "step": step,
-            "views_before": len(acquired),
-            "choice": choice,
-            "shortlist": [remaining[i] for i in sel.shortlist],
-            "eligible": len(sel.eligible),
-            "latency_ms": {k: float(v) for k, v in sel.latency_ms.items()},
-            "select_wall_ms": wall_ms,
-            "select_cpu_ms": cpu_ms,
-            "information_ms": h_ms,
-            # an incremental Hhat adds one committed view's Fisher per event: the recompute's
-            # cost per view
-            "upkeep_ms": h_ms / len(acquired) if uses_information else 0.0,
-            "num_gaussians": gmap.num_gaussians,
-            # for the replay (agilegs view --run): pool indices and their scores, the anchor
-            "scores": [[remaining[i], float(v)] for i, v in sel.scores.items()
-                       if math.isfinite(float(v))],
-            "anchor": None if sel.anchor_c2w is None else _matrix(sel.anchor_c2w),
-            "anchor_psi": sel.details.get("anchor_psi"),
-            "best_candidate_psi": sel.details.get("best_candidate_psi"),
-        })
-        times["select_s"] += wall_ms / 1e3
-        times["information_s"] += h_ms / 1e3
-        log.debug("%s seed %d event %d step %d: view %d in %.1f ms (+ %.1f ms for Ĥ)",
-                  variant.key, seed, event, step, choice, sel.latency_ms["total"], h_ms)
-        rec, _ = acquire(rec, rec.pool_poses[sel.index], candidate_id=choice,
-                         update_information=False, next_state=sel.state)
-        acquired.append(choice)
-        add(choice, False)
-        event += 1
-    if total > step:
-        train(total - step)
-    t0 = time.perf_counter()
-    final = evaluate(mapper.gmap, scene, device=dev, with_lpips=lpips_available())
-    times["eval_s"] += time.perf_counter() - t0
-    curve.append({"views": len(acquired), "step": step, "psnr": final["psnr"]})
+def _run_summary(run: _ProgressiveRun, final: dict[str, Any]) -> dict[str, Any]:
+    """The JSON-ready record of a finished run (its keys: the module docstring)."""
+    scene, variant, acquired, initial = run.scene, run.variant, run.acquired, run.initial
     seq = [initial[-1]] + acquired[len(initial):]
     traj = trajectory_stats(scene.pool_poses[seq, :3, 3], seq)
-    totals = [e["latency_ms"]["total"] for e in events]
+    totals = [e.latency_ms["total"] for e in run.events]
     record: dict[str, Any] = {
         "format": RESULTS_FORMAT,
         "scene": scene.name,
@@ -404,10 +480,10 @@ def run_progressive(
         "shortlist": variant.shortlist,
         "shortlist_size": variant.shortlist_size,
         "group": variant.group,
-        "seed": int(seed),
-        "embodied_k": embodied_k,
-        "profile": profile.name,
-        "fingerprint": fingerprint(scene, variant, seed, profile, embodied_k),
+        "seed": int(run.seed),
+        "embodied_k": run.embodied_k,
+        "profile": run.profile.name,
+        "fingerprint": fingerprint(scene, variant, run.seed, run.profile, run.embodied_k),
         "initial": initial,
         "sequence": acquired,
         "selected": acquired[len(initial):],
@@ -415,8 +491,8 @@ def run_progressive(
         "ssim": final["ssim"],
         "lpips": final["lpips"],
         "per_view": final["per_view"],
-        "curve": curve,
-        "events": events,
+        "curve": [asdict(c) for c in run.curve],
+        "events": [asdict(e) for e in run.events],
         "latency_ms": {
             "mean": sum(totals) / len(totals) if totals else None,
             "median": _median(totals),
@@ -429,11 +505,11 @@ def run_progressive(
         "pool_poses": [_matrix(p) for p in scene.pool_poses],
         "intrinsics": {k: float(getattr(scene.intrinsics, k))
                        for k in ("fx", "fy", "cx", "cy", "width", "height")},
-        "num_gaussians": mapper.num_gaussians,
-        "steps": step,
+        "num_gaussians": run.mapper.num_gaussians,
+        "steps": run.step,
         "views": len(acquired),
-        **times,
-        "wall_s": time.perf_counter() - t_run,
+        **asdict(run.times),
+        "wall_s": time.perf_counter() - run.t_run,
     }
     record["redundancy"] = run_redundancy(record)
     return record

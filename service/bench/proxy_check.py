@@ -36,9 +36,8 @@ from agilegs.service.nbv.selectors import select
 from agilegs.service.nbv.upkeep import information_of_views
 
 from .latency import eig_percentile, spearman
-from .options import DEFAULT_CONFIGS
+from .options import DEFAULT_CONFIGS, protocol_profile
 from .options import add_proxy_arguments as add_arguments
-from .profiles import resolve_profile
 from .protocol import run_progressive
 from .scenes import load_bench_scene
 from .variants import Variant, parse_variant
@@ -107,12 +106,7 @@ def run(args: argparse.Namespace) -> int:
         driver = parse_variant(args.driver)
     except ValueError as exc:
         raise SystemExit(f"--configs / --driver: {exc}") from None
-    overrides = ("pool_size", "resolution", "max_gaussians", "initial_views", "interval",
-                 "steps", "view_budget", "shortlist_size", "lam")
-    profile = resolve_profile(argparse.Namespace(profile=args.profile,
-                                                 **{k: None for k in overrides}))
-    if profile.threads:
-        torch.set_num_threads(profile.threads)
+    profile = protocol_profile(args)
     paths = list(args.scene)
     results: dict[str, Any] = {"profile": profile.name, "seed": args.seed,
                                "driver": args.driver, "scenes": {}}

@@ -16,7 +16,7 @@ import os
 import platform
 import sys
 import time
-from dataclasses import asdict
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -36,25 +36,16 @@ from agilegs.client.ros2.bag import BagTopics
 
 from . import plots, report
 from .options import add_run_arguments as add_arguments
-from .profiles import resolve_profile
+from .options import flag_values, int_list, protocol_profile, str_list
+from .profiles import Profile
 from .protocol import estimate_seconds, fingerprint, run_progressive
 from .scenes import BenchScene, load_bench_scene
-from .variants import build_variants
+from .variants import Variant, build_variants
 
-__all__ = ["add_arguments", "environment", "run"]
+__all__ = ["Job", "RunOutcome", "RunPlan", "add_arguments", "environment", "estimate", "parse",
+           "run", "run_jobs", "summarise", "write"]
 
 log = logging.getLogger(__name__)
-
-
-def _int_list(text: str, what: str) -> list[int]:
-    try:
-        return [int(s) for s in text.split(",") if s.strip()]
-    except ValueError:
-        raise SystemExit(f"{what}: expected comma-separated integers, got {text!r}") from None
-
-
-def _str_list(text: str) -> list[str]:
-    return [s.strip() for s in text.split(",") if s.strip()]
 
 
 def _run_path(out: Path, scene: str, variant: str, seed: int) -> Path:
@@ -101,124 +92,183 @@ def environment() -> dict[str, Any]:
     }
 
 
+@dataclass(frozen=True)
+class Job:
+    """One run of the protocol: a scene, a method (its variant key) and a seed."""
+
+    scene: str
+    variant: str
+    seed: int
+
+
+@dataclass
+class RunPlan:
+    """What ``agilegs bench run`` was asked for, checked: the profile, the methods, the seeds,
+    the loaded scenes and the output folder."""
+
+    profile: Profile
+    variants: list[Variant]
+    seeds: list[int]
+    scenes: dict[str, BenchScene]
+    device: torch.device
+    out: Path
+    embodied_k: int | None
+
+    def jobs(self) -> list[Job]:
+        return [Job(name, v.key, s) for name in self.scenes for s in self.seeds
+                for v in self.variants]
+
+    def variant(self, key: str) -> Variant:
+        return next(v for v in self.variants if v.key == key)
+
+
+@dataclass
+class RunOutcome:
+    """The runs' records by job, and which jobs ran, were found done, or are missing."""
+
+    records: dict[Job, dict[str, Any]] = field(default_factory=dict)
+    executed: list[Job] = field(default_factory=list)
+    skipped: list[Job] = field(default_factory=list)
+    missing: list[Job] = field(default_factory=list)
+
+
 def run(args: argparse.Namespace) -> int:
     console = Console(stderr=True)
-    profile = resolve_profile(args)
-    threads = args.threads if args.threads > 0 else profile.threads
-    if threads:
-        torch.set_num_threads(threads)
-    try:
+    t_start = time.perf_counter()
+    plan = parse(args)
+    estimates = {} if args.report_only else estimate(plan, console)
+    if args.estimate_only:
+        return 0
+    outcome = run_jobs(plan, console, report_only=args.report_only)
+    results = summarise(plan, outcome, estimates, args, wall_s=time.perf_counter() - t_start)
+    write(plan, results, plots_too=not args.no_plots)
+    console.print(f"{len(outcome.executed)} runs done, {len(outcome.skipped)} skipped"
+                  + (f", {len(outcome.missing)} missing" if outcome.missing else "")
+                  + f"; wrote {plan.out}")
+    return 0
+
+
+def parse(args: argparse.Namespace) -> RunPlan:
+    """The command line, checked, and the scenes loaded; ``SystemExit`` naming the flag of
+    a bad value. Creates the output folder."""
+    profile = protocol_profile(args)
+    with flag_values("--methods"):
         variants = build_variants(
-            _str_list(args.methods), profile.shortlist_size,
-            _str_list(args.shortlist_strategies),
-            _int_list(args.budgets, "--budgets"),
+            str_list(args.methods), profile.shortlist_size,
+            str_list(args.shortlist_strategies),
+            int_list(args.budgets, "--budgets"),
             args.shortlist_method,
         )
-    except ValueError as exc:
-        raise SystemExit(str(exc)) from None
-    seeds = _int_list(args.seeds, "--seeds")
+    seeds = int_list(args.seeds, "--seeds")
     if not seeds or not variants:
         raise SystemExit("--seeds and --methods must name at least one seed and method")
     if args.embodied is not None and args.embodied < 1:
         raise SystemExit(f"--embodied must be >= 1, got {args.embodied}")
-    device = torch.device(args.device)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    t_start = time.perf_counter()
-    scenes: dict[str, BenchScene] = {}
-    try:
+    with flag_values("--bag-topics"):
         bag_topics = BagTopics.parse(args.bag_topics) if args.bag_topics else None
-    except ValueError as exc:
-        raise SystemExit(f"--bag-topics: {exc}") from None
+    plan = RunPlan(profile, variants, seeds, {}, torch.device(args.device), Path(args.out),
+                   args.embodied)
+    plan.out.mkdir(parents=True, exist_ok=True)
     for path in args.scene:
         try:
             sc = load_bench_scene(path, profile.scene, bag_topics=bag_topics)
         except (FileNotFoundError, ValueError) as exc:
             raise SystemExit(f"--scene {path}: {exc}") from None
-        if sc.name in scenes:
+        if sc.name in plan.scenes:
             raise SystemExit(f"--scene: two scenes are named {sc.name!r}")
         if sc.pool_size < profile.initial_views + 1:
             raise SystemExit(f"--scene {path}: its pool ({sc.pool_size} views) must exceed the "
                              f"{profile.initial_views} initial views")
-        scenes[sc.name] = sc
+        plan.scenes[sc.name] = sc
+    return plan
+
+
+def estimate(plan: RunPlan, console: Console) -> dict[str, dict[str, float]]:
+    """The estimated seconds per scene and variant (all seeds), printed."""
     estimates = {}
-    for name, sc in scenes.items() if not args.report_only else ():
-        est = estimate_seconds(sc, variants, seeds, profile, device=device,
-                               embodied_k=args.embodied)
+    for name, sc in plan.scenes.items():
+        est = estimate_seconds(sc, plan.variants, plan.seeds, plan.profile, device=plan.device,
+                               embodied_k=plan.embodied_k)
         estimates[name] = est
         console.print(f"[bold]{name}[/]: estimated {sum(est.values()) / 60:.1f} min for "
-                      f"{len(variants)} methods x {len(seeds)} seeds ("
+                      f"{len(plan.variants)} methods x {len(plan.seeds)} seeds ("
                       + ", ".join(f"{k} {v / 60:.1f}" for k, v in est.items()) + " min)")
     total_est = sum(sum(e.values()) for e in estimates.values())
     console.print(f"estimated total: {total_est / 60:.1f} min on {torch.get_num_threads()} "
-                  f"threads ({profile.name} profile)")
-    if args.estimate_only:
-        return 0
+                  f"threads ({plan.profile.name} profile)")
+    return estimates
 
-    jobs = [(name, v, s) for name in scenes for s in seeds for v in variants]
-    executed: list[dict[str, Any]] = []
-    skipped: list[dict[str, Any]] = []
-    missing: list[dict[str, Any]] = []
-    records: dict[tuple[str, str, int], dict[str, Any]] = {}
+
+def run_jobs(plan: RunPlan, console: Console, *, report_only: bool) -> RunOutcome:
+    """Every job whose record is not in the output folder with the same settings, each
+    written there as it finishes (``report_only``: none, those missing listed)."""
+    outcome = RunOutcome()
+    jobs = plan.jobs()
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
                TimeElapsedColumn(), TimeRemainingColumn())
     with Progress(*columns, console=console, transient=False) as bar:
         overall = bar.add_task("runs", total=len(jobs))
-        for name, v, s in jobs:
-            sc = scenes[name]
-            fp = fingerprint(sc, v, s, profile, args.embodied)
-            path = _run_path(out, name, v.key, s)
-            done = _load_done(path, fp)
-            tag = {"scene": name, "variant": v.key, "seed": s}
+        for job in jobs:
+            sc, v = plan.scenes[job.scene], plan.variant(job.variant)
+            path = _run_path(plan.out, job.scene, job.variant, job.seed)
+            done = _load_done(path, fingerprint(sc, v, job.seed, plan.profile, plan.embodied_k))
             if done is not None:
-                log.info("skip %s / %s / seed %d: done (%s)", name, v.key, s, path)
-                skipped.append(tag)
-                records[(name, v.key, s)] = done
-                bar.advance(overall)
-                continue
-            if args.report_only:
-                missing.append(tag)
-                bar.advance(overall)
-                continue
-            task = bar.add_task(f"{name} {v.key} s{s}", total=profile.total_steps)
+                log.info("skip %s / %s / seed %d: done (%s)", job.scene, job.variant, job.seed,
+                         path)
+                outcome.skipped.append(job)
+                outcome.records[job] = done
+            elif report_only:
+                outcome.missing.append(job)
+            else:
+                label = f"{job.scene} {job.variant} s{job.seed}"
+                task = bar.add_task(label, total=plan.profile.total_steps)
 
-            def on_progress(done_steps: int, total: int, note: str, task: Any = task,
-                            label: str = f"{name} {v.key} s{s}") -> None:
-                bar.update(task, completed=done_steps, total=total,
-                           description=f"{label} ({note})")
+                def on_progress(done_steps: int, total: int, note: str, task: Any = task,
+                                label: str = label) -> None:
+                    bar.update(task, completed=done_steps, total=total,
+                               description=f"{label} ({note})")
 
-            rec = run_progressive(sc, v, s, profile, embodied_k=args.embodied, device=device,
-                                  progress=on_progress)
-            _write_json(path, rec)
-            records[(name, v.key, s)] = rec
-            executed.append(tag)
-            bar.remove_task(task)
+                rec = run_progressive(sc, v, job.seed, plan.profile, embodied_k=plan.embodied_k,
+                                      device=plan.device, progress=on_progress)
+                _write_json(path, rec)
+                outcome.records[job] = rec
+                outcome.executed.append(job)
+                bar.remove_task(task)
+                log.info("%s / %s / seed %d: PSNR %.2f dB, SSIM %.4f, %.1f ms per selection, "
+                         "%.0f s", job.scene, job.variant, job.seed, rec["psnr"], rec["ssim"],
+                         rec["latency_ms"]["mean"] or 0.0, rec["wall_s"])
             bar.advance(overall)
-            log.info("%s / %s / seed %d: PSNR %.2f dB, SSIM %.4f, %.1f ms per selection, "
-                     "%.0f s", name, v.key, s, rec["psnr"], rec["ssim"],
-                     rec["latency_ms"]["mean"] or 0.0, rec["wall_s"])
-    results = report.build_results(
-        records=records,
-        scenes={n: report.scene_summary(sc) for n, sc in scenes.items()},
-        variants=[asdict(v) for v in variants],
-        seeds=seeds,
-        profile=profile.describe(),
-        settings={"embodied_k": args.embodied, "device": str(device),
+    return outcome
+
+
+def summarise(plan: RunPlan, outcome: RunOutcome, estimates: dict[str, dict[str, float]],
+              args: argparse.Namespace, *, wall_s: float) -> dict[str, Any]:
+    """``results.json``'s content: the records, the scenes, the settings, the machine."""
+    return report.build_results(
+        records={(j.scene, j.variant, j.seed): r for j, r in outcome.records.items()},
+        scenes={n: report.scene_summary(sc) for n, sc in plan.scenes.items()},
+        variants=[asdict(v) for v in plan.variants],
+        seeds=plan.seeds,
+        profile=plan.profile.describe(),
+        settings={"embodied_k": plan.embodied_k, "device": str(plan.device),
                   "shortlist_method": args.shortlist_method,
                   "threads": torch.get_num_threads(), "estimate_s": estimates,
                   "args": {k: v for k, v in vars(args).items() if not k.startswith("_")}},
         environment=environment(),
-        invocation={"executed": executed, "skipped": skipped, "missing": missing,
-                    "wall_s": time.perf_counter() - t_start},
+        invocation={"executed": [asdict(j) for j in outcome.executed],
+                    "skipped": [asdict(j) for j in outcome.skipped],
+                    "missing": [asdict(j) for j in outcome.missing],
+                    "wall_s": wall_s},
     )
-    _write_json(out / "results.json", results)
+
+
+def write(plan: RunPlan, results: dict[str, Any], *, plots_too: bool) -> None:
+    """``results.json``, ``table.md`` (also on stdout) and the plots in the output folder."""
+    _write_json(plan.out / "results.json", results)
     table = report.render_table(results)
-    (out / "table.md").write_text(table)
-    if not args.no_plots:
-        written = plots.write_plots(results, scenes, out)
+    (plan.out / "table.md").write_text(table)
+    if plots_too:
+        written = plots.write_plots(results, plan.scenes, plan.out)
         log.info("plots: %s", ", ".join(str(p.name) for p in written))
     sys.stdout.write(table)
     sys.stdout.flush()
-    console.print(f"{len(executed)} runs done, {len(skipped)} skipped"
-                  + (f", {len(missing)} missing" if missing else "") + f"; wrote {out}")
-    return 0

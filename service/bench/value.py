@@ -50,7 +50,8 @@ from agilegs.service.nbv.information import fisher_diag
 from agilegs.service.nbv.selectors import select
 
 from .options import add_value_arguments as add_arguments
-from .profiles import Profile, resolve_profile
+from .options import protocol_profile
+from .profiles import Profile
 from .protocol import add_pool_view, evaluate, run_progressive
 from .scenes import BenchScene, load_bench_scene
 from .variants import Variant, parse_variant
@@ -373,12 +374,7 @@ def plot_scene(name: str, events: Sequence[Mapping[str, Any]], path: Path) -> No
 
 # ----------------------------------------------------------------------------- command
 def run(args: argparse.Namespace) -> int:
-    overrides = ("pool_size", "resolution", "max_gaussians", "initial_views", "interval",
-                 "steps", "view_budget", "shortlist_size", "lam")
-    profile = resolve_profile(argparse.Namespace(profile=args.profile,
-                                                 **{k: None for k in overrides}))
-    if profile.threads:
-        torch.set_num_threads(profile.threads)
+    profile = protocol_profile(args)
     try:
         driver = parse_variant(args.driver)
         wanted = {int(e) for e in str(args.events).split(",") if e.strip()}

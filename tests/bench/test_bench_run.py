@@ -38,6 +38,12 @@ PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 RUN_KEYS = {
     "psnr", "ssim", "lpips", "events", "sequence", "selected", "initial", "curve",
     "latency_ms", "path_length", "mean_index_jump", "trajectory", "seed", "method",
+    "train_s", "select_s", "information_s", "eval_s", "wall_s", "redundancy",
+}
+EVENT_KEYS = {  # what the report, the plots and the replay (agilegs view --run) read
+    "event", "step", "views_before", "choice", "shortlist", "eligible", "latency_ms",
+    "select_wall_ms", "select_cpu_ms", "information_ms", "upkeep_ms", "num_gaussians",
+    "scores", "anchor", "anchor_psi", "best_candidate_psi",
 }
 
 
@@ -64,9 +70,11 @@ def test_tiny_run_writes_outputs_and_rerun_skips(tmp_path: Path) -> None:
         assert run["sequence"][: prof.initial_views] == run["initial"]
         assert len(run["events"]) == prof.view_budget - prof.initial_views
         for ev in run["events"]:
+            assert set(ev) == EVENT_KEYS, set(ev) ^ EVENT_KEYS
             assert ev["latency_ms"]["total"] > 0.0 and ev["select_cpu_ms"] >= 0.0
             assert 0 <= ev["choice"] < scene["pool"]
         assert run["curve"][-1]["views"] == prof.view_budget
+        assert all(set(c) == {"views", "step", "psnr"} for c in run["curve"])
         assert run["path_length"] > 0.0 and run["mean_index_jump"] > 0.0
         summ = scene["summary"][method]
         assert summ["psnr_mean"] == pytest.approx(run["psnr"])
