@@ -203,6 +203,20 @@ def fingerprint(scene: BenchScene, variant: Variant, seed: int, profile: Profile
 
 
 # ----------------------------------------------------------------------------- one run
+def new_mapper(scene: BenchScene, profile: Profile, seed: int, device: torch.device,
+               **settings: Any) -> Mapper:
+    """A trainer with the profile's settings (and ``settings``), the scene's background and
+    the pool's extent, seeded, started from the scene's initial points where it has them."""
+    pool_pos = scene.pool_poses[:, :3, 3]
+    extent = 1.1 * float((pool_pos - pool_pos.mean(0)).norm(dim=1).max())
+    mapper = Mapper(config=MapperConfig(**{
+        **profile.mapper, "background": scene.background, "seed": int(seed),
+        "scene_extent": max(extent, 1e-6), **settings}), device=device)
+    if scene.init_points is not None:
+        mapper.init_from_points(scene.init_points, scene.init_colors)
+    return mapper
+
+
 def add_pool_view(mapper: Mapper, scene: BenchScene, i: int, profile: Profile, *,
                   first: bool = False, device: torch.device | str = "cpu") -> None:
     """Give ``mapper`` pool view ``i`` (its image, and its depth as the profile says:
@@ -238,30 +252,26 @@ class CurvePoint:
 
 @dataclass(frozen=True)
 class EventRecord:
-    """One selection event of a run (an entry of the record's ``events``)."""
+    """One selection event of a run (an entry of the record's ``events``): the chosen pool
+    index, the shortlist's, ``Selection.latency_ms``, the time of Ĥ recomputed on the current
+    map and per acquired view (``upkeep_ms``: what an incremental Ĥ pays per committed view; 0
+    for the methods that do not read Ĥ), [pool index, score] of every finite score and the
+    anchor's camera-to-world pose [4, 4] (the replay's)."""
 
     event: int
     step: int
     views_before: int
     choice: int
-    """The chosen pool index."""
     shortlist: list[int]
-    """Pool indices."""
     eligible: int
     latency_ms: dict[str, float]
-    """``Selection.latency_ms``."""
     select_wall_ms: float
     select_cpu_ms: float
     information_ms: float
-    """Ĥ recomputed from every acquired view on the current map."""
     upkeep_ms: float
-    """``information_ms`` per acquired view (what an incremental Ĥ pays per committed view),
-    0 for the methods that do not read Ĥ."""
     num_gaussians: int
     scores: list[list[float]]
-    """[pool index, score] of every candidate with a finite score (the replay's)."""
     anchor: list[list[float]] | None
-    """The anchor's camera-to-world pose [4, 4] (anchor methods)."""
     anchor_psi: float | None
     best_candidate_psi: float | None
 
@@ -279,19 +289,9 @@ class _ProgressiveRun:
         self.t_run = time.perf_counter()
         torch.manual_seed(seed)
         d = scene.pool_size
-        pool_pos = scene.pool_poses[:, :3, 3]
-        extent = 1.1 * float((pool_pos - pool_pos.mean(0)).norm(dim=1).max())
-        mcfg = MapperConfig(**{
-            **profile.mapper,
-            "background": scene.background,
-            "seed": int(seed),
-            "scene_extent": max(extent, 1e-6),
-            "lr_means_steps": profile.total_steps,
-        })
-        self.mapper = Mapper(config=mcfg, device=device)
+        self.mapper = new_mapper(scene, profile, seed, device,
+                                 lr_means_steps=profile.total_steps)
         self.initial = initial_view_indices(d, profile.initial_views, seed)
-        if scene.init_points is not None:
-            self.mapper.init_from_points(scene.init_points, scene.init_colors)
         for i in self.initial:
             add_pool_view(self.mapper, scene, i, profile, first=True, device=device)
         if self.mapper.num_gaussians == 0:
@@ -356,19 +356,11 @@ class _ProgressiveRun:
         cands = self.candidates_all[remaining].to(gmap.dtype)
         acq_poses = self.candidates_all[self.acquired].to(gmap.dtype)
         if on_event is not None:
-            on_event({
-                "gmap": gmap,
-                "mapper": self.mapper,
-                "step": self.step,
-                "candidates": cands,
-                "remaining": remaining,
-                "acquired_indices": list(self.acquired),
-                "acquired": acq_poses,
-                "intrinsics": self.scene.intrinsics,
-                "config": self.config,
-                "background": self.background.to(gmap.dtype),
-                "event": len(self.events),
-            })
+            on_event({"gmap": gmap, "mapper": self.mapper, "step": self.step,
+                      "candidates": cands, "remaining": remaining,
+                      "acquired_indices": list(self.acquired), "acquired": acq_poses,
+                      "intrinsics": self.scene.intrinsics, "config": self.config,
+                      "background": self.background.to(gmap.dtype), "event": len(self.events)})
         t0 = time.perf_counter()
         c0 = time.process_time()
         sel = select(
@@ -540,13 +532,7 @@ def estimate_seconds(
     roughly honest by a factor 1.5).
     """
     dev = torch.device(device)
-    pool_pos = scene.pool_poses[:, :3, 3]
-    extent = 1.1 * float((pool_pos - pool_pos.mean(0)).norm(dim=1).max())
-    mcfg = MapperConfig(**{**profile.mapper, "background": scene.background, "seed": 0,
-                           "scene_extent": max(extent, 1e-6)})
-    mapper = Mapper(config=mcfg, device=dev)
-    if scene.init_points is not None:
-        mapper.init_from_points(scene.init_points, scene.init_colors)
+    mapper = new_mapper(scene, profile, 0, dev)
     for i in initial_view_indices(scene.pool_size, profile.initial_views, 0):
         depth = scene.pool_depths[i].to(dev) if scene.pool_depths is not None else None
         mapper.add_view(scene.pool_camera(i).to(device=dev), scene.pool_images[i].to(dev),
