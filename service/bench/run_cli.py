@@ -4,7 +4,9 @@
 Writes ``DIR/runs/<scene>/<variant>/seed<k>.json`` per run (a rerun with the same ``DIR``
 skips the runs whose file exists with the same settings), ``DIR/results.json``,
 ``DIR/table.md`` and PNG plots (:mod:`agilegs.service.bench.report`,
-:mod:`agilegs.service.bench.plots`).
+:mod:`agilegs.service.bench.plots`). :func:`run` is :func:`parse` (the checked options and the
+scenes: a :class:`RunPlan`), :func:`estimate`, :func:`run_jobs` (a :class:`RunOutcome` of
+:class:`Job` s), :func:`summarise` (``results.json``'s content) and :func:`write`.
 """
 
 from __future__ import annotations
