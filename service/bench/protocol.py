@@ -430,6 +430,7 @@ def run_progressive(
         "intrinsics": {k: float(getattr(scene.intrinsics, k))
                        for k in ("fx", "fy", "cx", "cy", "width", "height")},
         "num_gaussians": mapper.num_gaussians,
+        "rasterizer": mapper.rasterizer,
         "steps": step,
         "views": len(acquired),
         **times,
