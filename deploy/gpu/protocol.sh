@@ -34,7 +34,7 @@ agilegs() { "$PY" -m agilegs.service.cli "$@"; }
 
 say "device: $(nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader)"
 say "torch $("$PY" -c 'import torch; print(torch.__version__, torch.version.cuda)'), $(nvcc --version | tail -1)"
-say "commit $(git rev-parse --short HEAD 2>/dev/null || echo unknown)"
+say "commit ${COMMIT:-$(git rev-parse --short HEAD 2>/dev/null || echo unknown)}"
 
 # 1. gsplat's extension, in the background while the selections are timed
 export MAX_JOBS=${MAX_JOBS:-12}
@@ -53,7 +53,7 @@ timeout $(( $(left) / 4 )) agilegs bench latency $LAT --max-gaussians 100000 \
   --methods random,fisherrf,cover,full_eig,agile,agile_plus,agile@paper,agile_plus@paper \
   --json "$OUT/latency-100k.json" >"$OUT/logs/latency-100k.txt" 2>&1
 say "bench latency 100k: exit $?"
-timeout $(( $(left) / 3 )) agilegs bench latency $LAT --max-gaussians 1000000 \
+timeout $(( $(left) / 2 )) agilegs bench latency $LAT --max-gaussians 1000000 \
   --methods random,fisherrf,cover,full_eig,agile,agile_plus \
   --json "$OUT/latency-1m.json" >"$OUT/logs/latency-1m.txt" 2>&1
 say "bench latency 1M: exit $?"
