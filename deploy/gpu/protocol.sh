@@ -87,6 +87,7 @@ say "$(tail -1 "$OUT/logs/gsplat-build.txt")"
 if [ "$DEVICE" != cpu ]; then
   timeout 150 "$PY" -m pytest -q --noconftest -p no:cacheprovider -m cuda -rA -s \
     tests/nbv/test_cuda.py tests/nbv/test_se3.py tests/mapper/test_gsplat_render.py \
+    tests/service/test_device.py \
     >"$OUT/logs/tests.txt" 2>&1
   say "CUDA tests: exit $? ($(tail -1 "$OUT/logs/tests.txt"))"
 fi
