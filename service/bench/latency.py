@@ -63,7 +63,7 @@ import torch
 from agilegs.config.types import validate_config
 from agilegs.service.nbv.camera import Camera, Intrinsics
 from agilegs.service.nbv.candidates import capture_pool, scene_center_radius
-from agilegs.service.nbv.gaussians import GaussianMap
+from agilegs.service.nbv.gaussians import GaussianMap, load_scene
 from agilegs.service.nbv.information import (
     accumulate_information,
     eig_scores,
@@ -107,7 +107,12 @@ SLOW = ("agile_plus@exact", "agile@paper", "agile_plus@paper")
 
 
 def _load_map(path: str, max_gaussians: int, seed: int) -> Any:
-    gmap = GaussianMap.load(path)
+    """The scene (a .ply / .splat file or a folder holding one), subsampled or densified to
+    ``max_gaussians`` (0: as it is); SystemExit naming --scene when it cannot be read."""
+    try:
+        gmap = load_scene(path)
+    except (OSError, ValueError) as exc:
+        raise SystemExit(f"--scene {path}: {exc}") from None
     if 0 < max_gaussians < len(gmap):
         gen = torch.Generator().manual_seed(seed)
         idx = torch.sort(torch.randperm(len(gmap), generator=gen)[:max_gaussians]).values
