@@ -4,7 +4,7 @@
 from __future__ import annotations
 
 import dataclasses
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from pydantic import BeforeValidator, Field, Strict
 from pydantic.dataclasses import dataclass
@@ -101,6 +101,10 @@ class MapperConfig:
     seed: Int = Field(default=0, description="seed of the view sampler, the split sampler and "
                       "point subsampling")
     tile_size: PosInt = Field(default=8, description="rasterizer tile edge in pixels")
+    rasterizer: Literal["auto", "builtin", "gsplat"] = Field(
+        default="auto", description="what renders the training views: builtin (this project's "
+        "rasterizer, CPU and CUDA), gsplat (CUDA, float32; pip install 'agilegs[cuda]') or auto "
+        "(gsplat where the map is a float32 map on CUDA and gsplat loads, else builtin)")
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

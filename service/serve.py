@@ -122,6 +122,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
       help="most decoded image bytes per request (AGILEGS_MAX_REQUEST_DECODED_BYTES)")
     a("--max-inflight-decoded-bytes", type=int,
       help="most decoded image bytes in flight (AGILEGS_MAX_INFLIGHT_DECODED_BYTES)")
+    a("--device", default=None, metavar="DEVICE",
+      help="where selections and training run: cpu (default), cuda or cuda:N")
     a("--max-select-seconds", type=float,
       help="largest estimated select time, s (AGILEGS_MAX_SELECT_SECONDS, 120)")
     a("--max-select-bytes", type=int,
@@ -161,7 +163,7 @@ _FIELDS = ("host", "port", "state_dir", "http", "zenoh", "zenoh_mode", "instance
            "max_shortlist", "max_poll_wait", "decision_log", "fsync", "mapper",
            "mapper_steps_per_view", "mapper_burst", "log_level", "read_workers", "background_nice",
            "max_body_items", "max_request_decoded_bytes", "max_inflight_decoded_bytes",
-           "max_select_seconds", "max_select_bytes", "max_session_queue", "max_queued",
+           "max_select_seconds", "max_select_bytes", "device", "max_session_queue", "max_queued",
            "request_deadline", "zenoh_tls_certificate", "zenoh_tls_private_key",
            "zenoh_tls_root_ca", "zenoh_mtls", "zenoh_users_file", "zenoh_user",
            "zenoh_dev_certs", "zenoh_insecure", "max_inflight_body_bytes", "header_timeout",
@@ -230,11 +232,20 @@ def zenoh_start_error(exc: BaseException, settings: Any) -> str | None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from pydantic import ValidationError
+
     from .http_edge import raise_file_limit, tune_allocator
     from .server import Server
     from .state_dir import StateDirError
 
-    settings = build_settings(args)
+    try:
+        settings = build_settings(args)
+    except ValidationError as exc:  # one line per bad setting, naming its flag and variable
+        for err in exc.errors():
+            name = str(err["loc"][0]) if err["loc"] else "settings"
+            sys.stderr.write(f"agilegs serve: --{name.replace('_', '-')} "
+                             f"(AGILEGS_{name.upper()}): {err['msg']}\n")
+        return 2
     tune_allocator()
     server = Server(settings, freeze_gc=True)
     try:

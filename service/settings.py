@@ -95,6 +95,11 @@ class Settings(BaseSettings):
     max_select_bytes: int = Field(
         default=8 << 30, ge=1 << 20, description="a select whose up-front peak memory "
         "estimate exceeds this is refused (422 limit_exceeded)")
+    device: str = Field(
+        default="cpu", pattern=r"^(cpu|cuda(:[0-9]+)?)$", description="where selections and "
+        "training run: cpu, cuda or cuda:N (a GPU: each selection runs on a copy of the map, "
+        "Hhat and the pool there, the mapper trains there; the sessions' records stay in host "
+        "memory)")
     max_session_queue: int = Field(
         default=4, ge=1, description="compute requests (writes, selects) of one session "
         "running or waiting at once; more get 429 with Retry-After")
@@ -214,6 +219,20 @@ class Settings(BaseSettings):
         if (self.zenoh_user is None) != (self.zenoh_password is None):
             raise ValueError("AGILEGS_ZENOH_USER and AGILEGS_ZENOH_PASSWORD go together")
         return self
+
+    @field_validator("device")
+    @classmethod
+    def _device_exists(cls, v: str) -> str:
+        if v != "cpu":
+            import torch
+
+            if not torch.cuda.is_available():
+                raise ValueError(f"{v!r}: CUDA is not available on this machine")
+            index = int(v.partition(":")[2] or 0)
+            if index >= torch.cuda.device_count():
+                raise ValueError(f"{v!r}: this machine has {torch.cuda.device_count()} CUDA "
+                                 "device(s)")
+        return v
 
     @field_validator("zenoh_password", mode="before")
     @classmethod

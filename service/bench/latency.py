@@ -63,7 +63,7 @@ import torch
 from agilegs.config.types import validate_config
 from agilegs.service.nbv.camera import Camera, Intrinsics
 from agilegs.service.nbv.candidates import capture_pool, scene_center_radius
-from agilegs.service.nbv.gaussians import GaussianMap
+from agilegs.service.nbv.gaussians import GaussianMap, load_scene
 from agilegs.service.nbv.information import (
     accumulate_information,
     eig_scores,
@@ -107,7 +107,12 @@ SLOW = ("agile_plus@exact", "agile@paper", "agile_plus@paper")
 
 
 def _load_map(path: str, max_gaussians: int, seed: int) -> Any:
-    gmap = GaussianMap.load(path)
+    """The scene (a .ply / .splat file or a folder holding one), subsampled or densified to
+    ``max_gaussians`` (0: as it is); SystemExit naming --scene when it cannot be read."""
+    try:
+        gmap = load_scene(path)
+    except (OSError, ValueError) as exc:
+        raise SystemExit(f"--scene {path}: {exc}") from None
     if 0 < max_gaussians < len(gmap):
         gen = torch.Generator().manual_seed(seed)
         idx = torch.sort(torch.randperm(len(gmap), generator=gen)[:max_gaussians]).values
@@ -225,11 +230,14 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit("--pool, --shortlist and --events must be >= 1, --acquired >= 0")
     names = _method_list(args.methods)
     t_setup = time.perf_counter()
-    gmap = _load_map(args.scene, args.max_gaussians, args.seed)
+    device = torch.device(args.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise SystemExit(f"--device {args.device}: CUDA is not available here")
+    gmap = _load_map(args.scene, args.max_gaussians, args.seed).to(device=device)
     center, r98 = scene_center_radius(gmap.means)
     intr = Intrinsics.from_fov(args.fov, args.width, args.height)
     total = args.pool + args.acquired
-    poses = capture_pool(center, args.orbit_scale * r98, total, seed=args.seed)
+    poses = capture_pool(center.cpu(), args.orbit_scale * r98, total, seed=args.seed).to(device)
     acq_idx = (
         sorted({int(round(i * total / args.acquired)) % total for i in range(args.acquired)})
         if args.acquired
@@ -261,6 +269,10 @@ def run(args: argparse.Namespace) -> int:
         for n in names
     }
     base_rss = rss_mb()
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+        torch.cuda.reset_peak_memory_stats(device)
+        gpu_base = torch.cuda.memory_allocated(device)
     upkeep_ms: list[float] = []
     states: dict[str, dict[str, Any] | None] = {n: None for n in names}
     variants = {n: parse_variant(n, args.shortlist) for n in names}
@@ -396,7 +408,8 @@ def run(args: argparse.Namespace) -> int:
             "orbit_scale": args.orbit_scale,
             "lam": args.lam,
             "seed": args.seed,
-            "device": "cpu",
+            "device": (torch.cuda.get_device_name(device) if device.type == "cuda"
+                       else "cpu"),
             "torch_threads": torch.get_num_threads(),
             "torch": torch.__version__,
             "cpu_count": os.cpu_count(),
@@ -409,6 +422,9 @@ def run(args: argparse.Namespace) -> int:
         "upkeep_ms": upkeep_ms,
         "methods": methods_out,
     }
+    if device.type == "cuda":
+        result["gpu_base_mb"] = gpu_base / 2**20
+        result["gpu_peak_mb"] = torch.cuda.max_memory_allocated(device) / 2**20
     _print_table(methods_out)
     sys.stdout.write(f"RSS before the selections {base_rss:.0f} MiB; process peak "
                      f"{result['peak_rss_mb']:.0f} MiB\n")

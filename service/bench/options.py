@@ -76,6 +76,8 @@ def add_latency_arguments(parser: argparse.ArgumentParser) -> None:
     a("--lam", type=float, default=1e-6, help="lambda of Hhat (default 1e-6)")
     a("--seed", type=int, default=0, help="seed of the subsample, the pool and the methods")
     a("--threads", type=int, default=0, help="torch threads (0: default)")
+    a("--device", default="cpu",
+      help="where the map, Hhat and the pool live and the methods run: cpu (default) or cuda")
     a("--methods", default="all",
       help="comma-separated subset of methods/ablations/variants, or 'all', 'base' "
            "(the methods), 'fast' (all but the exact-psi variants)")
@@ -119,6 +121,9 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--max-gaussians", type=int, default=None, help="ground-truth subsample")
     g.add_argument("--shortlist-size", type=int, default=None, help="N")
     g.add_argument("--lam", type=float, default=None, help="λ of Ĥ")
+    g.add_argument("--rasterizer", default=None, choices=("auto", "builtin", "gsplat"),
+                   help="what trains the map (MapperConfig.rasterizer; default auto: gsplat on "
+                        "a GPU where it loads)")
     a("--no-plots", action="store_true", help="skip the PNG plots")
     a("--estimate-only", action="store_true", help="print the wall-time estimate and stop")
     a("--report-only", action="store_true",

@@ -208,6 +208,9 @@ def resolve_profile(args: argparse.Namespace) -> Profile:
         v = getattr(args, arg, None)
         if v is not None:
             over[name] = v
+    rasterizer = getattr(args, "rasterizer", None)
+    if rasterizer is not None:
+        over["mapper"] = {**p.mapper, "rasterizer": rasterizer}
     p = replace(p, **over)
     try:
         p.validate()

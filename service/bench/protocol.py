@@ -498,6 +498,7 @@ def _run_summary(run: _ProgressiveRun, final: dict[str, Any]) -> dict[str, Any]:
         "intrinsics": {k: float(getattr(scene.intrinsics, k))
                        for k in ("fx", "fy", "cx", "cy", "width", "height")},
         "num_gaussians": run.mapper.num_gaussians,
+        "rasterizer": run.mapper.rasterizer,
         "steps": run.step,
         "views": len(acquired),
         **asdict(run.times),

@@ -44,7 +44,8 @@ REFERENCE_KINDS = ("reference_fwd_bwd", "reference_fisher")
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scene", default=None, help=".ply/.splat scene (default: random Gaussians)")
-    p.add_argument("--sizes", default="64,128,256", help="square resolutions")
+    p.add_argument("--sizes", default="64,128,256",
+                   help="square resolutions (on a GPU also WIDTHxHEIGHT, e.g. 1024x768)")
     p.add_argument("--gaussians", default="5000,20000", help="Gaussian counts")
     p.add_argument("--repeats", type=int, default=5, help="timed rounds (median reported)")
     p.add_argument("--threads", default="1,2",
@@ -55,6 +56,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--memory", action="store_true",
                    help="measure each computation's peak memory in a child of its own")
     p.add_argument("--json", default=None, help="write the figures to this JSON file")
+    p.add_argument("--device", default="cpu",
+                   help="cpu (the compiled kernels against the baselines) or cuda (the "
+                        "pure-torch rasterizer and Fisher, gsplat and a training step on the "
+                        "GPU; agilegs.service.bench.render_gpu)")
 
 
 def _build(scene: str | None, n: int, res: int) -> tuple[Any, Any]:
@@ -186,6 +191,11 @@ def _in_child(fn: Callable[..., dict[str, Any]], *args: Any) -> dict[str, Any]:
 
 def run(args: argparse.Namespace) -> int:
     import torch
+
+    if args.device != "cpu":
+        from .render_gpu import run_gpu
+
+        return run_gpu(args)
 
     sizes = [int(s) for s in str(args.sizes).split(",") if s]
     counts = [int(s) for s in str(args.gaussians).split(",") if s]

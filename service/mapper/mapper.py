@@ -58,6 +58,7 @@ from agilegs.service.nbv.rasterize import render
 from agilegs.service.quality import ssim_loss
 
 from .densify import plan_densification
+from .gsplat_render import render_gsplat, resolve_rasterizer
 from .points import backproject_depth, nearest_neighbour_scales
 from .topology import TopologyChange, remap_per_gaussian
 
@@ -112,6 +113,9 @@ class Mapper:
         if not dtype.is_floating_point:
             raise ValueError(f"dtype must be a floating point dtype, got {dtype}")
         self.dtype = dtype
+        self.rasterizer = resolve_rasterizer(self.config.rasterizer, self.device, self.dtype)
+        """The rasterizer that trains: ``"builtin"`` or ``"gsplat"`` (``MapperConfig.rasterizer``
+        resolved for this device and dtype)."""
         self.on_topology_change: list[Callable[[TopologyChange], None]] = []
         self._lock = threading.RLock()
         self._views: list[View] = []
@@ -451,9 +455,7 @@ class Mapper:
             v = self._views[view] if isinstance(view, int) else view
             if v.image is None:
                 raise ValueError("view has no image")
-            out = render(
-                self._render_map(), v.camera, background=self._bg, tile_size=self.config.tile_size
-            )
+            out = self._render(v.camera, background=self._bg)
             img = v.image.to(self.device, self.dtype)
             l1 = (out.rgb - img).abs().mean()
             ds = ssim_loss(out.rgb, img)
@@ -494,6 +496,13 @@ class Mapper:
             opacity_logits=p["opacity_logits"],
             sh=sh,
         )
+
+    def _render(self, camera: Camera, *, background: Tensor | None = None) -> Any:
+        """Render the live map through the mapper's rasterizer (a ``RenderResult``)."""
+        if self.rasterizer == "gsplat":
+            return render_gsplat(self._render_map(), camera, background=background)
+        return render(self._render_map(), camera, background=background,
+                      tile_size=self.config.tile_size)
 
     def _lr(self, key: str) -> float:
         c = self.config
@@ -646,7 +655,7 @@ class Mapper:
             pts, cols = self._subsample(pts, cols, c.init_max_points)
             return self._add_points(pts, cols, None, append=False) if pts.shape[0] else 0
         with torch.no_grad():
-            out = render(self._render_map(), view.camera, tile_size=c.tile_size)
+            out = self._render(view.camera)
         mask = out.alpha < c.extend_alpha_threshold
         pts, cols = backproject_depth(
             view.camera, view.depth, view.image, stride=c.init_stride, mask=mask
@@ -678,7 +687,7 @@ class Mapper:
         i = int(torch.randint(len(self._views), (1,), generator=self._gen_views))
         view = self._views[i]
         assert view.image is not None
-        out = render(self._render_map(), view.camera, background=self._bg, tile_size=c.tile_size)
+        out = self._render(view.camera, background=self._bg)
         l1 = (out.rgb - view.image).abs().mean()
         ds = ssim_loss(out.rgb, view.image)
         loss = (1.0 - c.lambda_dssim) * l1 + c.lambda_dssim * ds
@@ -703,19 +712,21 @@ class Mapper:
                         dtype=g.dtype,
                         device=g.device,
                     )
-                    gn = (g * scale).norm(dim=-1).to(self.dtype)
-                    self._grad_accum[vis] += gn[vis]
-                    self._grad_count[vis] += 1
-                self._max_radii[vis] = torch.maximum(
-                    self._max_radii[vis], out.radii[vis].to(self.dtype)
+                    gn = (g.reshape(-1, 2) * scale).norm(dim=-1).to(self.dtype)
+                    self._grad_accum += torch.where(vis, gn, torch.zeros_like(gn))
+                    self._grad_count += vis
+                # masked updates without boolean indexing: no host synchronisation on a GPU
+                self._max_radii = torch.maximum(
+                    self._max_radii, torch.where(vis, out.radii.to(self.dtype), 0.0)
                 )
             self._opt.step()
         self._num_steps += 1
-        self._last_loss = float(loss.detach())
+        losses = torch.stack([loss.detach(), l1.detach(), ds.detach()]).tolist()  # one sync
+        self._last_loss = float(losses[0])
         info: dict[str, Any] = {
             "loss": self._last_loss,
-            "l1": float(l1.detach()),
-            "dssim": float(ds.detach()),
+            "l1": float(losses[1]),
+            "dssim": float(losses[2]),
             "depth_l1": None if depth_l1 is None else float(depth_l1.detach()),
             "view": i,
         }

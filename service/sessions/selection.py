@@ -7,6 +7,7 @@ in the same step; without commit, the selection is handed back as a
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass
@@ -175,6 +176,25 @@ def _reusable(rec: SessionRecord, config: SelectConfig, sel: Selection
         rec) else None
 
 
+def _to(device: torch.device, value: Any) -> Any:
+    """``value`` with every tensor in it (in dicts, lists and tuples) on ``device``."""
+    if isinstance(value, Tensor):
+        return value.to(device)
+    if isinstance(value, dict):
+        return {k: _to(device, v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return type(value)(_to(device, v) for v in value)
+    return value
+
+
+def _on_device(device: torch.device, gmap: Any, h_acc: dict[str, Tensor]
+               ) -> tuple[Any, dict[str, Tensor]]:
+    """The session's map and Hhat on ``device`` (themselves on the CPU)."""
+    if device.type == "cpu":
+        return gmap, h_acc
+    return gmap.to(device=device), {k: v.to(device) for k, v in h_acc.items()}
+
+
 def select_step(rec: SessionRecord, req: m.SelectRequest, limits: Limits, *,
                 now: float | None = None) -> Selected:
     """Choose the next view; with ``req.pool`` the pool is replaced first (unless it is the
@@ -217,15 +237,22 @@ def select_step(rec: SessionRecord, req: m.SelectRequest, limits: Limits, *,
     acquired = (torch.from_numpy(np.stack([v.pose for v in rec.views])).to(dt)
                 if rec.views else None)
     t0 = time.perf_counter()
+    dev = torch.device(limits.device)
     try:
         sel = select_validated(
-            method, rec.gmap, rec.h_acc, torch.from_numpy(rec.pool_poses).to(dt),
-            intrinsics_of(rec), config=config, acquired=acquired, current=current,
-            current_pose=current_pose, state=rec.warm_state,
-            lam=float(rec.information_config["lambda"]),
+            method, *_on_device(dev, rec.gmap, rec.h_acc), torch.from_numpy(rec.pool_poses).to(
+                device=dev, dtype=dt),
+            intrinsics_of(rec), config=config,
+            acquired=None if acquired is None else acquired.to(dev), current=current,
+            current_pose=None if current_pose is None else current_pose.to(dev),
+            state=_to(dev, rec.warm_state), lam=float(rec.information_config["lambda"]),
         )
     except InputError as exc:
         raise invalid(_ARGUMENT_FIELDS.get(exc.argument, "body"), str(exc)) from None
+    if dev.type != "cpu":  # the record keeps host tensors
+        sel = dataclasses.replace(sel, state=_to(torch.device("cpu"), sel.state),
+                                  chosen_information=_to(torch.device("cpu"),
+                                                         sel.chosen_information))
     if est is not None:
         SPEED.observe(est.seconds, time.perf_counter() - t0)
     ids = rec.pool_ids

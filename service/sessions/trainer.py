@@ -234,7 +234,8 @@ class SessionTrainer:
                                 max_gaussians=self.trainer.settings.max_gaussians)
             extend = cfg.extend_from_depth
             empty = len(rec.gmap) == 0
-            mapper = Mapper(rec.gmap, dataclasses.replace(cfg, extend_from_depth=extend and empty))
+            mapper = Mapper(rec.gmap, dataclasses.replace(cfg, extend_from_depth=extend and empty),
+                            device=self.trainer.settings.device)
             self.mapper = mapper
             self._reset_base(rec.gmap)
             self.view_ids = set()
@@ -282,7 +283,7 @@ class SessionTrainer:
         busy and ``block`` is false."""
         if self.mapper is None or not self.dirty:
             return True
-        gmap = self.mapper.gmap  # a detached copy: records are never mutated
+        gmap = self.mapper.gmap.to(device="cpu")  # a detached copy: records are never mutated
         assert self.src is not None
         src = self.src.clone()
         s = self.session

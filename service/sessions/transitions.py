@@ -76,6 +76,8 @@ class Limits:
     max_image_pixels: int
     max_select_seconds: float = float("inf")
     max_select_bytes: int = 1 << 62
+    device: str = "cpu"
+    """Not a limit: where a selection computes (``Settings.device``)."""
 
     @classmethod
     def of(cls, settings: Settings) -> Limits:
@@ -83,7 +85,7 @@ class Limits:
                    max_gaussians=settings.max_gaussians, max_shortlist=settings.max_shortlist,
                    max_image_pixels=settings.max_image_pixels,
                    max_select_seconds=settings.max_select_seconds,
-                   max_select_bytes=settings.max_select_bytes)
+                   max_select_bytes=settings.max_select_bytes, device=settings.device)
 
 
 @dataclass(frozen=True)

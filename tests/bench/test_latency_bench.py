@@ -115,3 +115,14 @@ def test_peak_rss_sees_a_temporary_allocation() -> None:
         time.sleep(0.2)  # held long enough for the sampler to see it on a busy machine
         del buf
     assert mem.peak - before > 32
+
+
+def test_a_scene_folder_is_read_and_a_bad_scene_is_one_line(tmp_path: Path) -> None:
+    import pytest
+
+    from agilegs.service.bench.latency import _load_map
+
+    folder = Path(__file__).resolve().parents[2] / "service/data/scenes/spot"
+    assert len(_load_map(str(folder), 50, 0)) == 50
+    with pytest.raises(SystemExit, match=r"^--scene .*nothing\.ply: "):
+        _load_map(str(tmp_path / "nothing.ply"), 50, 0)

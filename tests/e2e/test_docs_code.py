@@ -107,6 +107,14 @@ HOW: dict[tuple[str, str], How] = {
     ("docs/deploy.md", "AGILEGS_TOKEN=$(openssl rand -hex 32) docker compose -f "
      "deploy/compose.yaml up -d --build"):
         How("skip", "needs a Docker daemon (the compose file: tests/e2e/test_deploy_files.py)"),
+    ("docs/deploy.md", "pip install -e '.[service,cuda]'"):
+        How("skip", "needs an NVIDIA GPU and CUDA torch (the setting without CUDA: "
+                    "tests/service/test_device.py)"),
+    ("docs/gpu.md", "pip install torch --index-url https://download.pytorch.org/whl/cu128"):
+        How("skip", "installs CUDA torch from the PyTorch wheel index, which CI cannot reach"),
+    ("docs/gpu.md", "OUT=gpu-out bash deploy/gpu/protocol.sh"):
+        How("skip", "needs an NVIDIA GPU (the script on a CPU with small sizes: "
+                    "tests/e2e/test_gpu_protocol.py)"),
     ("docs/ros2.md", "agilegs serve --ros2 /bot1/agilegs --zenoh-connect tcp/robot:7447   # "
      "the server; robot: its address"):
         How("parse", "a server and the bridge on a robot, each running until stopped",

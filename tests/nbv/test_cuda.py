@@ -54,7 +54,7 @@ def test_render_backward_and_fisher_match_the_cpu() -> None:
         torch.testing.assert_close(h_g[k].cpu(), h_c[k], atol=1e-9, rtol=1e-7)
 
 
-@pytest.mark.parametrize("method", ["full_eig", "fisherrf", "cover", "agile_plus"])
+@pytest.mark.parametrize("method", ["full_eig", "fisherrf", "cover", "agile", "agile_plus"])
 def test_select_on_cuda(method: str) -> None:
     gm, cam = _world("cuda")
     pool = capture_pool([0.0, 0.0, 0.0], 2.0, 16, seed=0, dtype=F64).cuda()

@@ -7,6 +7,8 @@ import errno
 from pathlib import Path
 from types import SimpleNamespace
 
+import pytest
+
 from agilegs.service.serve import http_bind_error, zenoh_start_error
 
 ZError = type("ZError", (Exception,), {"__module__": "zenoh"})
@@ -48,3 +50,18 @@ def test_a_taken_http_port_names_it_and_the_flags() -> None:
     assert http_bind_error(exc, "0.0.0.0", 8000) == (
         "cannot listen on http://0.0.0.0:8000: address already in use; give another with "
         "--port (AGILEGS_PORT) or --host (AGILEGS_HOST), or serve Zenoh only with --no-http")
+
+
+def test_a_bad_setting_is_one_line_naming_its_flag_and_variable(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import argparse
+
+    from agilegs.service import serve
+
+    p = argparse.ArgumentParser()
+    serve.add_arguments(p)
+    args = p.parse_args(["--port", "-5", "--state-dir", str(tmp_path / "s")])
+    assert serve.run(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("agilegs serve: --port (AGILEGS_PORT): ")
+    assert not (tmp_path / "s").exists()  # nothing was started or created

@@ -1,0 +1,129 @@
+#!/usr/bin/env bash
+# The paper's protocol on one NVIDIA GPU, in one go (docs/gpu.md):
+#
+#   1. gsplat's CUDA extension built (once per machine, in the background), then the CUDA tests;
+#   2. bench latency on the GPU at 100k and 1M Gaussians (512x512, a pool of 100): every
+#      method's selection time and its ratios to the full-pool EIG and FisherRF;
+#   3. bench render on the GPU at 100k and 1M Gaussians, 512x512 and 1024x768: this project's
+#      rasterizer and Fisher, gsplat, a mapper training step against gsplat's own step;
+#   4. bench run --profile paper, shortened (SHORT below), on a capture and an object, every
+#      method and the @paper variants, one seed, one process per run, then the tables.
+#
+# Needs python3 with a CUDA torch and this package (pip install -e '.[service,cuda]') and a CUDA
+# toolkit for gsplat's build. Everything lands in $OUT (default gpu-out); each step has a time
+# limit so that one slow step cannot starve the rest (DEADLINE: seconds for the whole script).
+# GSPLAT_SITE (optional): a folder holding gsplat, put on PYTHONPATH only once its extension has
+# built, so that a failed build is not retried by every step (they train with the builtin
+# rasterizer instead). The sizes are variables: DEVICE=cpu with small ones is the smoke test
+# that tests/e2e/test_gpu_protocol.py runs.
+set -u
+OUT=${OUT:-gpu-out}
+PY=${PYTHON:-python3}
+DEADLINE=${DEADLINE:-560}
+DEVICE=${DEVICE:-cuda}
+S=service/data/scenes
+SCENE_OBJECT=${SCENE_OBJECT:-$S/spot}
+OBJECT_SPLAT=${OBJECT_SPLAT:-$SCENE_OBJECT/spot_10k.splat}
+SCENE_CAPTURE=${SCENE_CAPTURE:-$S/skull_photos}
+LATENCY_SIZES=${LATENCY_SIZES:-100000 1000000}
+LATENCY=${LATENCY:---width 512 --height 512 --pool 100 --events 2}
+LATENCY_METHODS=${LATENCY_METHODS:-random,fisherrf,cover,full_eig,agile,agile_plus}
+LATENCY_SLOW=${LATENCY_SLOW-agile@paper,agile_plus@paper}
+RENDER=${RENDER:---gaussians 100000,1000000 --sizes 512,1024x768 --repeats 10}
+PROFILE=${PROFILE:-paper}
+SHORT=${SHORT---pool-size 64 --view-budget 20 --interval 200 --steps 2200}
+OBJECT_RES=${OBJECT_RES:-512}
+CAPTURE_RES=${CAPTURE_RES:-240}
+METHODS=${METHODS:-random fisherrf cover full_eig agile agile_plus agile@paper agile_plus@paper}
+mkdir -p "$OUT/logs"
+export PYTHONUNBUFFERED=1
+T0=$(date +%s)
+elapsed() { echo $(($(date +%s) - T0)); }
+left() { echo $((DEADLINE - $(elapsed))); }
+say() { echo "[$(elapsed) s] $*" | tee -a "$OUT/steps.txt"; }
+AG="$PY -m agilegs.service.cli"  # a command, not a shell function: timeout runs it
+
+say "device: $(nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>&1 | head -1)"
+say "torch $("$PY" -c 'import torch; print(torch.__version__, torch.version.cuda)'), nvcc: $(nvcc --version 2>&1 | tail -1)"
+say "commit ${COMMIT:-$(git rev-parse --short HEAD 2>/dev/null || echo unknown)}"
+
+# 1. gsplat's extension, in the background while the selections are timed
+export MAX_JOBS=${MAX_JOBS:-12}
+if [ "$DEVICE" != cpu ]; then
+  export TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-$("$PY" -c 'import torch; print("%d.%d" % torch.cuda.get_device_capability())')}
+fi
+(
+  t=$(date +%s)
+  [ -n "${GSPLAT_SITE:-}" ] && export PYTHONPATH="$GSPLAT_SITE${PYTHONPATH:+:$PYTHONPATH}"
+  "$PY" -c 'from gsplat.cuda._backend import _C; assert _C is not None' >"$OUT/logs/gsplat-build.txt" 2>&1
+  echo "gsplat build: exit $? in $(($(date +%s) - t)) s" >>"$OUT/logs/gsplat-build.txt"
+) &
+BUILD=$!
+
+# 2. selection latency (no gsplat involved): the fast methods at every size, the slow variants
+#    at the first
+first=1
+for n in $LATENCY_SIZES; do
+  methods=$LATENCY_METHODS
+  [ $first = 1 ] && [ -n "$LATENCY_SLOW" ] && methods="$methods,$LATENCY_SLOW"
+  timeout $(( $(left) / 4 )) $AG bench latency --device "$DEVICE" $LATENCY --max-gaussians "$n" \
+    --methods "$methods" --json "$OUT/latency-$n.json" >"$OUT/logs/latency-$n.txt" 2>&1
+  say "bench latency $n: exit $?"
+  first=0
+done
+
+# wait for the build, at most until a third of the time is left
+while kill -0 $BUILD 2>/dev/null && [ "$(left)" -gt $((DEADLINE / 3)) ]; do sleep 2; done
+kill $BUILD 2>/dev/null && say "gsplat build stopped (too slow)"
+RAST=auto
+if grep -q "exit 0" "$OUT/logs/gsplat-build.txt"; then
+  [ -n "${GSPLAT_SITE:-}" ] && export PYTHONPATH="$GSPLAT_SITE${PYTHONPATH:+:$PYTHONPATH}"
+else
+  RAST=builtin
+  say "no gsplat: training uses the builtin rasterizer"
+fi
+say "$(tail -1 "$OUT/logs/gsplat-build.txt")"
+
+if [ "$DEVICE" != cpu ]; then
+  # the maths' CUDA tests need no server; the server's (a session on the GPU) need the whole
+  # service extra, as a full install has it
+  timeout 150 "$PY" -m pytest -q --noconftest -p no:cacheprovider -m cuda -rA -s \
+    tests/nbv/test_cuda.py tests/nbv/test_se3.py tests/mapper/test_gsplat_render.py \
+    >"$OUT/logs/tests.txt" 2>&1
+  say "CUDA tests: exit $? ($(tail -1 "$OUT/logs/tests.txt"))"
+  timeout 120 "$PY" -m pytest -q -p no:cacheprovider -m cuda -rA tests/service/test_device.py \
+    >"$OUT/logs/tests-server.txt" 2>&1
+  say "CUDA server tests: exit $? ($(tail -1 "$OUT/logs/tests-server.txt"))"
+fi
+
+# 3. rasterizers, Fisher, training step
+timeout $(( $(left) / 3 )) $AG bench render --device "$DEVICE" $RENDER --scene "$OBJECT_SPLAT" \
+  --json "$OUT/render.json" >"$OUT/logs/render.txt" 2>&1
+say "bench render: exit $?"
+
+# 4. the protocol: one process per (scene, method), all at once on the one GPU
+RUN_S=$(( $(left) - 40 ))
+say "bench run: $RUN_S s for each run"
+SCENES="$SCENE_OBJECT:$OBJECT_RES $SCENE_CAPTURE:$CAPTURE_RES"
+for scene in $SCENES; do
+  path=${scene%%:*}; res=${scene##*:}; name=$(basename "$path")
+  for m in $METHODS; do
+    OMP_NUM_THREADS=1 timeout "$RUN_S" $AG bench run --scene "$path" --profile "$PROFILE" \
+      $SHORT --resolution "$res" --rasterizer $RAST --seeds 0 --device "$DEVICE" \
+      --methods "$m" --no-plots --out "$OUT/run-$name" >"$OUT/logs/run-$name-$m.txt" 2>&1 &
+  done
+done
+wait
+for scene in $SCENES; do
+  path=${scene%%:*}; res=${scene##*:}; name=$(basename "$path")
+  $AG bench run --scene "$path" --profile "$PROFILE" $SHORT --resolution "$res" \
+    --rasterizer $RAST --seeds 0 --device "$DEVICE" --methods "$(echo $METHODS | tr ' ' ,)" \
+    --out "$OUT/run-$name" --report-only >"$OUT/logs/report-$name.txt" 2>&1
+  say "bench run $name: exit $?"
+done
+
+say "done"
+for f in "$OUT"/logs/latency-*.txt "$OUT/logs/render.txt" "$OUT"/run-*/table.md; do
+  [ -f "$f" ] && { echo "== $f"; tail -40 "$f"; }
+done
+exit 0

@@ -1,0 +1,50 @@
+"""deploy/gpu/protocol.sh runs end to end: on a CPU with small sizes (the GPU run itself needs a
+lent GPU), every step exits 0 and writes its figures."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.mark.heavy
+def test_the_gpu_protocol_script_runs_every_step(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    env = {
+        **os.environ,
+        "OUT": str(out),
+        "PYTHON": sys.executable,
+        "DEVICE": "cpu",
+        "DEADLINE": "500",
+        "LATENCY_SIZES": "400",
+        "LATENCY": "--width 32 --height 32 --pool 8 --events 1 --acquired 2 --shortlist 4",
+        "LATENCY_METHODS": "random,full_eig,agile",
+        "LATENCY_SLOW": "",
+        "RENDER": "--gaussians 300 --sizes 32 --repeats 1 --threads 1 --no-baseline",
+        "PROFILE": "tiny",
+        "SHORT": "",
+        "OBJECT_RES": "32",
+        "CAPTURE_RES": "32",
+        "METHODS": "random agile",
+        "OMP_NUM_THREADS": "1",
+    }
+    proc = subprocess.run(["bash", str(ROOT / "deploy/gpu/protocol.sh")], cwd=ROOT, env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    steps = (out / "steps.txt").read_text()
+    for step in ("bench latency 400: exit 0", "bench render: exit 0",
+                 "bench run spot: exit 0", "bench run skull_photos: exit 0"):
+        assert step in steps, steps
+    assert "training uses the builtin rasterizer" in steps  # no gsplat on a CPU
+    lat = json.loads((out / "latency-400.json").read_text())
+    assert set(lat["methods"]) == {"random", "full_eig", "agile"}
+    for name in ("spot", "skull_photos"):
+        results = json.loads((out / f"run-{name}" / "results.json").read_text())
+        assert not results["invocation"]["missing"], results["invocation"]
