@@ -39,6 +39,10 @@ methods ``proxy_spearman`` (the rank correlation of the anchor's proxy psi of ev
 candidate with the exact phi, mean over events) and, for shortlist methods,
 ``head_eig_percentile`` (the percentile of the shortlist's first, i.e. what AGILE-GS picks
 from that shortlist).
+
+:func:`run`: :func:`parse` (a :class:`Plan`), :func:`set_up` (a :class:`Setup`),
+:func:`time_events` (:class:`Timings`: an :class:`EntryRecord` per entry), :func:`summarise`
+(the JSON), :func:`write`.
 """
 
 from __future__ import annotations
@@ -54,6 +58,7 @@ import statistics
 import sys
 import threading
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -72,9 +77,9 @@ from agilegs.service.nbv.information import (
 )
 from agilegs.service.nbv.methods import get_method, method_names
 from agilegs.service.nbv.rotations import quat_to_rotmat
-from agilegs.service.nbv.selectors import SelectConfig, select, select_validated
+from agilegs.service.nbv.selectors import SelectConfig, Selection, select, select_validated
 
-from .options import add_latency_arguments
+from .options import add_latency_arguments, use_threads
 from .stages import ANCHOR_STAGES
 from .variants import parse_variant
 
@@ -223,120 +228,222 @@ def eig_percentile(phi: torch.Tensor, value: float) -> float:
     return 100.0 * float((phi <= value + 1e-12 * abs(value)).to(torch.float64).mean())
 
 
+@dataclass(frozen=True)
+class Plan:
+    """The entries to time, and the device of the map, Ĥ, the pool and the methods."""
+
+    names: list[str]
+    device: torch.device
+
+
+@dataclass
+class Setup:
+    """What every entry selects on: the map, the camera, the pool [D, 4, 4], the acquired
+    views [A, 4, 4], Ĥ of the acquired views and the shared settings."""
+
+    gmap: GaussianMap
+    intrinsics: Intrinsics
+    pool: torch.Tensor
+    acquired: torch.Tensor
+    h_acc: dict[str, torch.Tensor]
+    base: SelectConfig
+
+
+@dataclass
+class EntryRecord:
+    """One entry's figures, an item per event (the lists) or over them (``peak_mb``):
+    ``latency_ms`` and ``event_ms`` as ``median_ms`` and ``event_median_ms`` above."""
+
+    latency_ms: list[float] = field(default_factory=list)
+    event_ms: list[float] = field(default_factory=list)
+    cpu_ms: list[float] = field(default_factory=list)
+    stages: list[dict[str, float]] = field(default_factory=list)
+    other_ms: list[float] = field(default_factory=list)
+    commit_ms: list[float] = field(default_factory=list)
+    pct: list[float] = field(default_factory=list)
+    head_pct: list[float] = field(default_factory=list)
+    shortlist_best_pct: list[float] = field(default_factory=list)
+    picks: list[int] = field(default_factory=list)
+    evaluations: list[float] = field(default_factory=list)
+    gradient_evals: list[float] = field(default_factory=list)
+    value_evals: list[float] = field(default_factory=list)
+    psi_gain: list[float] = field(default_factory=list)
+    spearman: list[float] = field(default_factory=list)
+    peak_mb: float = 0.0
+    reused: bool = False
+    """The last selection computed the chosen view's Fisher (reused at commit)."""
+
+    def add(self, sel: Selection, cpu_ms: float, peak_mb: float, phi: torch.Tensor) -> None:
+        """One event's selection, with the exact EIG of the pool ``phi`` [D]."""
+        lat = sel.latency_ms
+        self.peak_mb = max(self.peak_mb, peak_mb)
+        self.latency_ms.append(lat["total"] - lat["information"])
+        self.event_ms.append(lat["total"])  # the upkeep is added by add_upkeep
+        self.cpu_ms.append(cpu_ms)
+        self.stages.append(dict(lat))
+        # "total" and the sub-stages ("anchor.<stage>", within their stage) left out
+        self.other_ms.append(lat["total"] - sum(v for k, v in lat.items()
+                                                if k != "total" and "." not in k))
+        self.commit_ms.append(0.0)  # the upkeep is added by add_upkeep, unless reused
+        self.reused = sel.chosen_information is not None
+        self.pct.append(eig_percentile(phi, float(phi[sel.index])))
+        self.picks.append(sel.index)
+        if sel.shortlist:
+            self.head_pct.append(eig_percentile(phi, float(phi[sel.shortlist[0]])))
+            self.shortlist_best_pct.append(max(eig_percentile(phi, float(phi[i]))
+                                               for i in sel.shortlist))
+        if "psi_evaluations" in sel.details:
+            self.evaluations.append(float(sel.details["psi_evaluations"]))
+        split = sel.details.get("ascent_evaluations")
+        if split:
+            self.gradient_evals.append(float(split["gradient"]))
+            self.value_evals.append(float(split["value"]))
+        if sel.psi_trace:
+            self.psi_gain.append(sel.psi_trace[-1] / sel.psi_trace[0])
+        pool_psi = sel.details.get("pool_proxy_psi")
+        if pool_psi and len(pool_psi) == phi.numel():
+            proxy = torch.tensor([pool_psi[i] for i in range(phi.numel())], dtype=torch.float64)
+            self.spearman.append(spearman(proxy, phi))
+
+    def add_upkeep(self, upkeep_ms: float) -> None:
+        """The committed view's Fisher added to Ĥ, which an Ĥ method pays per event (at
+        commit, unless its selection computed it)."""
+        self.event_ms[-1] += upkeep_ms
+        if not self.reused:
+            self.commit_ms[-1] = upkeep_ms
+
+    def summary(self) -> dict[str, Any]:
+        """The entry's figures in the JSON (medians and means over the events)."""
+        med, mean = statistics.median, statistics.fmean
+        out: dict[str, Any] = {
+            "median_ms": med(self.latency_ms),
+            "latency_ms": self.latency_ms,
+            "event_median_ms": med(self.event_ms),
+            "event_ms": self.event_ms,
+            "cpu_median_ms": med(self.cpu_ms),
+            "stages_ms": {k: med(s[k] for s in self.stages) for k in self.stages[0]},
+            "other_median_ms": med(self.other_ms),
+            "commit_median_ms": med(self.commit_ms),
+            "eig_percentile": mean(self.pct),
+            "eig_percentiles": self.pct,
+            "picks": self.picks,
+            "peak_rss_mb": self.peak_mb,
+        }
+        if self.head_pct:
+            out["head_eig_percentile"] = mean(self.head_pct)
+            out["shortlist_best_eig_percentile"] = mean(self.shortlist_best_pct)
+        if self.evaluations:
+            out["psi_evaluations"] = med(self.evaluations)
+        if self.gradient_evals:
+            out["gradient_evaluations"] = med(self.gradient_evals)
+            out["value_evaluations"] = med(self.value_evals)
+        if self.psi_gain:
+            out["psi_gain"] = mean(self.psi_gain)
+        if self.spearman:
+            out["proxy_spearman"] = mean(self.spearman)
+        return out
+
+
+@dataclass
+class Timings:
+    """What the events measured: every entry's record, the upkeep pass of each event, the
+    process's resident set before the first selection and, on a GPU, the memory allocated
+    then and the peak during the selections."""
+
+    entries: dict[str, EntryRecord]
+    upkeep_ms: list[float]
+    base_rss_mb: float
+    gpu_base_mb: float | None = None
+    gpu_peak_mb: float | None = None
+
+
 def run(args: argparse.Namespace) -> int:
-    if args.threads > 0:
-        torch.set_num_threads(args.threads)
+    plan = parse(args)
+    setup = set_up(args, plan.device)
+    timings = time_events(setup, plan.names, args.events, args.shortlist)
+    result = summarise(args, setup, plan, timings)
+    write(result, args.json_out)
+    return 0
+
+
+def parse(args: argparse.Namespace) -> Plan:
+    """The entries to time (``--methods``) and the device, the numbers checked, torch's
+    threads set."""
+    use_threads(args.threads)
     if args.pool < 1 or args.shortlist < 1 or args.events < 1 or args.acquired < 0:
         raise SystemExit("--pool, --shortlist and --events must be >= 1, --acquired >= 0")
     names = _method_list(args.methods)
-    t_setup = time.perf_counter()
     device = torch.device(args.device)
     if device.type == "cuda" and not torch.cuda.is_available():
         raise SystemExit(f"--device {args.device}: CUDA is not available here")
+    return Plan(names, device)
+
+
+def set_up(args: argparse.Namespace, device: torch.device) -> Setup:
+    """The map, a capture-like pool, ``--acquired`` views spread evenly over it and their Ĥ,
+    on ``device``."""
+    t_setup = time.perf_counter()
     gmap = _load_map(args.scene, args.max_gaussians, args.seed).to(device=device)
     center, r98 = scene_center_radius(gmap.means)
     intr = Intrinsics.from_fov(args.fov, args.width, args.height)
     total = args.pool + args.acquired
     poses = capture_pool(center.cpu(), args.orbit_scale * r98, total, seed=args.seed).to(device)
-    acq_idx = (
-        sorted({int(round(i * total / args.acquired)) % total for i in range(args.acquired)})
-        if args.acquired
-        else []
-    )
+    acq_idx = (sorted({int(round(i * total / args.acquired)) % total
+                       for i in range(args.acquired)}) if args.acquired else [])
     acquired = poses[acq_idx]
-    keep = [i for i in range(total) if i not in set(acq_idx)]
-    pool = poses[keep]
+    pool = poses[[i for i in range(total) if i not in set(acq_idx)]]
     h_acc = init_information(gmap, args.lam)
     with torch.no_grad():
         for p in acquired:
             h_acc = accumulate_information(h_acc, fisher_diag(gmap, Camera(c2w=p, intrinsics=intr)))
     base = SelectConfig(shortlist_size=args.shortlist, seed=args.seed)
-    log.info(
-        "map %d Gaussians, pool %d, %d acquired, setup %.1f s",
-        len(gmap),
-        len(pool),
-        len(acquired),
-        time.perf_counter() - t_setup,
-    )
+    log.info("map %d Gaussians, pool %d, %d acquired, setup %.1f s", len(gmap), len(pool),
+             len(acquired), time.perf_counter() - t_setup)
     # warm-up: first calls pay one-off allocation costs
     select("agile", gmap, h_acc, pool, intr, config=base, acquired=acquired)
     with torch.no_grad():
         fisher_diag(gmap, Camera(c2w=pool[0], intrinsics=intr))
+    return Setup(gmap, intr, pool, acquired, h_acc, base)
 
-    records: dict[str, dict[str, Any]] = {
-        n: {"latency_ms": [], "event_ms": [], "cpu_ms": [], "stages": [], "pct": [],
-            "head_pct": [], "picks": [], "other_ms": [], "commit_ms": [], "peak_mb": 0.0}
-        for n in names
-    }
+
+def time_events(setup: Setup, names: list[str], events: int, shortlist: int) -> Timings:
+    """``events`` selection events: every entry selects on the same map, Ĥ and pool (each with
+    its own warm state), then the full-pool EIG's pick is acquired for all."""
+    gmap, intr, pool, acquired, h_acc = (setup.gmap, setup.intrinsics, setup.pool,
+                                         setup.acquired, setup.h_acc)
+    entries = {n: EntryRecord() for n in names}
     base_rss = rss_mb()
+    device = setup.gmap.means.device
     if device.type == "cuda":
         torch.cuda.synchronize(device)
         torch.cuda.reset_peak_memory_stats(device)
         gpu_base = torch.cuda.memory_allocated(device)
     upkeep_ms: list[float] = []
     states: dict[str, dict[str, Any] | None] = {n: None for n in names}
-    variants = {n: parse_variant(n, args.shortlist) for n in names}
+    variants = {n: parse_variant(n, shortlist) for n in names}
     # every entry's settings validated once, as the service does: each event selects through
     # select_validated on the map, Hhat and pool set up (and checked) here
-    configs = {n: validate_config(SelectConfig, variants[n].config(base)) for n in names}
+    configs = {n: validate_config(SelectConfig, variants[n].config(setup.base)) for n in names}
     order = sorted(names, key=lambda n: n != REFERENCE)  # the yardstick first, when timed
-    for event in range(args.events):
+    for event in range(events):
         phi_all: torch.Tensor | None = None
         if REFERENCE not in names:  # the yardstick, untimed
             phi_all = eig_scores(gmap, h_acc, pool, intr)
         for name in order:
-            v = variants[name]
             cpu0 = time.process_time()
             with PeakRSS() as mem:
-                sel = select_validated(
-                    v.method, gmap, h_acc, pool, intr, config=configs[name],
-                    acquired=acquired, state=states[name],
-                )
+                sel = select_validated(variants[name].method, gmap, h_acc, pool, intr,
+                                       config=configs[name], acquired=acquired,
+                                       state=states[name])
             cpu_ms = (time.process_time() - cpu0) * 1e3
-            records[name]["peak_mb"] = max(records[name]["peak_mb"], mem.peak)
             states[name] = sel.state
             if name == REFERENCE:
-                phi_all = torch.tensor(
-                    [sel.scores[i] for i in range(len(pool))], dtype=torch.float64
-                )
+                phi_all = torch.tensor([sel.scores[i] for i in range(len(pool))],
+                                       dtype=torch.float64)
             assert phi_all is not None
-            rec = records[name]
-            rec["latency_ms"].append(sel.latency_ms["total"] - sel.latency_ms["information"])
-            rec["event_ms"].append(sel.latency_ms["total"])  # the upkeep is added below
-            rec["cpu_ms"].append(cpu_ms)
-            rec["stages"].append(dict(sel.latency_ms))
-            # "total" and the sub-stages ("anchor.<stage>", within their stage) left out
-            staged = sum(v for k, v in sel.latency_ms.items() if k != "total" and "." not in k)
-            rec["other_ms"].append(sel.latency_ms["total"] - staged)
-            rec["commit_ms"].append(0.0)  # the upkeep is added below, unless reused
-            rec["reused"] = sel.chosen_information is not None
-            rec["pct"].append(eig_percentile(phi_all, float(phi_all[sel.index])))
-            rec["picks"].append(sel.index)
-            if sel.shortlist:
-                rec["head_pct"].append(eig_percentile(phi_all, float(phi_all[sel.shortlist[0]])))
-                rec.setdefault("shortlist_best_pct", []).append(
-                    max(eig_percentile(phi_all, float(phi_all[i])) for i in sel.shortlist)
-                )
-            if "psi_evaluations" in sel.details:
-                rec.setdefault("evaluations", []).append(float(sel.details["psi_evaluations"]))
-            split = sel.details.get("ascent_evaluations")
-            if split:
-                rec.setdefault("gradient_evals", []).append(float(split["gradient"]))
-                rec.setdefault("value_evals", []).append(float(split["value"]))
-            if sel.psi_trace:
-                rec.setdefault("psi_gain", []).append(sel.psi_trace[-1] / sel.psi_trace[0])
-            pool_psi = sel.details.get("pool_proxy_psi")
-            if pool_psi and len(pool_psi) == len(pool):
-                proxy = torch.tensor([pool_psi[i] for i in range(len(pool))], dtype=torch.float64)
-                rec.setdefault("spearman", []).append(spearman(proxy, phi_all))
-            log.info(
-                "event %d %-26s %9.1f ms  pick %3d  eig pct %5.1f",
-                event,
-                name,
-                sel.latency_ms["total"],
-                sel.index,
-                rec["pct"][-1],
-            )
+            entries[name].add(sel, cpu_ms, mem.peak, phi_all)
+            log.info("event %d %-26s %9.1f ms  pick %3d  eig pct %5.1f", event, name,
+                     sel.latency_ms["total"], sel.index, entries[name].pct[-1])
         # acquire the full-EIG pick: the same trajectory for every method
         assert phi_all is not None
         nxt = int(torch.argmax(phi_all))
@@ -348,42 +455,20 @@ def run(args: argparse.Namespace) -> int:
         upkeep_ms.append(upkeep)
         for name in names:  # the Hhat methods add the committed view's Fisher to Hhat
             if get_method(variants[name].method).uses_information:
-                records[name]["event_ms"][-1] += upkeep
-                if not records[name]["reused"]:
-                    records[name]["commit_ms"][-1] = upkeep
+                entries[name].add_upkeep(upkeep)
         acquired = torch.cat([acquired, pool[nxt : nxt + 1]])
         pool = torch.cat([pool[:nxt], pool[nxt + 1 :]])
+    if device.type == "cuda":
+        return Timings(entries, upkeep_ms, base_rss, gpu_base / 2**20,
+                       torch.cuda.max_memory_allocated(device) / 2**20)
+    return Timings(entries, upkeep_ms, base_rss)
 
-    methods_out: dict[str, Any] = {}
-    for name, rec in records.items():
-        stages = {k: statistics.median(s[k] for s in rec["stages"]) for k in rec["stages"][0]}
-        out: dict[str, Any] = {
-            "median_ms": statistics.median(rec["latency_ms"]),
-            "latency_ms": rec["latency_ms"],
-            "event_median_ms": statistics.median(rec["event_ms"]),
-            "event_ms": rec["event_ms"],
-            "cpu_median_ms": statistics.median(rec["cpu_ms"]),
-            "stages_ms": stages,
-            "other_median_ms": statistics.median(rec["other_ms"]),
-            "commit_median_ms": statistics.median(rec["commit_ms"]),
-            "eig_percentile": statistics.fmean(rec["pct"]),
-            "eig_percentiles": rec["pct"],
-            "picks": rec["picks"],
-            "peak_rss_mb": rec["peak_mb"],
-        }
-        if rec["head_pct"]:
-            out["head_eig_percentile"] = statistics.fmean(rec["head_pct"])
-            out["shortlist_best_eig_percentile"] = statistics.fmean(rec["shortlist_best_pct"])
-        if rec.get("evaluations"):
-            out["psi_evaluations"] = statistics.median(rec["evaluations"])
-        if rec.get("gradient_evals"):
-            out["gradient_evaluations"] = statistics.median(rec["gradient_evals"])
-            out["value_evaluations"] = statistics.median(rec["value_evals"])
-        if rec.get("psi_gain"):
-            out["psi_gain"] = statistics.fmean(rec["psi_gain"])
-        if rec.get("spearman"):
-            out["proxy_spearman"] = statistics.fmean(rec["spearman"])
-        methods_out[name] = out
+
+def summarise(args: argparse.Namespace, setup: Setup, plan: Plan,
+              timings: Timings) -> dict[str, Any]:
+    """The JSON: the settings and the machine, every entry's figures and its speed-ups over
+    the :data:`RATIOS` methods timed, the process's memory."""
+    methods_out = {name: rec.summary() for name, rec in timings.entries.items()}
     for ref in RATIOS:
         if ref not in methods_out:
             continue
@@ -393,7 +478,7 @@ def run(args: argparse.Namespace) -> int:
             out[f"event_speedup_vs_{ref}"] = r["event_median_ms"] / max(out["event_median_ms"],
                                                                        1e-9)
             out[f"cpu_speedup_vs_{ref}"] = r["cpu_median_ms"] / max(out["cpu_median_ms"], 1e-9)
-    result = {
+    result: dict[str, Any] = {
         "config": {
             "scene": str(args.scene),
             "pool": args.pool,
@@ -402,37 +487,42 @@ def run(args: argparse.Namespace) -> int:
             "height": args.height,
             "fov_deg": args.fov,
             "max_gaussians": args.max_gaussians,
-            "gaussians": len(gmap),
+            "gaussians": len(setup.gmap),
             "events": args.events,
             "acquired": args.acquired,
             "orbit_scale": args.orbit_scale,
             "lam": args.lam,
             "seed": args.seed,
-            "device": (torch.cuda.get_device_name(device) if device.type == "cuda"
+            "device": (torch.cuda.get_device_name(plan.device) if plan.device.type == "cuda"
                        else "cpu"),
             "torch_threads": torch.get_num_threads(),
             "torch": torch.__version__,
             "cpu_count": os.cpu_count(),
             "platform": platform.platform(),
-            "methods": names,
+            "methods": plan.names,
         },
-        "base_rss_mb": base_rss,
+        "base_rss_mb": timings.base_rss_mb,
         # the kernel's high-water mark lags the sampled RSS by a little: the larger of both
-        "peak_rss_mb": max([peak_rss_mb(), base_rss] + [r["peak_mb"] for r in records.values()]),
-        "upkeep_ms": upkeep_ms,
+        "peak_rss_mb": max([peak_rss_mb(), timings.base_rss_mb]
+                           + [r.peak_mb for r in timings.entries.values()]),
+        "upkeep_ms": timings.upkeep_ms,
         "methods": methods_out,
     }
-    if device.type == "cuda":
-        result["gpu_base_mb"] = gpu_base / 2**20
-        result["gpu_peak_mb"] = torch.cuda.max_memory_allocated(device) / 2**20
-    _print_table(methods_out)
-    sys.stdout.write(f"RSS before the selections {base_rss:.0f} MiB; process peak "
+    if timings.gpu_base_mb is not None:
+        result["gpu_base_mb"] = timings.gpu_base_mb
+        result["gpu_peak_mb"] = timings.gpu_peak_mb
+    return result
+
+
+def write(result: dict[str, Any], json_out: str | None) -> None:
+    """The tables and the memory line on stdout; the JSON to ``json_out``."""
+    _print_table(result["methods"])
+    sys.stdout.write(f"RSS before the selections {result['base_rss_mb']:.0f} MiB; process peak "
                      f"{result['peak_rss_mb']:.0f} MiB\n")
-    if args.json_out:
-        Path(args.json_out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json_out).write_text(json.dumps(result, indent=2))
-        log.info("wrote %s", args.json_out)
-    return 0
+    if json_out:
+        Path(json_out).parent.mkdir(parents=True, exist_ok=True)
+        Path(json_out).write_text(json.dumps(result, indent=2))
+        log.info("wrote %s", json_out)
 
 
 def _print_table(methods: dict[str, Any]) -> None:

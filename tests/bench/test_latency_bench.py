@@ -67,6 +67,16 @@ def test_latency_bench_reports_every_method(tmp_path: Path) -> None:
         "shortlist_best_eig_percentile"
     ]
     assert "proxy_spearman" not in methods["random"]
+    # the keys the docs' tables and the notebook's scripts read
+    ratios = {f"{k}speedup_vs_{r}" for k in ("", "event_", "cpu_") for r in ("full_eig", "fisherrf")}
+    plain = {"median_ms", "latency_ms", "event_median_ms", "event_ms", "cpu_median_ms",
+             "stages_ms", "other_median_ms", "commit_median_ms", "eig_percentile",
+             "eig_percentiles", "picks", "peak_rss_mb"} | ratios
+    assert set(methods["random"]) == plain
+    assert set(methods["agile_plus"]) == plain | {
+        "head_eig_percentile", "shortlist_best_eig_percentile", "psi_evaluations",
+        "gradient_evaluations", "value_evaluations", "psi_gain", "proxy_spearman"}
+    assert set(res) == {"config", "base_rss_mb", "peak_rss_mb", "upkeep_ms", "methods"}
     assert res["peak_rss_mb"] >= res["base_rss_mb"] > 0
     assert all(m["peak_rss_mb"] >= res["base_rss_mb"] * 0.5 for m in methods.values())
 
