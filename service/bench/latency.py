@@ -302,7 +302,8 @@ class EntryRecord:
             self.psi_gain.append(sel.psi_trace[-1] / sel.psi_trace[0])
         pool_psi = sel.details.get("pool_proxy_psi")
         if pool_psi and len(pool_psi) == phi.numel():
-            proxy = torch.tensor([pool_psi[i] for i in range(phi.numel())], dtype=torch.float64)
+            proxy = torch.tensor([pool_psi[i] for i in range(phi.numel())], dtype=torch.float64,
+                                 device=phi.device)
             self.spearman.append(spearman(proxy, phi))
 
     def add_upkeep(self, upkeep_ms: float) -> None:

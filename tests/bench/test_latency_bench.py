@@ -7,6 +7,7 @@ import math
 import time
 from pathlib import Path
 
+import pytest
 import torch
 
 from agilegs.service.bench.latency import ANCHOR_STAGES, PeakRSS, densified
@@ -136,3 +137,15 @@ def test_a_scene_folder_is_read_and_a_bad_scene_is_one_line(tmp_path: Path) -> N
     assert len(_load_map(str(folder), 50, 0)) == 50
     with pytest.raises(SystemExit, match=r"^--scene .*nothing\.ply: "):
         _load_map(str(tmp_path / "nothing.ply"), 50, 0)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_latency_bench_on_the_gpu_without_the_full_pool_method(tmp_path: Path) -> None:
+    # the yardstick is then computed on the GPU: the proxy's ranks are compared there
+    out = tmp_path / "latency.json"
+    assert main(["bench", "latency", "--device", "cuda", "--max-gaussians", "200", "--pool",
+                 "8", "--shortlist", "3", "--width", "16", "--height", "16", "--events", "1",
+                 "--acquired", "1", "--methods", "agile,random", "--json", str(out)]) == 0
+    res = json.loads(out.read_text())
+    assert -1.0 <= res["methods"]["agile"]["proxy_spearman"] <= 1.0
+    assert res["gpu_peak_mb"] >= res["gpu_base_mb"] > 0

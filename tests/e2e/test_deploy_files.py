@@ -24,7 +24,9 @@ from typing import Any
 
 import httpx
 import pytest
+import torch
 from conftest import ROOT, free_port
+from pydantic import ValidationError
 
 from agilegs.service.cli import build_parser
 from agilegs.service.serve import build_settings
@@ -201,9 +203,15 @@ def test_the_image_installs_with_the_readme_commands() -> None:
     for command in installs:
         assert command in readme, f"docs/deploy.md lacks: {shlex.join(command)}"
     assert image_command() in readme, "docs/deploy.md lacks the image's serve command"
-    for command in readme:  # every serve command the README shows is valid
+    for command in readme:  # every serve command the page shows is valid
         if command[:2] == ["agilegs", "serve"]:
-            build_settings(serve_args(command))
+            args = serve_args(command)
+            if str(args.device).startswith("cuda") and not torch.cuda.is_available():
+                # a GPU workstation's command: here, refused naming the setting
+                with pytest.raises(ValidationError, match=r"device\n.*CUDA is not available"):
+                    build_settings(args)
+            else:
+                build_settings(args)
 
 
 def test_the_readme_docker_commands_fit_the_image() -> None:
