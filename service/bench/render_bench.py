@@ -66,7 +66,7 @@ def _build(scene: str | None, n: int, res: int) -> tuple[Any, Any]:
     import torch
 
     from agilegs.service.nbv.camera import Camera, look_at
-    from agilegs.service.nbv.gaussians import GaussianMap, load_scene
+    from agilegs.service.nbv.gaussians import load_scene
 
     if scene:
         gm = load_scene(scene, max_gaussians=n, seed=0)
@@ -74,17 +74,28 @@ def _build(scene: str | None, n: int, res: int) -> tuple[Any, Any]:
         eye = c + torch.tensor([0.0, -0.6, -1.6])
         c2w = look_at(eye, c)
     else:
-        g = torch.Generator().manual_seed(0)
-        gm = GaussianMap(
-            means=torch.rand(n, 3, generator=g) - 0.5,
-            log_scales=torch.log(torch.rand(n, 3, generator=g) * 0.02 + 0.005),
-            quats=torch.randn(n, 4, generator=g),
-            opacity_logits=torch.randn(n, generator=g),
-            sh=torch.randn(n, 1, 3, generator=g) * 0.3,
-        )
-        c2w = look_at(torch.tensor([0.0, 0.0, -2.0]), torch.zeros(3))
+        gm, c2w = random_cube(n)
     cam = Camera.from_c2w(c2w, fx=res, fy=res, cx=res / 2, cy=res / 2, width=res, height=res)
     return gm, cam
+
+
+def random_cube(n: int, sh_coeffs: int = 1) -> tuple[Any, Any]:
+    """``n`` seeded random Gaussians in the unit cube (``sh_coeffs`` SH coefficients each) and
+    a camera-to-world pose [4, 4] two units in front of it, looking at its centre."""
+    import torch
+
+    from agilegs.service.nbv.camera import look_at
+    from agilegs.service.nbv.gaussians import GaussianMap
+
+    g = torch.Generator().manual_seed(0)
+    gm = GaussianMap(
+        means=torch.rand(n, 3, generator=g) - 0.5,
+        log_scales=torch.log(torch.rand(n, 3, generator=g) * 0.02 + 0.005),
+        quats=torch.randn(n, 4, generator=g),
+        opacity_logits=torch.randn(n, generator=g),
+        sh=torch.randn(n, sh_coeffs, 3, generator=g) * 0.3,
+    )
+    return gm, look_at(torch.tensor([0.0, 0.0, -2.0]), torch.zeros(3))
 
 
 def _functions(gm: Any, cam: Any) -> dict[str, Callable[[], Any]]:
