@@ -5,7 +5,7 @@ Every flag has an ``AGILEGS_*`` environment variable (see :mod:`agilegs.service.
 a flag given on the command line wins. The bearer token is read from ``AGILEGS_TOKEN`` only
 (a command line is visible to every user of the machine).
 
-The state folder is claimed before anything else (:mod:`agilegs.service.state_dir`): a folder
+The state folder is claimed before anything else (:mod:`agilegs.service.store.state_dir`): a folder
 that cannot be created, is read-only, or is held by another server ends the command with one
 line on stderr and exit status 2. So do an HTTP address that cannot be bound (a port already
 taken: the HTTP socket is bound next, before the sessions load) and a Zenoh session that
@@ -63,7 +63,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
       help="serve agilegs' ROS 2 topics and services under NAMESPACE over Zenoh, as "
            "zenoh-bridge-ros2dds carries them (e.g. /bot1/agilegs); comma-separated or "
            "repeated (AGILEGS_ROS2; see docs/ros2.md)")
-    # several instances (see agilegs.service.cluster)
+    # several instances (see agilegs.service.transports.cluster)
     a("--zenoh-mode", choices=["peer", "client", "router"],
       help="Zenoh mode (AGILEGS_ZENOH_MODE, default peer; client: through a zenohd router)")
     a("--instance-id", help="this instance's id in a cluster "
@@ -112,7 +112,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--mapper-burst", type=int,
       help="mapper steps between two publications of the map (AGILEGS_MAPPER_BURST, 20)")
     a("--log-level", help="log level (AGILEGS_LOG_LEVEL, default info)")
-    # what one request may cost (see agilegs.service.admission)
+    # what one request may cost (see agilegs.service.transports.admission)
     a("--read-workers", type=int, help="threads running reads (AGILEGS_READ_WORKERS, 8)")
     a("--background-nice", type=int, help="lower OS priority of a session keeping compute "
                                           "queued (AGILEGS_BACKGROUND_NICE, 10)")
@@ -132,7 +132,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
       help="compute requests running or waiting in all (AGILEGS_MAX_QUEUED, 64)")
     a("--request-deadline", type=float,
       help="seconds a request may take (AGILEGS_REQUEST_DEADLINE, 300)")
-    # Zenoh security (see agilegs.service.zenoh_security)
+    # Zenoh security (see agilegs.service.transports.zenoh.security)
     a("--zenoh-tls-certificate", help="PEM certificate of the tls/ listen endpoints "
                                       "(AGILEGS_ZENOH_TLS_CERTIFICATE)")
     a("--zenoh-tls-private-key", help="its PEM key (AGILEGS_ZENOH_TLS_PRIVATE_KEY)")
@@ -230,9 +230,9 @@ def zenoh_start_error(exc: BaseException, settings: Any) -> str | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .http_edge import raise_file_limit, tune_allocator
     from .server import Server
-    from .state_dir import StateDirError
+    from .store.state_dir import StateDirError
+    from .transports.http.edge import raise_file_limit, tune_allocator
 
     settings = build_settings(args)
     tune_allocator()
@@ -254,16 +254,16 @@ def run(args: argparse.Namespace) -> int:
         return 2
     import uvicorn  # before the start, so that its objects are frozen with the server's
 
-    from .http_app import create_app
+    from .transports.http.app import create_app
 
-    app = create_app(settings, server, start=False)
+    app = create_app(server, start=False)
     failed = _start(server)
     if failed:
         sock.close()
         return failed
     log.info("agilegs serve: http://%s:%d (state in %s, zenoh %s)", settings.host, settings.port,
              settings.state_dir, "on" if settings.zenoh else "off")
-    from .http_edge import uvicorn_config
+    from .transports.http.edge import uvicorn_config
 
     raise_file_limit(settings.max_connections)
     config = uvicorn.Config(app, host=settings.host, port=settings.port,

@@ -36,7 +36,7 @@ class Settings(BaseSettings):
         default_factory=lambda: ["tcp/127.0.0.1:7447"], description="Zenoh listen endpoints"
     )
     zenoh_connect: Endpoints = Field(default_factory=list, description="Zenoh peers to connect")
-    # several instances (see agilegs.service.cluster)
+    # several instances (see agilegs.service.transports.cluster)
     zenoh_mode: Literal["peer", "client", "router"] = Field(
         default="peer", description="Zenoh mode: peer, or client of a router (zenohd)"
     )
@@ -57,7 +57,7 @@ class Settings(BaseSettings):
         default=512 << 20, ge=1 << 20, description="most bytes of request bodies being read "
         "or held by requests in flight together, priced from Content-Length before the body "
         "is read (503 with Retry-After beyond)")
-    # the HTTP edge (see agilegs.service.http_edge)
+    # the HTTP edge (see agilegs.service.transports.http.edge)
     header_timeout: float = Field(
         default=10.0, gt=0, description="seconds a connection has to send a request's "
         "complete headers (from its opening, or its previous response); then it is closed")
@@ -105,7 +105,7 @@ class Settings(BaseSettings):
         default=300.0, gt=0, description="seconds a request may take before it is cancelled "
         "at its next stage boundary (a request's X-Deadline-Ms header / Zenoh deadline_ms "
         "parameter may shorten it)")
-    # Zenoh security (see agilegs.service.zenoh_security)
+    # Zenoh security (see agilegs.service.transports.zenoh.security)
     zenoh_tls_certificate: Path | None = Field(
         default=None, description="PEM certificate of the tls/ listen endpoints (with "
         "zenoh_tls_private_key)")
@@ -132,12 +132,12 @@ class Settings(BaseSettings):
         "authentication (any peer that reaches the endpoints reads every session's data); "
         "by default a server with a token and no users file or mutual TLS makes its own "
         "Zenoh credentials in <state_dir>/zenoh")
-    # ROS 2 over Zenoh (see agilegs.service.ros2)
+    # ROS 2 over Zenoh (see agilegs.service.transports.ros2)
     ros2: Endpoints = Field(
         default_factory=list, description="ROS 2 namespaces served over Zenoh (CDR on the keys "
         "zenoh-bridge-ros2dds uses), e.g. /bot1/agilegs; needs zenoh"
     )
-    # the decisions feed (see agilegs.service.decisions)
+    # the decisions feed (see agilegs.service.sessions.decisions)
     max_poll_wait: float = Field(
         default=25.0, ge=0.0, le=60.0, description="longest wait of a decisions poll, and "
                                                    "longest decisions event stream (s)"

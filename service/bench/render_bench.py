@@ -86,8 +86,8 @@ def _functions(gm: Any, cam: Any) -> dict[str, Callable[[], Any]]:
     import torch
 
     from agilegs.service.bench.render_reference import baseline_fisher_diag, baseline_render
-    from agilegs.service.nbv.backend import Backend
     from agilegs.service.nbv.information import fisher_diag
+    from agilegs.service.nbv.kernels.backend import Backend
     from agilegs.service.nbv.rasterize import render
 
     def fwd() -> None:
@@ -120,7 +120,7 @@ def _timings(scene: str | None, n: int, res: int, repeats: int, threads: list[in
     """Interleaved rounds of every (kind, thread count): median CPU and wall ms."""
     import torch
 
-    from agilegs.service.nbv.backend import set_kernel_threads
+    from agilegs.service.nbv.kernels.backend import set_kernel_threads
 
     def use(kind: str, th: int) -> None:
         kernels = kind in KERNEL_KINDS
@@ -156,7 +156,7 @@ def _timings(scene: str | None, n: int, res: int, repeats: int, threads: list[in
 def _peak(scene: str | None, n: int, res: int, kind: str, threads: int) -> dict[str, float]:
     import torch
 
-    from agilegs.service.nbv.backend import set_kernel_threads
+    from agilegs.service.nbv.kernels.backend import set_kernel_threads
 
     torch.set_num_threads(1 if kind in KERNEL_KINDS else threads)
     set_kernel_threads(threads)

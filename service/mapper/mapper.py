@@ -52,10 +52,10 @@ from torch import Tensor
 
 from agilegs.config.mapper import MapperConfig
 from agilegs.service.data.images import View
+from agilegs.service.mapper.quality import ssim_loss
 from agilegs.service.nbv.camera import Camera
 from agilegs.service.nbv.gaussians import GaussianMap
 from agilegs.service.nbv.rasterize import render
-from agilegs.service.quality import ssim_loss
 
 from .densify import plan_densification
 from .points import backproject_depth, nearest_neighbour_scales

@@ -28,7 +28,7 @@ from ..errors import ServiceError, invalid, too_large
 from ..mapper import backproject_depth, nearest_neighbour_scales
 from ..nbv.camera import Camera, Intrinsics
 from ..nbv.gaussians import FIELD_NAMES, GaussianMap
-from ..store import SessionRecord, ViewRecord
+from ..store.write import SessionRecord, ViewRecord
 
 __all__ = [
     "Frame",

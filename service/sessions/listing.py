@@ -7,8 +7,8 @@ from __future__ import annotations
 from agilegs.schemas import models as m
 
 from ..errors import ServiceError, session_damaged
-from ..integrity import Damage
-from ..store import SessionRecord
+from ..store.integrity import Damage
+from ..store.write import SessionRecord
 
 __all__ = ["damage_out", "damaged_error", "damaged_summary", "record_summary"]
 

@@ -1,6 +1,6 @@
 """What a session's record says about its mapper: options, progress, steps owed.
 
-Pure functions of a :class:`~agilegs.service.store.SessionRecord` (no training here; the
+Pure functions of a :class:`~agilegs.service.store.write.SessionRecord` (no training here; the
 trainer in :mod:`agilegs.service.sessions.trainer` does that), shared by the sessions and the
 trainer.
 """
@@ -16,7 +16,7 @@ from pydantic import BaseModel
 from agilegs.schemas import models as m
 from agilegs.schemas.config import MapperConfig, patch_dict, validate_config
 
-from ..store import SessionRecord
+from ..store.write import SessionRecord
 
 __all__ = [
     "image_views",

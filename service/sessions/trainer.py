@@ -62,8 +62,8 @@ from ..errors import is_disk_full
 from ..mapper import Mapper, TopologyChange
 from ..nbv.camera import Camera
 from ..nbv.gaussians import GaussianMap
-from ..records import SessionRecord
 from ..settings import Settings
+from ..store.records import SessionRecord
 from .convert import nbv_intrinsics
 from .mapper_state import image_views, mapper_config, mapper_options, steps_per_view
 from .session import Session

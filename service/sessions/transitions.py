@@ -35,8 +35,8 @@ from ..nbv.camera import Intrinsics
 from ..nbv.gaussians import GaussianMap
 from ..nbv.information import accumulate_information, init_information
 from ..nbv.upkeep import information_of_views, view_information
-from ..records import SessionRecord, ViewRecord
 from ..settings import Settings
+from ..store.records import SessionRecord, ViewRecord
 from .convert import Frame, nbv_intrinsics, storable_state
 
 __all__ = [

@@ -1,4 +1,4 @@
-"""Several ``agilegs serve`` instances joined over Zenoh (service/cluster.py).
+"""Several ``agilegs serve`` instances joined over Zenoh (service/transports/cluster.py).
 
 Two real server processes with their own state folders, joined on loopback endpoints with scouting off (B connects to A's
 listener), are driven by one Zenoh client that knows only A's endpoint and by one HTTP client
@@ -28,7 +28,7 @@ from agilegs.client import (
     ZenohClient,
 )
 from agilegs.schemas import SelectResponse
-from agilegs.service.cluster import (
+from agilegs.service.transports.cluster import (
     instances_wildcard,
     parse_instance_key,
 )

@@ -147,7 +147,7 @@ def test_the_bridge_config_and_launch_file_load() -> None:
     plugin = conf.get_json("plugins/ros2dds")
     assert '"namespace"' in plugin and "agilegs/select" in plugin
     # closed as the server is: its users file, its user, access control on the agilegs keys
-    from agilegs.service.zenoh_security import ACL_MESSAGES, OWN_USER
+    from agilegs.service.transports.zenoh.security import ACL_MESSAGES, OWN_USER
 
     assert json.loads(conf.get_json("transport/auth/usrpwd/dictionary_file"))
     assert json.loads(conf.get_json("transport/auth/usrpwd/user")) == OWN_USER

@@ -92,7 +92,7 @@ def _error_line(done: subprocess.CompletedProcess[str]) -> str:
 
 
 def test_a_taken_port_or_endpoint_is_one_line_and_a_nonzero_exit(tmp_path: Path) -> None:
-    from agilegs.service.state_dir import is_claimed
+    from agilegs.service.store.state_dir import is_claimed
 
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))

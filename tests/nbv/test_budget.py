@@ -75,7 +75,6 @@ def _measure(q: Any, kind: str, n: int, res: int, pool: int, threads: int = 1) -
         torch.set_num_threads(threads)
         from agilegs.service.bench.latency import PeakRSS, densified
         from agilegs.service.data import bundled_scene
-        from agilegs.service.nbv import backend
         from agilegs.service.nbv.camera import Camera, Intrinsics
         from agilegs.service.nbv.candidates import capture_pool, scene_center_radius
         from agilegs.service.nbv.gaussians import GaussianMap
@@ -84,6 +83,7 @@ def _measure(q: Any, kind: str, n: int, res: int, pool: int, threads: int = 1) -
             fisher_diag,
             init_information,
         )
+        from agilegs.service.nbv.kernels import backend
         from agilegs.service.nbv.rasterize import render
         from agilegs.service.nbv.selectors import SelectConfig, select
 

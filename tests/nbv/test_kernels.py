@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 import torch
 
-from agilegs.service.nbv import backend
 from agilegs.service.nbv.camera import Camera, look_at
 from agilegs.service.nbv.gaussians import FIELD_NAMES, GaussianMap
 from agilegs.service.nbv.information import (
@@ -18,6 +17,7 @@ from agilegs.service.nbv.information import (
     projection_jacobians,
     screen_second_moments,
 )
+from agilegs.service.nbv.kernels import backend
 from agilegs.service.nbv.methods.fisherrf import fisherrf_hessian
 from agilegs.service.nbv.rasterize import render
 

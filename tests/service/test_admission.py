@@ -22,16 +22,16 @@ from PIL import Image
 from agilegs.schemas import codec
 from agilegs.schemas import models as m
 from agilegs.schemas.errors import ErrorCode
-from agilegs.service.admission import (
+from agilegs.service.errors import ServiceError
+from agilegs.service.nbv import cancel
+from agilegs.service.settings import Settings
+from agilegs.service.transports.admission import (
     Admission,
     Ticket,
     count_values,
     decoded_bytes,
     image_size,
 )
-from agilegs.service.errors import ServiceError
-from agilegs.service.nbv import cancel
-from agilegs.service.settings import Settings
 
 BOUNDS = {"min": [-0.5] * 3, "max": [0.5] * 3}
 
@@ -71,7 +71,7 @@ def _random_data(rng: np.random.Generator, depth: int = 0) -> Any:
 
 
 def test_msgpack_value_count_matches_the_decoded_data() -> None:
-    from agilegs.service.admission import _msgpack_values
+    from agilegs.service.transports.admission import _msgpack_values
 
     rng = np.random.default_rng(0)
     for _ in range(60):

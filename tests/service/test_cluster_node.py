@@ -11,7 +11,9 @@ from typing import Any
 import pytest
 
 from agilegs.schemas import models as m
-from agilegs.service.cluster import (
+from agilegs.service.errors import ServiceError
+from agilegs.service.settings import Settings
+from agilegs.service.transports.cluster import (
     ClusterNode,
     default_instance_id,
     instance_key,
@@ -19,8 +21,6 @@ from agilegs.service.cluster import (
     parse_instance_key,
     placement_order,
 )
-from agilegs.service.errors import ServiceError
-from agilegs.service.settings import Settings
 
 
 def test_placement_prefers_the_fewest_sessions_then_the_smallest_id() -> None:

@@ -16,8 +16,8 @@ from conftest import SMALL_INTRINSICS, InProcess, ring_poses
 from agilegs.client import AuthenticationError, NotFoundError, ValidationError
 from agilegs.schemas import codec
 from agilegs.schemas.models import Candidate, Pose, SelectResponse
-from agilegs.service.decisions import DecisionLog
-from agilegs.service.gateway import Request
+from agilegs.service.sessions.decisions import DecisionLog
+from agilegs.service.transports.gateway import Request
 
 BOUNDS = {"min": [-0.5] * 3, "max": [0.5] * 3}
 TOKEN = "feed-token"
@@ -336,7 +336,7 @@ def test_the_feed_needs_the_token(api_factory: Any) -> None:
 
 def test_the_stream_says_what_it_missed_and_keeps_alive(api_factory: Any,
                                                         monkeypatch: pytest.MonkeyPatch) -> None:
-    from agilegs.service import http_decisions
+    from agilegs.service.transports.http import decisions as http_decisions
 
     monkeypatch.setattr(http_decisions, "HEARTBEAT_S", 0.3)
     api = api_factory(decision_log=2)

@@ -33,8 +33,8 @@ from agilegs.client import (
     ObservationIn,
     SessionDamagedError,
 )
-from agilegs.service.integrity import decode_manifest
-from agilegs.service.store import MANIFEST, SessionStore
+from agilegs.service.store.integrity import decode_manifest
+from agilegs.service.store.write import MANIFEST, SessionStore
 
 BOUNDS = {"min": [-0.5] * 3, "max": [0.5] * 3}
 POOL = ring_poses(8)
@@ -373,8 +373,8 @@ def _fill_disk(mp: pytest.MonkeyPatch, match: str) -> None:
 def test_a_full_disk_during_a_map_publication_is_retried(tmp_path: Path,
                                                          monkeypatch: pytest.MonkeyPatch) -> None:
     from agilegs.service.sessions.registry import SessionRegistry
+    from agilegs.service.sessions.trainer import Trainer
     from agilegs.service.settings import Settings
-    from agilegs.service.trainer import Trainer
 
     core = SessionRegistry(Settings(state_dir=tmp_path / "state", zenoh=False, workers=2,
                                     mapper=False, mapper_steps_per_view=4, mapper_burst=4))

@@ -13,9 +13,9 @@ from conftest import SMALL_INTRINSICS, ring_poses
 from agilegs.schemas import codec
 from agilegs.schemas import models as m
 from agilegs.schemas.errors import ErrorBody, ErrorInfo
-from agilegs.service.gateway import Forwarded, Gateway, Request
 from agilegs.service.sessions.registry import SessionRegistry
 from agilegs.service.settings import Settings
+from agilegs.service.transports.gateway import Forwarded, Gateway, Request
 
 VIEW = m.View(id=4, pose=m.Pose.from_matrix(ring_poses(1)[0]), candidate_id=2, intrinsics=None,
               has_image=False, has_depth=False, created_at=1.0)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from agilegs.service.quality import lpips_available, psnr, ssim, ssim_loss, ssim_map
+from agilegs.service.mapper.quality import lpips_available, psnr, ssim, ssim_loss, ssim_map
 
 skimage_metrics = pytest.importorskip("skimage.metrics")
 ndimage = pytest.importorskip("scipy.ndimage")
@@ -109,7 +109,7 @@ def test_lpips_not_available_here() -> None:
     # no LPIPS weights ship with this project or its test machines; nothing is downloaded
     assert isinstance(lpips_available(), bool)
     if not lpips_available():
-        from agilegs.service.quality import lpips
+        from agilegs.service.mapper.quality import lpips
 
         with pytest.raises(RuntimeError, match="not available"):
             lpips(torch.zeros(8, 8, 3), torch.zeros(8, 8, 3))

@@ -30,8 +30,8 @@ from agilegs.schemas.models import (
     SelectResponse,
     SessionCreate,
 )
-from agilegs.service.ros2.assembler import DEPTH_SYNC_NS, FrameAssembler
-from agilegs.service.ros2.convert import (
+from agilegs.service.transports.ros2.assembler import DEPTH_SYNC_NS, FrameAssembler
+from agilegs.service.transports.ros2.convert import (
     Binding,
     create_body,
     decision_msgs,
@@ -224,7 +224,7 @@ def test_incomplete_frames_are_dropped_past_their_deadline() -> None:
     ("observations.0.image.data", "image"), ("body", "camera_pose"), (None, "camera_pose"),
 ])
 def test_a_refused_frame_names_the_part_at_fault(field: str | None, topic: str) -> None:
-    from agilegs.service.ros2.adapter import faulty_part
+    from agilegs.service.transports.ros2.adapter import faulty_part
 
     # the part whose arrival completed the frame (here its pose) is named only when the field
     # names no part

@@ -16,7 +16,7 @@ from readonly import read_only_folder
 
 from agilegs.service.server import Server
 from agilegs.service.settings import Settings
-from agilegs.service.state_dir import (
+from agilegs.service.store.state_dir import (
     LOCK_FILE,
     StateDirError,
     claim_state_dir,
@@ -46,7 +46,7 @@ def test_a_second_claim_is_refused_naming_the_holder(tmp_path: Path) -> None:
 
 HOLD = textwrap.dedent("""
     import sys, time
-    from agilegs.service.state_dir import claim_state_dir
+    from agilegs.service.store.state_dir import claim_state_dir
     lock = claim_state_dir(sys.argv[1], command="agilegs serve", instance="killed-1")
     print("held", flush=True)
     time.sleep(600)

@@ -16,7 +16,9 @@ from conftest import SMALL_INTRINSICS, ring_poses
 
 from agilegs.schemas import ObservationIn
 from agilegs.service.errors import ServiceError
-from agilegs.service.integrity import (
+from agilegs.service.sessions.registry import SessionRegistry
+from agilegs.service.settings import Settings
+from agilegs.service.store.integrity import (
     Damage,
     DamagedFile,
     ManifestError,
@@ -24,9 +26,7 @@ from agilegs.service.integrity import (
     decode_manifest,
     encode_manifest,
 )
-from agilegs.service.sessions.registry import SessionRegistry
-from agilegs.service.settings import Settings
-from agilegs.service.store import MANIFEST, PREVIOUS, SessionStore
+from agilegs.service.store.write import MANIFEST, PREVIOUS, SessionStore
 
 BOUNDS = {"min": [-0.5] * 3, "max": [0.5] * 3}
 POOL = ring_poses(8)

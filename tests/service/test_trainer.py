@@ -22,8 +22,8 @@ from agilegs.service.nbv.gaussians import GaussianMap
 from agilegs.service.nbv.information import accumulate_information, fisher_diag, init_information
 from agilegs.service.nbv.rasterize import render
 from agilegs.service.sessions.registry import SessionRegistry
+from agilegs.service.sessions.trainer import SessionTrainer, compose_src
 from agilegs.service.settings import Settings
-from agilegs.service.trainer import SessionTrainer, compose_src
 
 POSES = ring_poses(12, radius=2.0, height=-0.4)
 INTR = Intrinsics(**SMALL_INTRINSICS)
@@ -145,7 +145,7 @@ def initial_map(core: SessionRegistry, sid: str) -> GaussianMap:
 
 
 def psnr_of_map(g: GaussianMap) -> float:
-    from agilegs.service.quality import psnr
+    from agilegs.service.mapper.quality import psnr
 
     vals = []
     for i in (1, 5, 9):  # views the mapper never saw

@@ -17,17 +17,17 @@ from conftest import SMALL_INTRINSICS, ring_poses
 from agilegs.schemas import ObservationIn
 from agilegs.schemas import models as m
 from agilegs.service.errors import ServiceError
-from agilegs.service.integrity import decode_manifest
 from agilegs.service.nbv.camera import Camera, Intrinsics
 from agilegs.service.nbv.gaussians import GaussianMap
 from agilegs.service.nbv.information import accumulate_information, fisher_diag, init_information
-from agilegs.service.records import SessionRecord
 from agilegs.service.sessions import transitions as tr
 from agilegs.service.sessions.convert import parse_frame
 from agilegs.service.sessions.registry import SessionRegistry
 from agilegs.service.sessions.selection import select_step
 from agilegs.service.sessions.session import changed_roles
 from agilegs.service.settings import Settings
+from agilegs.service.store.integrity import decode_manifest
+from agilegs.service.store.records import SessionRecord
 
 POOL = ring_poses(16)
 INTR = Intrinsics(**SMALL_INTRINSICS)

@@ -10,7 +10,7 @@ folder, HTTP only) and plays a simulated robot written with the client SDK
    capture around the object (:func:`~agilegs.service.nbv.candidates.capture_pool`); the
    held-out test views lie on orbits between the pool's rings. With a posed capture as
    ``--scene`` (COLMAP, transforms.json, rosbag2) the robot replays it instead
-   (:class:`~agilegs.service.capture_robot.CaptureRobot`): the pool is its frames, a chosen
+   (:class:`~agilegs.service.demo.capture_robot.CaptureRobot`): the pool is its frames, a chosen
    frame returns its photograph, the test views are its held-out frames.
 2. Two sessions, AGILE-GS+ and Random, are created from the same initial RGB-D frames (the
    server initialises each map by back-projecting the depth and its mapper trains it), with
@@ -210,10 +210,10 @@ class Robot:
 
     def psnr(self, arrays: dict[str, np.ndarray]) -> float:
         """Mean PSNR (dB) of a downloaded map on the held-out test views."""
+        from agilegs.service.mapper.quality import psnr
         from agilegs.service.nbv.camera import Camera
         from agilegs.service.nbv.gaussians import GaussianMap
         from agilegs.service.nbv.rasterize import render
-        from agilegs.service.quality import psnr
 
         torch = self._torch
         gmap = GaussianMap(**{k: torch.from_numpy(v.copy()) for k, v in arrays.items()})
@@ -229,10 +229,10 @@ class Robot:
 
 def make_robot(scene: str, size: DemoSize, seed: int, work_dir: Path) -> tuple[Any, DemoSize]:
     """The robot for ``--scene`` and the demo's size fitted to it: a splat scene's rendering
-    :class:`Robot`, or a :class:`~agilegs.service.capture_robot.CaptureRobot` that replays a
+    :class:`Robot`, or a :class:`~agilegs.service.demo.capture_robot.CaptureRobot` that replays a
     posed capture, whose pool and test views are the capture's (the events capped by the
     pool; its starting map is written to ``work_dir``)."""
-    from agilegs.service.capture_robot import CaptureRobot, is_capture, load_capture
+    from agilegs.service.demo.capture_robot import CaptureRobot, is_capture, load_capture
 
     if not is_capture(scene):
         return Robot(scene, size, seed), size

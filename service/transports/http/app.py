@@ -1,10 +1,10 @@
 """The HTTP transport: a FastAPI app whose routes hand every request to the gateway.
 
 Every operation of :data:`agilegs.schemas.ops.OPERATIONS` is one route (see
-:mod:`agilegs.service.http_routes`); bodies are JSON or msgpack by Content-Type, responses by
-Accept. ``/healthz`` (liveness), ``/readyz`` (readiness: 503 with the reason while the
+:mod:`agilegs.service.transports.http.routes`); bodies are JSON or msgpack by Content-Type,
+responses by Accept. ``/healthz`` (liveness), ``/readyz`` (readiness: 503 with the reason while the
 server is saturated, :meth:`Admission.saturation
-<agilegs.service.admission.Admission.saturation>`) and ``/metrics`` answer on the event
+<agilegs.service.transports.admission.Admission.saturation>`) and ``/metrics`` answer on the event
 loop. Errors, whatever raised them, are the :class:`~agilegs.schemas.errors.ErrorBody` of
 :mod:`agilegs.schemas.errors`. The app's lifespan starts (unless told otherwise) and stops the
 :class:`~agilegs.service.server.Server` it serves.
@@ -19,6 +19,7 @@ from __future__ import annotations
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from typing import Protocol
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -31,13 +32,13 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 from agilegs.schemas import codec
 from agilegs.schemas.errors import ErrorCode, ErrorItem
 
-from .errors import ServiceError, field_path
-from .gateway import Gateway
-from .http_openapi import DESCRIPTION, build_openapi
-from .http_routes import build_router, response
-from .metrics import CONTENT_TYPE_LATEST
-from .server import Server
-from .settings import Settings
+from ...errors import ServiceError, field_path
+from ...sessions.registry import SessionRegistry
+from ...settings import Settings
+from ..gateway import Gateway
+from ..metrics import CONTENT_TYPE_LATEST, Metrics
+from .openapi import DESCRIPTION, build_openapi
+from .routes import build_router, response
 
 __all__ = ["create_app", "route_methods"]
 
@@ -81,12 +82,23 @@ class BearerAuth:
         await self.app(scope, receive, send)
 
 
-def create_app(settings: Settings, server: Server | None = None, *, start: bool = True
-               ) -> FastAPI:
-    """The FastAPI app of ``server`` (default: a new one on ``settings``); its lifespan
-    starts the server (sessions loaded, Zenoh joined; with ``start=False`` the caller has
-    started it) and stops it on shutdown."""
-    server = server or Server(settings)
+class Served(Protocol):
+    """What the app serves: one server instance (:class:`agilegs.service.server.Server`)."""
+
+    settings: Settings
+    gateway: Gateway
+    registry: SessionRegistry
+    metrics: Metrics
+
+    def start(self) -> None: ...
+
+    def close(self) -> None: ...
+
+
+def create_app(server: Served, *, start: bool = True) -> FastAPI:
+    """The FastAPI app of ``server``; its lifespan starts the server (sessions loaded, Zenoh
+    joined; with ``start=False`` the caller has started it) and stops it on shutdown."""
+    settings = server.settings
     gateway = server.gateway
 
     @asynccontextmanager

@@ -1,7 +1,7 @@
 """What a request may cost, checked before the work: memory, queueing, and deadlines.
 
 Every request goes through :class:`Admission` on its way to a worker thread
-(:meth:`agilegs.service.gateway.Gateway.submit`):
+(:meth:`agilegs.service.transports.gateway.Gateway.submit`):
 
 - **Reads and compute apart.** Reads (:data:`READ_OPS`: a session's state, pool, views,
   information, Gaussians and decisions, the session list) run on their own threads; they take
@@ -50,8 +50,8 @@ from agilegs.schemas import codec
 from agilegs.schemas import models as m
 from agilegs.schemas.errors import ErrorCode
 
-from .errors import ServiceError
-from .settings import Settings
+from ..errors import ServiceError
+from ..settings import Settings
 
 __all__ = ["CLIENT_CLOSED", "CLIENT_GONE", "READ_OPS", "Admission", "Ticket", "count_values",
            "decoded_bytes", "parse_deadline_ms", "request_decoded_bytes"]

@@ -94,14 +94,14 @@ from agilegs.schemas.keys import (
 )
 from agilegs.schemas.ops import OPERATIONS, Operation
 
-from .errors import ServiceError
+from ..errors import ServiceError
 from .gateway import Forwarded
 
 if TYPE_CHECKING:
     from concurrent.futures import Executor
 
-    from .sessions.registry import SessionRegistry
-    from .settings import Settings
+    from ..sessions.registry import SessionRegistry
+    from ..settings import Settings
 
 __all__ = [
     "INSTANCES",

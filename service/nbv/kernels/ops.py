@@ -1,6 +1,6 @@
 """The compiled kernels behind torch: autograd functions for the projection and the
 compositing, and the one-pass Fisher, over :mod:`agilegs.service.nbv.kernels` (which path
-serves a call is :mod:`agilegs.service.nbv.backend`'s choice: these functions assume the
+serves a call is :mod:`agilegs.service.nbv.kernels.backend`'s choice: these functions assume the
 kernels apply).
 
 Every call holds the backend's lock while it uses the shared scratch buffers and runs each
@@ -16,7 +16,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from agilegs.service.nbv.backend import (
+from agilegs.service.nbv.camera import Camera
+from agilegs.service.nbv.gaussians import FIELD_NAMES, GaussianMap
+from agilegs.service.nbv.kernels.backend import (
     _LOCK,
     _WORKSPACE,
     _camera_vector,
@@ -28,8 +30,6 @@ from agilegs.service.nbv.backend import (
     _scalars,
     _threads,
 )
-from agilegs.service.nbv.camera import Camera
-from agilegs.service.nbv.gaussians import FIELD_NAMES, GaussianMap
 from agilegs.service.nbv.projection import Projected
 
 __all__ = [

@@ -10,7 +10,7 @@ still load, unchecked.
 
 A file that does not check out is a :class:`FileProblem` (which file, what is wrong); a
 session with any is a :class:`Damage`, which also says what a repair would restore
-(:meth:`agilegs.service.store.SessionStore.repair`).
+(:meth:`agilegs.service.store.write.SessionStore.repair`).
 """
 
 from __future__ import annotations

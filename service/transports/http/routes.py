@@ -4,13 +4,13 @@ the gateway.
 Each route checks that the response type is acceptable (406) and reads the body, refusing
 more than ``max_body_bytes`` (413) before it has all arrived, and its bytes beyond the
 server's budget of bodies in flight (503, :meth:`Admission.reserve_body
-<agilegs.service.admission.Admission.reserve_body>`) before reading them; a client that hangs
-up mid-body is logged at INFO and counted as 499; then the gateway admits it and
+<agilegs.service.transports.admission.Admission.reserve_body>`) before reading them; a client that
+hangs up mid-body is logged at INFO and counted as 499; then the gateway admits it and
 a worker thread runs its pipeline (:meth:`Gateway.submit
-<agilegs.service.gateway.Gateway.submit>`). The ``X-Deadline-Ms`` header shortens the
+<agilegs.service.transports.gateway.Gateway.submit>`). The ``X-Deadline-Ms`` header shortens the
 request's deadline; a client that disconnects before the answer cancels its request at the
 next stage boundary. ``/healthz`` answers on the event loop, never behind session work. The
-decisions feed's long poll and event stream are :mod:`agilegs.service.http_decisions`.
+decisions feed's long poll and event stream are :mod:`agilegs.service.transports.http.decisions`.
 """
 
 from __future__ import annotations
@@ -30,13 +30,13 @@ from agilegs.schemas.errors import ErrorCode
 from agilegs.schemas.models import SESSION_ID_PATTERN
 from agilegs.schemas.ops import OPERATIONS, Operation
 
-from .admission import CLIENT_CLOSED, CLIENT_GONE, Ticket, parse_deadline_ms
-from .errors import ServiceError
-from .gateway import Gateway, Reply
-from .gateway import Request as GatewayRequest
-from .http_decisions import decisions_endpoint
-from .http_edge import TIMED_OUT, release_memory
-from .http_openapi import route_openapi
+from ...errors import ServiceError
+from ..admission import CLIENT_CLOSED, CLIENT_GONE, Ticket, parse_deadline_ms
+from ..gateway import Gateway, Reply
+from ..gateway import Request as GatewayRequest
+from .decisions import decisions_endpoint
+from .edge import TIMED_OUT, release_memory
+from .openapi import route_openapi
 
 __all__ = ["build_router", "read_body", "response", "run_pipeline"]
 

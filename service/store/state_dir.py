@@ -30,7 +30,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from .errors import is_disk_full
+from ..errors import is_disk_full
 
 __all__ = ["LOCK_FILE", "StateDirError", "StateLock", "claim_state_dir", "describe_holder",
            "is_claimed", "read_holder"]

@@ -3,8 +3,8 @@ the event loop, and ``Accept: text/event-stream`` gets server-sent events.
 
 Long poll (``GET /v1/sessions/{session}/decisions?after=N&wait=S``)
     For a session held here, the wait happens on the event loop
-    (:meth:`DecisionLog.wait_async <agilegs.service.decisions.DecisionLog.wait_async>`), then
-    the gateway's pipeline answers once, without waiting: a waiting poll holds no worker
+    (:meth:`DecisionLog.wait_async <agilegs.service.sessions.decisions.DecisionLog.wait_async>`),
+    then the gateway's pipeline answers once, without waiting: a waiting poll holds no worker
     thread. A session held by another instance of a cluster goes through the pipeline as
     is (forwarded with its wait).
 
@@ -36,8 +36,8 @@ from agilegs.schemas.decisions import DecisionsOut, DecisionsRequest
 from agilegs.schemas.errors import ErrorCode
 from agilegs.schemas.ops import Operation
 
-from .gateway import Gateway, Reply
-from .gateway import Request as GatewayRequest
+from ..gateway import Gateway, Reply
+from ..gateway import Request as GatewayRequest
 
 __all__ = ["EVENT_STREAM", "HEARTBEAT_S", "decisions_endpoint", "wants_events"]
 

@@ -35,11 +35,13 @@ thread (``torch.set_num_threads(1)``) and the kernels on the cores, or with
 
 from __future__ import annotations
 
+import importlib
 import logging
 import os
 import threading
 from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
+from types import SimpleNamespace
 from typing import Any, Literal, cast
 
 import numpy as np
@@ -60,6 +62,16 @@ _LOCK = threading.RLock()
 _kernels: Any = None
 _import_error: str | None = None
 _XY_CACHE: dict[tuple[int, str], np.ndarray] = {}
+_COMPILED: dict[str, tuple[str, ...]] = {
+    "binning": ("bin_count", "bin_fill", "reduce_entries", "visible_order"),
+    "common": ("CAM", "FWD", "MOMENTS", "REC"),
+    "coverage": ("coverage_terms",),
+    "projection": ("PHI_INDEX", "fisher_chain", "jacobians", "project", "project_backward"),
+    "proxy": ("proxy_psi",),
+    "walks": ("composite_backward", "composite_forward", "fisher_tiles"),
+}
+"""The compiled modules of this package and the names the wrappers call
+(:func:`kernel_module`)."""
 
 __all__ = [
     "BACKENDS",
@@ -101,9 +113,9 @@ def _load() -> Any:
     global _kernels, _import_error
     if _kernels is None and _import_error is None:
         try:
-            from agilegs.service.nbv import kernels as mod
-
-            _kernels = mod
+            mods = {m: importlib.import_module(f"{__package__}.{m}") for m in _COMPILED}
+            _kernels = SimpleNamespace(**{name: getattr(mods[m], name)
+                                          for m, names in _COMPILED.items() for name in names})
         except Exception as exc:  # numba missing or broken: the torch path serves
             _import_error = f"{type(exc).__name__}: {exc}"
             log.warning("compiled kernels unavailable, using the torch path (%s)", _import_error)
@@ -293,5 +305,6 @@ def run_in_parts(fn: Callable[[int, int], Any], items: int) -> None:
 
 
 def kernel_module() -> Any:
-    """The compiled kernels' module (None when numba does not import)."""
+    """The compiled kernels: the functions and constants of :data:`_COMPILED` as attributes
+    (None when numba does not import)."""
     return _load()

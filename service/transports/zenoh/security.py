@@ -43,7 +43,7 @@ from typing import Any
 from agilegs.client.zenoh_rpc import credentials
 from agilegs.schemas import keys
 
-from .settings import Settings
+from ...settings import Settings
 
 __all__ = ["ACL_MESSAGES", "OWN_USER", "DevCerts", "OwnCredentials", "acl_config",
            "agilegs_keys", "make_dev_certs", "needs_own_credentials", "own_credentials",

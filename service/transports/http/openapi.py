@@ -15,7 +15,7 @@ from agilegs.schemas.forms import RULES_KEY
 from agilegs.schemas.keys import INSTANCE_ID_PATTERN
 from agilegs.schemas.ops import OPERATIONS, Operation
 
-from .settings import Settings
+from ...settings import Settings
 
 __all__ = ["DESCRIPTION", "apply_limits", "build_openapi", "links", "route_openapi"]
 
@@ -84,7 +84,7 @@ def _request_body(op: Operation) -> dict[str, Any] | None:
         extra["parameters"] = [{
             "name": "instance", "in": "query", "required": False,
             "description": "create it on this instance (default: the instance with the fewest "
-                           "sessions, ties by smallest id; see agilegs.service.cluster)",
+                           "sessions, ties by smallest id; see agilegs.service.transports.cluster)",
             "schema": {"type": "string", "pattern": INSTANCE_ID_PATTERN},
         }]
     return extra

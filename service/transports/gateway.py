@@ -10,7 +10,7 @@ which does, once for every transport:
 3. decoding (JSON or msgpack by content type, 415 / 400; a raw .ply / .splat upload),
 4. validation against the operation's request model (422 naming every field), and the
    decoded size of its images reserved against the memory budgets (413 / 503, see
-   :mod:`agilegs.service.admission`),
+   :mod:`agilegs.service.transports.admission`),
 5. dispatch: here (:meth:`SessionRegistry.execute
    <agilegs.service.sessions.registry.SessionRegistry.execute>`), or through the
    :attr:`Gateway.router` to the instance that owns the session,
@@ -26,14 +26,14 @@ and validates it.
 
 Requests reach a worker through :meth:`Gateway.submit`, which admits them first (per-session
 and server-wide queue limits, 429 / 503) and runs reads and compute on separate threads; the
-request's :class:`~agilegs.service.admission.Ticket` (its deadline, or its client gone) is
-checked between the steps and inside long computations, and a cancelled request stops there
+request's :class:`~agilegs.service.transports.admission.Ticket` (its deadline, or its client gone)
+is checked between the steps and inside long computations, and a cancelled request stops there
 (504 ``deadline_exceeded``) having changed nothing.
 
 It returns a :class:`Reply` (status, bytes, media type); a write refused for lack of space
 is answered 507 ``insufficient_storage`` (and counted), a bug in a handler is logged and
-answered 500. The HTTP routes (:mod:`agilegs.service.http_routes`) and the Zenoh queryables
-and subscriptions (:mod:`agilegs.service.zenoh_adapter`) are glue around it.
+answered 500. The HTTP routes (:mod:`agilegs.service.transports.http.routes`) and the Zenoh
+queryables and subscriptions (:mod:`agilegs.service.transports.zenoh.adapter`) are glue around it.
 """
 
 from __future__ import annotations
@@ -56,6 +56,9 @@ from agilegs.schemas.errors import ErrorBody, ErrorCode
 from agilegs.schemas.models import SelectResponse
 from agilegs.schemas.ops import OPERATIONS
 
+from ..errors import ServiceError, insufficient_storage, invalid, is_disk_full
+from ..sessions.registry import QueryParams, SessionRegistry, parse_request
+from ..settings import Settings
 from .admission import (
     CLIENT_CLOSED,
     CLIENT_GONE,
@@ -65,10 +68,7 @@ from .admission import (
     count_values,
     request_decoded_bytes,
 )
-from .errors import ServiceError, insufficient_storage, invalid, is_disk_full
 from .metrics import Metrics
-from .sessions.registry import QueryParams, SessionRegistry, parse_request
-from .settings import Settings
 
 __all__ = ["RAW_TYPES", "Forwarded", "Gateway", "Reply", "Request", "Router",
            "request_media_types"]
@@ -172,7 +172,8 @@ class Forwarded:
 
 
 class Router(Protocol):
-    """Where an operation runs in a cluster (:class:`agilegs.service.cluster.ClusterNode`)."""
+    """Where an operation runs in a cluster
+    (:class:`agilegs.service.transports.cluster.ClusterNode`)."""
 
     def route(self, op: str, session: str | None, req: BaseModel | None, *,
               run_local: Callable[[], BaseModel], instance: str | None, local: bool

@@ -1,6 +1,6 @@
 """What a session holds, as persisted: :class:`SessionRecord` (immutable; a change builds a
 new one) and its acquired views, :class:`ViewRecord`; the names of the files in a session's
-folder (see :mod:`agilegs.service.store` for the layout)."""
+folder (see :mod:`agilegs.service.store.write` for the layout)."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ from typing import Any
 import numpy as np
 from torch import Tensor
 
+from ..nbv.gaussians import GaussianMap
 from .integrity import FORMAT
-from .nbv.gaussians import GaussianMap
 
 __all__ = ["MANIFEST", "PREVIOUS", "REQUIRED", "ROLES", "ROLE_FILE", "SESSION_NAME", "VIEWS",
            "SessionRecord", "ViewRecord", "view_id"]

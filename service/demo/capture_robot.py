@@ -127,9 +127,9 @@ class CaptureRobot:
 
     def psnr(self, arrays: dict[str, np.ndarray]) -> float:
         """Mean PSNR (dB) of a downloaded map on the capture's held-out photographs."""
+        from agilegs.service.mapper.quality import psnr
         from agilegs.service.nbv.gaussians import GaussianMap
         from agilegs.service.nbv.rasterize import render
-        from agilegs.service.quality import psnr
 
         torch = self._torch
         gmap = GaussianMap(**{k: torch.from_numpy(v.copy()) for k, v in arrays.items()})

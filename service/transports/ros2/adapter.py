@@ -4,7 +4,7 @@
 Every namespace it serves has one worker thread that handles, in arrival order (the order
 Zenoh received them), the namespace's topic messages and service requests, so that a frame
 published before a ``select`` request is applied before the selection. A message becomes a gateway
-:class:`~agilegs.service.gateway.Request` (transport ``ros2``) with a body built by
+:class:`~agilegs.service.transports.gateway.Request` (transport ``ros2``) with a body built by
 :mod:`.convert`: authentication, validation, errors, persistence, metrics and decision hooks
 are the ones of HTTP and Zenoh.
 
@@ -44,7 +44,7 @@ from agilegs.schemas import codec, keys
 from agilegs.schemas.errors import ErrorCode
 from agilegs.schemas.models import PoolOut, SelectResponse, SessionInfo
 
-from ..errors import ServiceError
+from ...errors import ServiceError
 from ..gateway import Gateway, Reply, Request
 from .assembler import Dropped, FrameAssembler
 from .convert import (

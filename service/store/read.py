@@ -1,9 +1,9 @@
 """Reading a session's folder back and checking it: every file against the checksums of
 its manifest, every tensor file against the shapes it must have (see
-:mod:`agilegs.service.integrity`).
+:mod:`agilegs.service.store.integrity`).
 
 :func:`inspect_folder` gives the session's record when everything checks out, else a
-:class:`~agilegs.service.integrity.Damage`: which files, what is wrong, and the state a
+:class:`~agilegs.service.store.integrity.Damage`: which files, what is wrong, and the state a
 repair starts from (the current version when only frames are damaged, else the previous
 version, ``manifest.prev.json``, when that one checks out).
 """
@@ -19,8 +19,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..nbv.gaussians import GaussianMap
 from .integrity import Damage, FileProblem, ManifestError, checksum, decode_manifest, read_checked
-from .nbv.gaussians import GaussianMap
 from .records import MANIFEST, PREVIOUS, REQUIRED, VIEWS, SessionRecord, ViewRecord, view_id
 
 __all__ = ["Version", "inspect_folder", "read_version"]

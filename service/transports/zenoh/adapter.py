@@ -2,21 +2,22 @@
 the gateway.
 
 Key expressions come from :mod:`agilegs.schemas.keys`. A query becomes a gateway
-:class:`~agilegs.service.gateway.Request` (its payload msgpack, or JSON when the query's
+:class:`~agilegs.service.transports.gateway.Request` (its payload msgpack, or JSON when the query's
 encoding says so, refused with 415 like over HTTP when it names another type; its attachment
 the credentials; its ``deadline_ms`` parameter its deadline, which the SDK sets to its query
 timeout) admitted and run in a worker thread (:meth:`Gateway.submit
-<agilegs.service.gateway.Gateway.submit>`), and is answered with
+<agilegs.service.transports.gateway.Gateway.submit>`), and is answered with
 the reply or an error reply carrying the same :class:`~agilegs.schemas.errors.ErrorBody` as
 over HTTP. Frames and pools published by a robot are applied in arrival order by one thread; a
 refused one is published on ``agilegs/<session>/errors``. Every decision made on this
 instance (over HTTP or Zenoh) is published on ``agilegs/<session>/decisions``.
 
 Who may connect and which keys they may use is Zenoh's own business, set up from the
-server's settings by :mod:`agilegs.service.zenoh_security` (TLS, usrpwd, access control).
+server's settings by :mod:`agilegs.service.transports.zenoh.security` (TLS, usrpwd, access control).
 
 Which keys this instance declares (the ``@service`` and ``@instances/<id>`` queryables, and
-each owned session's queryable and subscribers) is :mod:`agilegs.service.cluster`'s business.
+each owned session's queryable and subscribers) is :mod:`agilegs.service.transports.cluster`'s
+business.
 """
 
 from __future__ import annotations
@@ -31,12 +32,12 @@ from agilegs.client.zenoh_rpc import open_session
 from agilegs.schemas import codec, keys
 from agilegs.schemas.models import SelectResponse
 
-from .admission import parse_deadline_ms
-from .cluster import ClusterNode
-from .errors import ServiceError
-from .gateway import Gateway, Reply, Request
-from .settings import Settings
-from .zenoh_security import zenoh_settings
+from ...errors import ServiceError
+from ...settings import Settings
+from ..admission import parse_deadline_ms
+from ..cluster import ClusterNode
+from ..gateway import Gateway, Reply, Request
+from .security import zenoh_settings
 
 __all__ = ["ZenohAdapter", "content_type", "reply_kind"]
 

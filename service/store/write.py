@@ -4,7 +4,7 @@ when read back, and the version before it is kept.
 Layout under ``<state_dir>/sessions/<session>/``::
 
     manifest.json            small JSON: settings, counters, views, the file names below and
-                             their checksums; it checksums itself (agilegs.service.integrity)
+                             their checksums; it checksums itself (agilegs.service.store.integrity)
     manifest.prev.json       the previous version's manifest (what a rollback restores)
     gaussians.<v>.pt         the Gaussians (torch.save of the five tensors)
     information.<v>.pt       Ĥ per parameter block
@@ -22,7 +22,7 @@ fsynced; only then are the files that neither manifest names removed. A crash at
 leaves the old manifest and its files, or the new ones; a write refused for lack of space
 removes what it wrote and leaves the session as it was. :meth:`SessionStore.load_all` checks
 every file against the manifest's checksums and reports a session whose files do not check
-out as a :class:`~agilegs.service.integrity.Damage` (never skips it);
+out as a :class:`~agilegs.service.store.integrity.Damage` (never skips it);
 :meth:`SessionStore.repair` rolls such a session back to the previous version and drops
 damaged frames. Sessions are created in a hidden folder renamed into place, and deleted by
 renaming them aside before removing them.
@@ -55,6 +55,7 @@ from .integrity import (
     encode_manifest,
     read_checked,
 )
+from .read import inspect_folder
 from .records import (
     MANIFEST,
     PREVIOUS,
@@ -65,7 +66,6 @@ from .records import (
     SessionRecord,
     ViewRecord,
 )
-from .store_read import inspect_folder
 
 __all__ = ["MANIFEST", "PREVIOUS", "ROLES", "Repair", "SessionRecord", "SessionStore",
            "StoreError", "ViewRecord"]
@@ -315,7 +315,7 @@ class SessionStore:
     # ------------------------------------------------------------------ checking
     def inspect(self, sid: str) -> SessionRecord | Damage:
         """Session ``sid`` read back and checked (see
-        :func:`~agilegs.service.store_read.inspect_folder`)."""
+        :func:`~agilegs.service.store.read.inspect_folder`)."""
         return inspect_folder(self.session_dir(sid))
 
     # ------------------------------------------------------------------ repair

@@ -32,7 +32,7 @@ from typing import Any
 import h11
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
-from .settings import Settings
+from ...settings import Settings
 
 __all__ = ["TIMED_OUT", "EdgeProtocol", "raise_file_limit", "release_memory", "tune_allocator",
            "uvicorn_config"]
@@ -107,7 +107,7 @@ class EdgeProtocol(H11Protocol):
         if phase == "headers":
             log.debug("closing the connection of %s: no complete request headers within "
                       "%.0f s (header_timeout)", who, self.header_timeout)
-        else:  # the request reading the body logs it, once (agilegs.service.http_routes)
+        else:  # the request reading the body logs it, once (agilegs.service.transports.http.routes)
             self.scope[TIMED_OUT] = self.body_timeout  # type: ignore[literal-required]
             log.debug("closing the connection of %s: the body of %s %s did not arrive within "
                       "%.0f s (body_timeout)", who, self.scope.get("method"),
