@@ -21,9 +21,8 @@ from typing import Any
 from pydantic import BaseModel
 from pydantic import ValidationError as PydanticValidationError
 
-from agilegs.schemas import codec, keys
-from agilegs.schemas import models as m
-from agilegs.schemas.errors import ErrorBody
+from agilegs import schemas as m
+from agilegs.schemas import ErrorBody, codec, keys
 
 from . import _requests as rq
 from ._ops import ObservationLike, PoolLike, SyncOperations

@@ -188,7 +188,7 @@ class Settings(BaseSettings):
     @field_validator("ros2")
     @classmethod
     def _namespaces(cls, value: list[str]) -> list[str]:
-        from agilegs.client.ros2.keys import normalize_namespace
+        from agilegs.client.ros2 import normalize_namespace
 
         out = [normalize_namespace(v) for v in value]
         if len(set(out)) != len(out):

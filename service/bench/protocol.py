@@ -56,12 +56,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from agilegs.service.mapper import Mapper, MapperConfig
+from agilegs.config.mapper import MapperConfig
+from agilegs.config.selection import SelectConfig
+from agilegs.service.mapper.mapper import Mapper
 from agilegs.service.mapper.quality import lpips, lpips_available, psnr, ssim
 from agilegs.service.nbv.information import fisher_diag, init_information
-from agilegs.service.nbv.methods import get_method
+from agilegs.service.nbv.methods.base import get_method
 from agilegs.service.nbv.rasterize import render
-from agilegs.service.nbv.selectors import SelectConfig, select
+from agilegs.service.nbv.selectors import select
 from agilegs.service.sessions.transitions import (
     Limits,
     acquire,
@@ -74,7 +76,7 @@ from agilegs.service.store.records import SessionRecord
 
 from .profiles import RESULTS_FORMAT, Profile
 from .redundancy import run_redundancy
-from .scenes import BenchScene
+from .scene_model import BenchScene
 from .variants import Variant
 
 __all__ = [

@@ -59,7 +59,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from agilegs.client.ros2.bag import BagTopics, is_bag
+from agilegs.client.ros2 import BagTopics, is_bag
 from agilegs.service.nbv.camera import Camera, Intrinsics
 from agilegs.service.nbv.candidates import capture_pool, scene_center_radius
 from agilegs.service.nbv.gaussians import SUFFIXES, load_scene

@@ -302,8 +302,7 @@ def _load(url: str, args: argparse.Namespace, intr: dict[str, Any], scene: dict[
 def _neighbour(url: str, args: argparse.Namespace, intr: dict[str, Any],
                scene: dict[str, Any], poses: np.ndarray) -> dict[str, Any]:
     """The quiet session's select + commit round trips, alone and beside a flooded one."""
-    from agilegs.client import AgileGSError, Client
-    from agilegs.client.errors import APIError
+    from agilegs.client import AgileGSError, APIError, Client
 
     tag = f"{os.getpid()}"
     noisy = f"noisy-{tag}"

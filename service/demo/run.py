@@ -169,7 +169,8 @@ class Robot:
     def __init__(self, scene: str, size: DemoSize, seed: int) -> None:
         import torch
 
-        from agilegs.service.bench.scenes import orbit_cameras, render_references
+        from agilegs.service.bench.scene_model import orbit_cameras
+        from agilegs.service.bench.scenes import render_references
         from agilegs.service.data import bundled_scene
         from agilegs.service.nbv.camera import Intrinsics
         from agilegs.service.nbv.candidates import capture_pool, scene_center_radius

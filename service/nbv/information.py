@@ -34,8 +34,9 @@ from typing import Literal
 import torch
 from torch import Tensor
 
+from agilegs.config.selection import FIELD_NAMES
 from agilegs.service.nbv.camera import Camera, Intrinsics
-from agilegs.service.nbv.gaussians import FIELD_NAMES, GaussianMap
+from agilegs.service.nbv.gaussians import GaussianMap
 from agilegs.service.nbv.kernels.backend import Backend, resolve
 from agilegs.service.nbv.kernels.ops import kernel_fisher, kernel_jacobians, kernel_moments
 from agilegs.service.nbv.projection import Projected, project_map

@@ -32,8 +32,7 @@ from collections import OrderedDict, deque
 from collections.abc import Callable
 from contextlib import suppress
 
-from agilegs.schemas.decisions import DecisionEvent, DecisionsOut
-from agilegs.schemas.models import SelectResponse
+from agilegs.schemas import DecisionEvent, DecisionsOut, SelectResponse
 
 __all__ = ["CLOSED_KEPT", "DecisionLog"]
 

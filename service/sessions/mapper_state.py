@@ -13,10 +13,12 @@ from typing import Any
 
 from pydantic import BaseModel
 
-from agilegs.schemas import models as m
-from agilegs.schemas.config import MapperConfig, patch_dict, validate_config
+from agilegs import schemas as m
+from agilegs.config.mapper import MapperConfig
+from agilegs.config.types import validate_config
+from agilegs.schemas.config import patch_dict
 
-from ..store.write import SessionRecord
+from ..store.records import SessionRecord
 
 __all__ = [
     "image_views",

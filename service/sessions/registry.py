@@ -24,10 +24,9 @@ from typing import Any
 import torch
 from pydantic import BaseModel, ValidationError
 
-from agilegs.schemas import models as m
+from agilegs import schemas as m
+from agilegs.schemas import OPERATIONS, DecisionsOut, DecisionsRequest
 from agilegs.schemas.config import patch_dict
-from agilegs.schemas.decisions import DecisionsOut, DecisionsRequest
-from agilegs.schemas.ops import OPERATIONS
 
 from ..errors import (
     conflict,

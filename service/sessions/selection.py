@@ -17,9 +17,9 @@ import torch
 from pydantic import ValidationError
 from torch import Tensor
 
+from agilegs import schemas as m
 from agilegs.config.selection import SelectConfig
 from agilegs.config.types import deep_merge, validate_config
-from agilegs.schemas import models as m
 from agilegs.schemas.config import patch_dict
 from agilegs.schemas.errors import ErrorCode
 

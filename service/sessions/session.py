@@ -32,8 +32,8 @@ from typing import Any, Protocol
 import numpy as np
 from torch import Tensor
 
-from agilegs.schemas import models as m
-from agilegs.schemas.geometry import Intrinsics as WireIntrinsics
+from agilegs import schemas as m
+from agilegs.schemas import Intrinsics as WireIntrinsics
 
 from ..errors import not_found, session_damaged
 from ..nbv.cancel import checkpoint

@@ -56,10 +56,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from agilegs.schemas import models as m
+from agilegs import schemas as m
+from agilegs.schemas.mapper import MapperState
 
 from ..errors import is_disk_full
-from ..mapper import Mapper, TopologyChange
+from ..mapper.mapper import Mapper
+from ..mapper.topology import TopologyChange
 from ..nbv.camera import Camera
 from ..nbv.gaussians import GaussianMap
 from ..settings import Settings
@@ -158,7 +160,7 @@ class SessionTrainer:
         views = image_views(rec)
         published = int((rec.mapper or {}).get("steps", 0))
         if not options.enabled:
-            state: m.MapperState = "off"
+            state: MapperState = "off"
         elif self.failed(rec) or self.full_until is not None:
             state = "error"
         elif (self.pending(rec) > 0 or self.dirty or self.steps != published

@@ -30,7 +30,7 @@ import torch
 from torch import Tensor
 
 from ..errors import conflict, too_large, too_many
-from ..mapper import remap_per_gaussian
+from ..mapper.topology import remap_per_gaussian
 from ..nbv.camera import Intrinsics
 from ..nbv.gaussians import GaussianMap
 from ..nbv.information import accumulate_information, init_information

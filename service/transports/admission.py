@@ -46,8 +46,8 @@ from typing import Any
 
 from pydantic import BaseModel
 
+from agilegs import schemas as m
 from agilegs.schemas import codec
-from agilegs.schemas import models as m
 from agilegs.schemas.errors import ErrorCode
 
 from ..errors import ServiceError

@@ -79,10 +79,9 @@ from typing import TYPE_CHECKING, Any
 
 from pydantic import BaseModel, ValidationError
 
+from agilegs import schemas as m
 from agilegs.client.zenoh_rpc import Answer, first_answer, query
-from agilegs.schemas import codec, keys
-from agilegs.schemas import models as m
-from agilegs.schemas.errors import ErrorBody
+from agilegs.schemas import OPERATIONS, ErrorBody, Operation, codec, keys
 from agilegs.schemas.keys import (
     INSTANCE_ID_PATTERN,
     INSTANCE_OPS,
@@ -92,7 +91,6 @@ from agilegs.schemas.keys import (
     instances_wildcard,
     parse_instance_key,
 )
-from agilegs.schemas.ops import OPERATIONS, Operation
 
 from ..errors import ServiceError
 from .gateway import Forwarded

@@ -51,10 +51,8 @@ from typing import Any, Protocol
 
 from pydantic import BaseModel, ValidationError
 
-from agilegs.schemas import codec
-from agilegs.schemas.errors import ErrorBody, ErrorCode
-from agilegs.schemas.models import SelectResponse
-from agilegs.schemas.ops import OPERATIONS
+from agilegs.schemas import OPERATIONS, ErrorBody, SelectResponse, codec
+from agilegs.schemas.errors import ErrorCode
 
 from ..errors import ServiceError, insufficient_storage, invalid, is_disk_full
 from ..sessions.registry import QueryParams, SessionRegistry, parse_request

@@ -86,8 +86,7 @@ def _replay(args: argparse.Namespace) -> int:
 
 
 def _live(args: argparse.Namespace) -> int:
-    from agilegs.client import Client
-    from agilegs.client.errors import TransportError
+    from agilegs.client import Client, TransportError
 
     from .live import SessionViewer
 
@@ -95,7 +94,7 @@ def _live(args: argparse.Namespace) -> int:
     client: Any
     if args.zenoh:
         try:
-            from agilegs.client.zenoh_client import ZenohClient
+            from agilegs.client import ZenohClient
 
             client = ZenohClient([args.zenoh], token=token, wait=0,
                                  timeout=max(30.0, args.poll + 30.0),

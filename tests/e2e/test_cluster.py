@@ -22,16 +22,12 @@ from agilegs.client import (
     Client,
     ConflictError,
     NotFoundError,
-    ObservationIn,
     SessionUnavailableError,
     ValidationError,
     ZenohClient,
 )
-from agilegs.schemas import SelectResponse
-from agilegs.service.transports.cluster import (
-    instances_wildcard,
-    parse_instance_key,
-)
+from agilegs.schemas import ObservationIn, SelectResponse
+from agilegs.schemas.keys import instances_wildcard, parse_instance_key
 
 BOUNDS = {"min": [-0.5] * 3, "max": [0.5] * 3}
 

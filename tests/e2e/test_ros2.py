@@ -20,10 +20,10 @@ import numpy as np
 import pytest
 from conftest import ROOT, SMALL_INTRINSICS, ServerProcess, ring_poses
 
-from agilegs.client import Client, ObservationIn
+from agilegs.client import Client
 from agilegs.client.ros2.frames import matrix_to_pose_msg, pose_msg_to_matrix
 from agilegs.client.ros2.robot import Ros2Robot
-from agilegs.schemas import PoolIn, Pose, SelectResponse
+from agilegs.schemas import ObservationIn, PoolIn, Pose, SelectResponse
 
 NS = "/bot/agilegs"
 DEMO_NS = "/demo/agilegs"

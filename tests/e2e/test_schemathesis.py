@@ -136,7 +136,7 @@ def test_the_hooks_repair_exactly_what_json_schema_cannot_state() -> None:
         sys.path.remove(str(HERE))
     from pydantic import ValidationError
 
-    from agilegs.schemas import models as m
+    from agilegs import schemas as m
 
     body = {
         "intrinsics": {"fx": 5.0, "fy": 5.0, "cx": 1.0, "cy": 1.0, "width": 900, "height": 700},

@@ -16,8 +16,7 @@ import httpx
 import pytest
 from conftest import SMALL_INTRINSICS, gaussian_blob, ring_poses
 
-from agilegs.client import Client, ZenohClient
-from agilegs.client.errors import TransportError
+from agilegs.client import Client, TransportError, ZenohClient
 from agilegs.client.zenoh_rpc import (
     credentials,
     first_answer,

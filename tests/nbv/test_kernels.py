@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 import torch
 
+from agilegs.config.selection import FIELD_NAMES
 from agilegs.service.nbv.camera import Camera, look_at
-from agilegs.service.nbv.gaussians import FIELD_NAMES, GaussianMap
+from agilegs.service.nbv.gaussians import GaussianMap
 from agilegs.service.nbv.information import (
     fisher_diag,
     projection_jacobians,

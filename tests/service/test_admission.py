@@ -19,8 +19,8 @@ import pytest
 from conftest import SMALL_INTRINSICS, InProcess, ring_poses
 from PIL import Image
 
+from agilegs import schemas as m
 from agilegs.schemas import codec
-from agilegs.schemas import models as m
 from agilegs.schemas.errors import ErrorCode
 from agilegs.service.errors import ServiceError
 from agilegs.service.nbv import cancel

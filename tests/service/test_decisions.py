@@ -14,8 +14,7 @@ import pytest
 from conftest import SMALL_INTRINSICS, InProcess, ring_poses
 
 from agilegs.client import AuthenticationError, NotFoundError, ValidationError
-from agilegs.schemas import codec
-from agilegs.schemas.models import Candidate, Pose, SelectResponse
+from agilegs.schemas import Candidate, Pose, SelectResponse, codec
 from agilegs.service.sessions.decisions import DecisionLog
 from agilegs.service.transports.gateway import Request
 

@@ -7,8 +7,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from agilegs.schemas import OPERATIONS
 from agilegs.schemas.errors import ERROR_STATUS, ErrorCode
-from agilegs.schemas.ops import OPERATIONS
 from agilegs.service.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[2]

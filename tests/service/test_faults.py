@@ -27,14 +27,11 @@ import pytest
 from conftest import SMALL_INTRINSICS, ring_poses
 from inprocess import serve_in_process
 
-from agilegs.client import (
-    Client,
-    InsufficientStorageError,
-    ObservationIn,
-    SessionDamagedError,
-)
+from agilegs.client import Client, InsufficientStorageError, SessionDamagedError
+from agilegs.schemas import ObservationIn
 from agilegs.service.store.integrity import decode_manifest
-from agilegs.service.store.write import MANIFEST, SessionStore
+from agilegs.service.store.records import MANIFEST
+from agilegs.service.store.write import SessionStore
 
 BOUNDS = {"min": [-0.5] * 3, "max": [0.5] * 3}
 POOL = ring_poses(8)

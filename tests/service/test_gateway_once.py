@@ -10,9 +10,8 @@ from typing import Any
 import pytest
 from conftest import SMALL_INTRINSICS, ring_poses
 
-from agilegs.schemas import codec
-from agilegs.schemas import models as m
-from agilegs.schemas.errors import ErrorBody, ErrorInfo
+from agilegs import schemas as m
+from agilegs.schemas import ErrorBody, ErrorInfo, codec
 from agilegs.service.sessions.registry import SessionRegistry
 from agilegs.service.settings import Settings
 from agilegs.service.transports.gateway import Forwarded, Gateway, Request

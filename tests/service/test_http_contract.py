@@ -10,8 +10,8 @@ import msgpack
 import numpy as np
 from conftest import SMALL_INTRINSICS, InProcess, ring_poses
 
-from agilegs.schemas import PoolIn
-from agilegs.schemas.geometry import ORTHONORMAL_ATOL, Pose
+from agilegs.config.geometry import ORTHONORMAL_ATOL
+from agilegs.schemas import PoolIn, Pose
 
 BOUNDS = {"min": [-0.5] * 3, "max": [0.5] * 3}
 
@@ -94,7 +94,8 @@ def test_a_pool_sent_again_with_a_selection_changes_nothing(api: InProcess) -> N
 
 
 def test_a_session_may_start_from_rgb_frames_alone(api: InProcess) -> None:
-    from agilegs.client import ConflictError, ObservationIn
+    from agilegs.client import ConflictError
+    from agilegs.schemas import ObservationIn
 
     sid = _sid()
     frame = ObservationIn.from_numpy(ring_poses(3)[0], image=np.zeros((32, 32, 3), np.uint8))

@@ -16,13 +16,8 @@ import numpy as np
 import pytest
 from conftest import SMALL_INTRINSICS, InProcess, ring_poses
 
-from agilegs.client import (
-    AsyncClient,
-    ConflictError,
-    NotFoundError,
-    ObservationIn,
-    ValidationError,
-)
+from agilegs.client import AsyncClient, ConflictError, NotFoundError, ValidationError
+from agilegs.schemas import ObservationIn
 
 BOUNDS = {"min": [-0.5] * 3, "max": [0.5] * 3}
 

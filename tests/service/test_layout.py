@@ -193,3 +193,129 @@ def test_the_viewer_is_a_client_of_the_service() -> None:
         assert not _third_party(MODULES[name]) & {"torch", "fastapi", "uvicorn"}, name
         inside = {d for d in GRAPH[name] if d.startswith("agilegs.service")}
         assert all(d.startswith("agilegs.service.viewer") for d in inside), (name, inside)
+
+
+# The public faces: a package whose ``__init__`` gathers the names its users import (the wire
+# contract, the client SDK and its ROS 2 part). Every other module defines what it exports.
+FACES = ("agilegs.schemas", "agilegs.client", "agilegs.client.ros2")
+TREES = {name: ast.parse(path.read_text()) for name, path in MODULES.items()}
+
+
+def _only_imports(tree: ast.Module) -> bool:
+    """Whether a module's body is imports alone (besides its docstring, ``__all__`` and
+    ``if TYPE_CHECKING:`` blocks): it re-exports and defines nothing."""
+    body = tree.body[1:] if tree.body and isinstance(tree.body[0], ast.Expr) else tree.body
+    imports = 0
+    for node in body:
+        if isinstance(node, ast.ImportFrom | ast.Import):
+            imports += not (isinstance(node, ast.ImportFrom) and node.module == "__future__")
+        elif not (isinstance(node, ast.Assign) and ast.unparse(node.targets[0]) == "__all__"
+                  or isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test)):
+            return False
+    return imports > 0
+
+
+def test_no_module_only_re_exports() -> None:
+    assert _only_imports(ast.parse('"""x"""\nfrom .a import b\n__all__ = ["b"]\n'))
+    assert not _only_imports(ast.parse('"""x"""\nfrom .a import b\nc = b\n'))
+    assert not _only_imports(ast.parse('"""x"""\n'))
+    bad = [name for name, tree in TREES.items() if name not in FACES and _only_imports(tree)]
+    assert not bad, bad
+
+
+def _absolute(node: ast.ImportFrom, name: str | None, path: Path) -> str:
+    if not node.level or name is None:
+        return node.module or ""
+    base = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
+    return ".".join(base[: len(base) - node.level + 1] + ([node.module] if node.module else []))
+
+
+def _top_level(tree: ast.Module) -> list[ast.stmt]:
+    out: list[ast.stmt] = []
+    for node in tree.body:
+        out += node.body + node.orelse if isinstance(node, ast.If) else [node]
+    return out
+
+
+def _defines(module: str, name: str) -> bool:
+    for node in _top_level(TREES[module]):
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef):
+            if node.name == name:
+                return True
+        elif isinstance(node, ast.Assign | ast.AnnAssign):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            if any(isinstance(t, ast.Name) and t.id == name for t in targets):
+                return True
+    return False
+
+
+def _origin(module: str, name: str) -> str:
+    """The module that defines ``name``, followed from ``module`` through its imports."""
+    for _ in range(20):
+        if module not in TREES or _defines(module, name):
+            return module
+        for node in _top_level(TREES[module]):
+            if isinstance(node, ast.ImportFrom) and any(
+                    (a.asname or a.name) == name for a in node.names):
+                src = _absolute(node, module, MODULES[module])
+                alias = next(a for a in node.names if (a.asname or a.name) == name)
+                if f"{src}.{alias.name}" in MODULES:
+                    return f"{src}.{alias.name}"
+                module, name = src, alias.name
+                break
+        else:
+            return module
+    return module
+
+
+def _face_names(face: str) -> set[str]:
+    for node in TREES[face].body:
+        if isinstance(node, ast.Assign) and ast.unparse(node.targets[0]) == "__all__":
+            return set(ast.literal_eval(node.value))
+    return set()
+
+
+def _import_path(importer: str, module: str, name: str) -> str:
+    """The one path ``name`` is imported from: the face of its package when the face lists
+    it (and the importer is outside the package), else the module that defines it."""
+    origin = _origin(module, name)
+    for face in sorted(FACES, key=len, reverse=True):
+        inside = importer == face or importer.startswith(face + ".")
+        if (origin.startswith(face + ".") and name in _face_names(face) and not inside
+                and _origin(face, name) == origin):
+            return face
+    return origin
+
+
+def test_one_import_path_per_name() -> None:
+    """Every import of one of our names, in the package, the tests and the deploy files,
+    names the one path of :func:`_import_path` (no import through a module that merely
+    imported it)."""
+    modules = {path.resolve(): name for name, path in MODULES.items()}
+    files = [p for d in ("config", "schemas", "client", "service", "tests", "deploy")
+             for p in (ROOT / d).rglob("*.py")]
+    assert len(files) > len(MODULES)
+    bad = []
+    for path in files:
+        importer = modules.get(path.resolve())
+        for node in ast.walk(ast.parse(path.read_text())):
+            if not isinstance(node, ast.ImportFrom):
+                continue
+            module = _absolute(node, importer, path)
+            if module not in TREES:
+                continue
+            for a in node.names:
+                if f"{module}.{a.name}" not in MODULES:
+                    want = _import_path(importer or "", module, a.name)
+                    if want != module:
+                        bad.append(f"{path.relative_to(ROOT)}:{node.lineno}: {a.name} from "
+                                   f"{module}, not {want}")
+    assert not bad, "\n".join(bad)
+
+
+def test_the_import_path_rule_sees_a_second_path() -> None:
+    assert _import_path("tests", "agilegs.schemas.geometry", "Pose") == "agilegs.schemas"
+    assert _import_path("agilegs.schemas.views", "agilegs.schemas.geometry",
+                        "Pose") == "agilegs.schemas.geometry"
+    assert _import_path("tests", "agilegs.service.sessions.registry",
+                        "Settings") == "agilegs.service.settings"

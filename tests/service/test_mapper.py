@@ -9,15 +9,11 @@ import pytest
 import torch
 from conftest import SCENES
 
+from agilegs.config.mapper import MapperConfig
 from agilegs.service.data.images import View
-from agilegs.service.mapper import (
-    Mapper,
-    MapperConfig,
-    TopologyChange,
-    backproject_depth,
-    nearest_neighbour_scales,
-    remap_per_gaussian,
-)
+from agilegs.service.mapper.mapper import Mapper
+from agilegs.service.mapper.points import backproject_depth, nearest_neighbour_scales
+from agilegs.service.mapper.topology import TopologyChange, remap_per_gaussian
 from agilegs.service.nbv.camera import Camera, Intrinsics, look_at
 from agilegs.service.nbv.gaussians import SH_C0, GaussianMap
 from agilegs.service.nbv.rasterize import render

@@ -16,9 +16,9 @@ import pytest
 from conftest import InProcess, ring_poses
 from pydantic import BaseModel, ValidationError
 
-from agilegs.schemas import models as m
+from agilegs import schemas as m
+from agilegs.schemas import OPERATIONS
 from agilegs.schemas.forms import RULES_KEY
-from agilegs.schemas.ops import OPERATIONS
 
 EYE = np.eye(4).tolist()
 SKEW = [[1.0, 0.02, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0, 0, 0, 1]]

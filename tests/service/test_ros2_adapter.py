@@ -21,8 +21,7 @@ from conftest import SMALL_INTRINSICS, free_port, ring_poses
 from agilegs.client.ros2 import messages as m
 from agilegs.client.ros2.frames import matrix_to_pose_msg, pose_msg_to_matrix, rgb_image_msg
 from agilegs.client.ros2.robot import Ros2Robot
-from agilegs.schemas import codec
-from agilegs.schemas.errors import ErrorBody
+from agilegs.schemas import ErrorBody, codec
 from agilegs.service.server import Server
 from agilegs.service.settings import Settings
 
@@ -125,7 +124,7 @@ def test_a_robot_drives_a_session_with_cdr(served: tuple[Server, str]) -> None:
         for i, p in zip(answer.shortlist_ids, shortlist.poses, strict=True):
             np.testing.assert_allclose(pose_msg_to_matrix(p), ring_poses(8)[i], atol=1e-9)
         # a decision made over another transport is published to the robot too
-        from agilegs.schemas.models import SelectRequest
+        from agilegs.schemas import SelectRequest
 
         srv.gateway.execute("select", "r1", SelectRequest(method="random"))
         decisions.wait(2)

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from conftest import SMALL_INTRINSICS, ring_poses
 
+from agilegs.client.ros2 import FieldError
 from agilegs.client.ros2 import messages as m
 from agilegs.client.ros2.frames import (
-    FieldError,
     camera_info_msg,
     depth_image_msg,
     depth_to_array,
@@ -20,11 +20,11 @@ from agilegs.client.ros2.frames import (
     pose_msg_to_matrix,
     rgb_image_msg,
 )
-from agilegs.schemas.geometry import Pose
-from agilegs.schemas.models import (
+from agilegs.schemas import (
     Candidate,
     ObservationsIn,
     PoolIn,
+    Pose,
     ScoredCandidate,
     SelectRequest,
     SelectResponse,

@@ -26,7 +26,8 @@ from agilegs.service.store.integrity import (
     decode_manifest,
     encode_manifest,
 )
-from agilegs.service.store.write import MANIFEST, PREVIOUS, SessionStore
+from agilegs.service.store.records import MANIFEST, PREVIOUS
+from agilegs.service.store.write import SessionStore
 
 BOUNDS = {"min": [-0.5] * 3, "max": [0.5] * 3}
 POOL = ring_poses(8)

@@ -16,7 +16,7 @@ from inprocess import serve_in_process
 
 from agilegs.schemas import NDArray, ObservationIn
 from agilegs.service.errors import ServiceError
-from agilegs.service.mapper import remap_per_gaussian
+from agilegs.service.mapper.topology import remap_per_gaussian
 from agilegs.service.nbv.camera import Camera, Intrinsics
 from agilegs.service.nbv.gaussians import GaussianMap
 from agilegs.service.nbv.information import accumulate_information, fisher_diag, init_information

@@ -14,8 +14,8 @@ import pytest
 import torch
 from conftest import SMALL_INTRINSICS, ring_poses
 
+from agilegs import schemas as m
 from agilegs.schemas import ObservationIn
-from agilegs.schemas import models as m
 from agilegs.service.errors import ServiceError
 from agilegs.service.nbv.camera import Camera, Intrinsics
 from agilegs.service.nbv.gaussians import GaussianMap

@@ -16,8 +16,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from agilegs.config.selection import FIELD_NAMES
 from agilegs.service.nbv.camera import Camera
-from agilegs.service.nbv.gaussians import FIELD_NAMES, GaussianMap
+from agilegs.service.nbv.gaussians import GaussianMap
 from agilegs.service.nbv.kernels.backend import (
     _LOCK,
     _WORKSPACE,

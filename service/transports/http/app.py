@@ -25,18 +25,19 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import RedirectResponse, Response
 from fastapi_offline import FastAPIOffline
+from prometheus_client import CONTENT_TYPE_LATEST
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 from starlette.types import ASGIApp, Receive, Scope, Send
 
-from agilegs.schemas import codec
-from agilegs.schemas.errors import ErrorCode, ErrorItem
+from agilegs.schemas import ErrorItem, codec
+from agilegs.schemas.errors import ErrorCode
 
 from ...errors import ServiceError, field_path
 from ...sessions.registry import SessionRegistry
 from ...settings import Settings
 from ..gateway import Gateway
-from ..metrics import CONTENT_TYPE_LATEST, Metrics
+from ..metrics import Metrics
 from .openapi import DESCRIPTION, build_openapi
 from .routes import build_router, response
 

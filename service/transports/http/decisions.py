@@ -31,10 +31,8 @@ from fastapi import Request
 from fastapi.responses import Response, StreamingResponse
 from pydantic import BaseModel, ValidationError
 
-from agilegs.schemas import codec
-from agilegs.schemas.decisions import DecisionsOut, DecisionsRequest
+from agilegs.schemas import DecisionsOut, DecisionsRequest, Operation, codec
 from agilegs.schemas.errors import ErrorCode
-from agilegs.schemas.ops import Operation
 
 from ..gateway import Gateway, Reply
 from ..gateway import Request as GatewayRequest

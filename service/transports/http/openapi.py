@@ -9,11 +9,9 @@ from typing import Any
 from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
 
-from agilegs.schemas import codec
-from agilegs.schemas.errors import ErrorBody
+from agilegs.schemas import OPERATIONS, ErrorBody, Operation, codec
 from agilegs.schemas.forms import RULES_KEY
 from agilegs.schemas.keys import INSTANCE_ID_PATTERN
-from agilegs.schemas.ops import OPERATIONS, Operation
 
 from ...settings import Settings
 

@@ -25,10 +25,8 @@ from fastapi import APIRouter, Path, Request
 from fastapi.responses import Response
 from starlette.requests import ClientDisconnect
 
-from agilegs.schemas import codec
+from agilegs.schemas import OPERATIONS, SESSION_ID_PATTERN, Operation, codec
 from agilegs.schemas.errors import ErrorCode
-from agilegs.schemas.models import SESSION_ID_PATTERN
-from agilegs.schemas.ops import OPERATIONS, Operation
 
 from ...errors import ServiceError
 from ..admission import CLIENT_CLOSED, CLIENT_GONE, Ticket, parse_deadline_ms

@@ -37,12 +37,12 @@ from typing import Any
 
 import numpy as np
 
+from agilegs.client.ros2 import FieldError, Namespace
 from agilegs.client.ros2 import messages as m
-from agilegs.client.ros2.frames import FieldError, depth_to_array, image_to_rgb, intrinsics_of
-from agilegs.client.ros2.keys import INPUT_TOPICS, SERVICES, Namespace
-from agilegs.schemas import codec, keys
+from agilegs.client.ros2.frames import depth_to_array, image_to_rgb, intrinsics_of
+from agilegs.client.ros2.keys import INPUT_TOPICS, SERVICES
+from agilegs.schemas import PoolOut, SelectResponse, SessionInfo, codec, keys
 from agilegs.schemas.errors import ErrorCode
-from agilegs.schemas.models import PoolOut, SelectResponse, SessionInfo
 
 from ...errors import ServiceError
 from ..gateway import Gateway, Reply, Request

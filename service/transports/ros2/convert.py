@@ -16,16 +16,10 @@ from typing import Any
 
 import numpy as np
 
+from agilegs.client.ros2 import FieldError, axes_of_frame
 from agilegs.client.ros2 import messages as m
-from agilegs.client.ros2.frames import (
-    Axes,
-    FieldError,
-    axes_of_frame,
-    intrinsics_of,
-    matrix_to_pose_msg,
-    pose_msg_to_wire,
-)
-from agilegs.schemas.models import SelectResponse
+from agilegs.client.ros2.frames import Axes, intrinsics_of, matrix_to_pose_msg, pose_msg_to_wire
+from agilegs.schemas import SelectResponse
 
 __all__ = [
     "DEFAULT_CAMERA_FRAME",

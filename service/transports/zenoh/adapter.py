@@ -29,8 +29,7 @@ import time
 from typing import Any
 
 from agilegs.client.zenoh_rpc import open_session
-from agilegs.schemas import codec, keys
-from agilegs.schemas.models import SelectResponse
+from agilegs.schemas import SelectResponse, codec, keys
 
 from ...errors import ServiceError
 from ...settings import Settings
