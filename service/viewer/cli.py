@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 import signal
 import sys
 import threading
@@ -87,10 +86,11 @@ def _replay(args: argparse.Namespace) -> int:
 
 def _live(args: argparse.Namespace) -> int:
     from agilegs.client import Client, TransportError
+    from agilegs.service.settings import Credentials
 
     from .live import SessionViewer
 
-    token = args.token or os.environ.get("AGILEGS_TOKEN") or None
+    token = args.token or Credentials().token_value()
     client: Any
     if args.zenoh:
         try:

@@ -116,17 +116,48 @@ def _reaches(name: str, prefixes: tuple[str, ...]) -> set[str]:
     return {d for d in TYPED_GRAPH[name] if d.startswith(prefixes)}
 
 
-MATHS = "agilegs.service.nbv"
-TRANSPORTS = ("agilegs.service.transports", "agilegs.service.server", "agilegs.service.serve",
-              "agilegs.service.launch")
-STORE = ("agilegs.service.store",)
+LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("settings and errors", ("settings", "errors")),
+    ("maths", ("nbv", "mapper", "data")),
+    ("store", ("store",)),
+    ("sessions", ("sessions",)),
+    ("transports", ("transports",)),
+    ("server", ("server",)),
+    ("commands", ("serve", "cli", "launch", "store_tool", "demo", "bench", "viewer")),
+)
+"""The service's layers, bottom up: the folders (or top-level modules) of ``service/`` in each.
+A module imports from its own layer and the layers below only."""
+
+
+def _layer(name: str) -> int:
+    """The layer (index in :data:`LAYERS`) of the service's module ``name``."""
+    room = name.split(".")[2]
+    found = [i for i, (_, rooms) in enumerate(LAYERS) if room in rooms]
+    assert len(found) == 1, f"{name}: service/{room} is in {len(found)} layers of LAYERS"
+    return found[0]
+
+
+def test_every_folder_of_the_service_has_one_layer() -> None:
+    rooms = {p.stem for p in (ROOT / "service").iterdir()
+             if p.suffix == ".py" and p.stem != "__init__" or (p / "__init__.py").exists()}
+    listed = [room for _, layer in LAYERS for room in layer]
+    assert sorted(listed) == sorted(rooms)
+
+
+def test_each_layer_imports_only_from_itself_and_below() -> None:
+    for name, deps in TYPED_GRAPH.items():
+        if not name.startswith("agilegs.service."):
+            continue
+        above = {d for d in deps if d.startswith("agilegs.service.") and _layer(d) > _layer(name)}
+        assert not above, (f"{name} ({LAYERS[_layer(name)][0]}) imports from a layer above: "
+                           f"{sorted(above)}")
 
 
 def test_no_forbidden_arrow() -> None:
-    """maths -> transports, store, sessions, wire; wire -> maths (or any of the service);
-    client -> service (or torch); settings -> anything of ours (or torch)."""
+    """maths -> wire (or anything of the service but the settings); wire -> service or
+    client; client -> service; config -> anything of ours."""
     forbidden = {
-        MATHS: TRANSPORTS + STORE + ("agilegs.service.sessions", "agilegs.schemas"),
+        "agilegs.service.nbv": ("agilegs.schemas", "agilegs.client"),
         "agilegs.schemas": ("agilegs.service", "agilegs.client"),
         "agilegs.client": ("agilegs.service",),
         "agilegs.config": ("agilegs.service", "agilegs.schemas", "agilegs.client"),
@@ -161,10 +192,10 @@ def test_the_maths_has_no_transport_and_the_transports_no_maths() -> None:
             assert not _third_party(path) & transports, name
             assert not {d for d in GRAPH[name]
                         if d.startswith("agilegs.service.") and not d.startswith(
-                            "agilegs.service.nbv")}, name
-    for name in ("agilegs.service.transports.gateway", "agilegs.service.transports.http.app",
-                 "agilegs.service.transports.http.routes", "agilegs.service.transports.http.openapi",
-                 "agilegs.service.transports.zenoh.adapter", "agilegs.service.transports.cluster"):
+                            ("agilegs.service.nbv", "agilegs.service.settings"))}, name
+    transports = [n for n in MODULES if n.startswith("agilegs.service.transports")]
+    assert len(transports) >= 15
+    for name in transports:
         assert "torch" not in _third_party(MODULES[name]), name
         assert not {d for d in GRAPH[name] if d.startswith("agilegs.service.nbv")}, name
 
@@ -186,13 +217,36 @@ def test_files_stay_small() -> None:
 
 
 def test_the_viewer_is_a_client_of_the_service() -> None:
-    # it reaches the server through the client SDK only: no torch, no server code
+    # it reaches the server through the client SDK only: no torch, no server code (its
+    # environment variable, the token, through the settings)
     viewer = [n for n in MODULES if n.startswith("agilegs.service.viewer")]
     assert len(viewer) >= 6
     for name in viewer:
         assert not _third_party(MODULES[name]) & {"torch", "fastapi", "uvicorn"}, name
         inside = {d for d in GRAPH[name] if d.startswith("agilegs.service")}
-        assert all(d.startswith("agilegs.service.viewer") for d in inside), (name, inside)
+        assert all(d.startswith("agilegs.service.viewer") or d == "agilegs.service.settings"
+                   for d in inside), (name, inside)
+
+
+def _reads_environment(tree: ast.Module) -> bool:
+    """Whether the code reads an environment variable (``os.environ.get``, ``os.getenv``,
+    ``os.environ[...]``; copying the whole environment for a child process is no read)."""
+    for node in ast.walk(tree):
+        text = ast.unparse(node)
+        if isinstance(node, ast.Call) and text.startswith(("os.environ.get(", "os.getenv(",
+                                                           "environ.get(", "getenv(")):
+            return True
+        if isinstance(node, ast.Subscript) and text.startswith(("os.environ[", "environ[")):
+            return True
+    return False
+
+
+def test_environment_variables_are_read_by_the_settings_only() -> None:
+    assert _reads_environment(ast.parse("import os\nx = os.environ.get('A')\n"))
+    assert _reads_environment(ast.parse("import os\nx = os.environ['A']\n"))
+    assert not _reads_environment(ast.parse("import os\nx = dict(os.environ.items())\n"))
+    readers = {name for name, tree in TREES.items() if _reads_environment(tree)}
+    assert readers == {"agilegs.service.settings"}, readers
 
 
 # The public faces: a package whose ``__init__`` gathers the names its users import (the wire

@@ -21,7 +21,8 @@ Two backends compute the same maths:
 The choice: the ``backend=`` argument of :func:`~agilegs.service.nbv.rasterize.render`,
 :func:`~agilegs.service.nbv.information.fisher_diag` and their kin; else the module default
 (:func:`set_default_backend`); else the environment variable ``AGILEGS_KERNELS`` (``auto``,
-``numba`` or ``torch``); else ``"auto"``. Asking for ``"numba"`` where the kernels cannot run
+``numba`` or ``torch``; read through :func:`agilegs.service.settings.kernel_settings`); else
+``"auto"``. Asking for ``"numba"`` where the kernels cannot run
 raises :class:`ValueError` saying why.
 
 Threads: each kernel runs in parts on as many Python threads (the kernels release the GIL):
@@ -50,12 +51,13 @@ from torch import Tensor
 
 from agilegs.service.nbv.camera import Camera
 from agilegs.service.nbv.gaussians import GaussianMap
+from agilegs.service.settings import env_var, kernel_settings
 
 log = logging.getLogger(__name__)
 
 Backend = Literal["auto", "numba", "torch"]
 BACKENDS: tuple[str, ...] = ("auto", "numba", "torch")
-ENV_VAR = "AGILEGS_KERNELS"
+ENV_VAR = env_var("kernels")
 
 _default: Backend | None = None
 _LOCK = threading.RLock()
@@ -105,8 +107,7 @@ def default_backend() -> Backend:
     else ``"auto"``."""
     if _default is not None:
         return _default
-    env = os.environ.get(ENV_VAR, "").strip().lower()
-    return _check_name(env, ENV_VAR) if env else "auto"
+    return kernel_settings().kernels
 
 
 def _load() -> Any:
@@ -169,7 +170,6 @@ def _np(t: Tensor) -> np.ndarray:
 _POOL: ThreadPoolExecutor | None = None
 
 
-THREADS_ENV_VAR = "AGILEGS_KERNEL_THREADS"
 _threads_default: int | None = None
 
 
@@ -187,16 +187,8 @@ def _threads() -> int:
     ``AGILEGS_KERNEL_THREADS``, else torch's thread count."""
     if _threads_default is not None:
         return _threads_default
-    env = os.environ.get(THREADS_ENV_VAR, "").strip()
-    if env:
-        try:
-            n = int(env)
-        except ValueError:
-            n = 0
-        if n < 1:
-            raise ValueError(f"{THREADS_ENV_VAR} must be an integer >= 1, got {env!r}")
-        return n
-    return max(1, torch.get_num_threads())
+    n = kernel_settings().kernel_threads
+    return n if n is not None else max(1, torch.get_num_threads())
 
 
 def _parallel(fn: Callable[[int], Any], parts: int) -> None:
