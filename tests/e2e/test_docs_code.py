@@ -121,7 +121,7 @@ HOW: dict[tuple[str, str], How] = {
     ("docs/your-data.md", "# COLMAP: frames from the video, then structure from motion "
      "(sparse/0 and images/)"):
         How("skip", "needs a video and ffmpeg, COLMAP, instant-ngp and nerfstudio (what they "
-                    "write is loaded in tests/service/test_captures.py and "
+                    "write is loaded in tests/data/test_captures.py and "
                     "tests/bench/test_capture_scenes.py)"),
     ("docs/your-data.md", "agilegs bench run --scene service/data/scenes/buddha --profile cpu "
      "--methods random,agile_plus --seeds 0 --out out/buddha"):

@@ -1,7 +1,7 @@
 """docs/server.md lists exactly what the server serves: every operation with its HTTP route and
 Zenoh key, every error code with its status, every setting with its environment variable and
 default. The rows are generated here from the code and must appear in the page as written
-(``python tests/service/test_docs.py`` prints them)."""
+(``python tests/docs/test_docs.py`` prints them)."""
 
 from __future__ import annotations
 
