@@ -109,12 +109,13 @@ class KernelSettings(_Environment):
 
 
 _KERNEL_SETTINGS: dict[tuple[str | None, ...], KernelSettings] = {}
+_KERNEL_VARS = tuple(f"{ENV_PREFIX}{name.upper()}" for name in KernelSettings.model_fields)
 
 
 def kernel_settings() -> KernelSettings:
     """The kernels' settings from the environment as it is now (each distinct set of values
     parsed once). Raises ValueError naming the variable when one is invalid."""
-    key = tuple(os.environ.get(env_var(name)) for name in KernelSettings.model_fields)
+    key = tuple(map(os.environ.get, _KERNEL_VARS))
     found = _KERNEL_SETTINGS.get(key)
     if found is None:
         try:

@@ -326,7 +326,7 @@ class Mapper:
 
         Args:
             views: objects with ``camera``, ``image`` [H, W, 3] and ``depth`` [H, W] attributes
-                (e.g. :class:`~agilegs.service.data.loaders.View`); None: the acquired views
+                (e.g. :class:`~agilegs.service.data.images.View`); None: the acquired views
                 that have depth. Views without depth are skipped. The views are not added to
                 the training set (use :meth:`add_view`).
             stride: pixel stride (default ``config.init_stride``).

@@ -372,7 +372,7 @@ def replace_map(rec: SessionRecord, gmap: GaussianMap, limits: Limits, *,
         src: the mapper's update: LongTensor [N_new], new Gaussian j descends from the
             current map's Gaussian ``src[j]`` (-1: new). Hhat then follows
             ``information.mapper_update``: ``carry`` (default) remaps it per Gaussian
-            (:func:`~agilegs.service.mapper.remap_per_gaussian`; new Gaussians get lambda),
+            (:func:`~agilegs.service.mapper.topology.remap_per_gaussian`; new Gaussians get lambda),
             ``recompute`` recomputes it from every acquired view on the new map.
             None (a push): Hhat is recomputed from every acquired view when the Gaussian
             count changes or ``information.recompute_on_map_change`` is set, else kept.

@@ -22,7 +22,7 @@ Instances
     start) and declares ``agilegs/@instances/<id>/health``, ``.../create_session`` (creates
     the session on this instance, whatever the policy says) and ``.../list_sessions`` (this
     instance's sessions only). A get on ``agilegs/@instances/*/health`` enumerates the live
-    instances (the reply key names the instance, the :class:`~agilegs.schemas.models.Health`
+    instances (the reply key names the instance, the :class:`~agilegs.schemas.sessions.Health`
     body carries its load, ``sessions``).
 
 Placement (creating a session without naming an instance)
