@@ -233,8 +233,8 @@ def _reads_environment(tree: ast.Module) -> bool:
     ``os.environ[...]``; copying the whole environment for a child process is no read)."""
     for node in ast.walk(tree):
         text = ast.unparse(node)
-        if isinstance(node, ast.Call) and text.startswith(("os.environ.get(", "os.getenv(",
-                                                           "environ.get(", "getenv(")):
+        if isinstance(node, ast.Attribute | ast.Name) and text in (
+                "os.environ.get", "os.getenv", "environ.get", "getenv"):
             return True
         if isinstance(node, ast.Subscript) and text.startswith(("os.environ[", "environ[")):
             return True
@@ -244,6 +244,7 @@ def _reads_environment(tree: ast.Module) -> bool:
 def test_environment_variables_are_read_by_the_settings_only() -> None:
     assert _reads_environment(ast.parse("import os\nx = os.environ.get('A')\n"))
     assert _reads_environment(ast.parse("import os\nx = os.environ['A']\n"))
+    assert _reads_environment(ast.parse("import os\nx = list(map(os.environ.get, 'AB'))\n"))
     assert not _reads_environment(ast.parse("import os\nx = dict(os.environ.items())\n"))
     readers = {name for name, tree in TREES.items() if _reads_environment(tree)}
     assert readers == {"agilegs.service.settings"}, readers
