@@ -60,6 +60,7 @@ from typing import Any
 
 import torch
 
+from agilegs.config.selection import SelectConfig
 from agilegs.config.types import validate_config
 from agilegs.service.nbv.camera import Camera, Intrinsics
 from agilegs.service.nbv.candidates import capture_pool, scene_center_radius
@@ -70,9 +71,9 @@ from agilegs.service.nbv.information import (
     fisher_diag,
     init_information,
 )
-from agilegs.service.nbv.methods import get_method, method_names
+from agilegs.service.nbv.methods.base import get_method, method_names
 from agilegs.service.nbv.rotations import quat_to_rotmat
-from agilegs.service.nbv.selectors import SelectConfig, select, select_validated
+from agilegs.service.nbv.selectors import select, select_validated
 
 from .options import add_latency_arguments
 from .stages import ANCHOR_STAGES

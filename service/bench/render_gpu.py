@@ -48,7 +48,7 @@ def _build(scene: str | None, n: int, width: int, height: int, device: Any) -> t
     import torch
 
     from agilegs.service.bench.latency import densified
-    from agilegs.service.bench.render_bench import random_cube
+    from agilegs.service.bench.scenes import random_cube
     from agilegs.service.nbv.camera import Camera, look_at
     from agilegs.service.nbv.gaussians import load_scene
 
@@ -70,8 +70,8 @@ def _functions(gm: Any, cam: Any, with_gsplat: bool) -> dict[str, Callable[[], A
     import torch
 
     from agilegs.config.mapper import MapperConfig
-    from agilegs.service.mapper import Mapper
     from agilegs.service.mapper.gsplat_render import render_gsplat
+    from agilegs.service.mapper.mapper import Mapper
     from agilegs.service.nbv.information import fisher_diag
     from agilegs.service.nbv.rasterize import render
 

@@ -52,7 +52,8 @@ from agilegs.service.nbv.selectors import select
 from .options import add_value_arguments as add_arguments
 from .profiles import Profile, resolve_profile
 from .protocol import add_pool_view, evaluate, run_progressive
-from .scenes import BenchScene, load_bench_scene
+from .scene_model import BenchScene
+from .scenes import load_bench_scene
 from .variants import Variant, parse_variant
 
 log = logging.getLogger(__name__)

@@ -34,10 +34,11 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from agilegs.service.nbv.backend import Backend, resolve
+from agilegs.config.selection import FIELD_NAMES
 from agilegs.service.nbv.camera import Camera, Intrinsics
-from agilegs.service.nbv.gaussians import FIELD_NAMES, GaussianMap
-from agilegs.service.nbv.kernel_ops import kernel_fisher, kernel_jacobians, kernel_moments
+from agilegs.service.nbv.gaussians import GaussianMap
+from agilegs.service.nbv.kernels.backend import Backend, resolve
+from agilegs.service.nbv.kernels.ops import kernel_fisher, kernel_jacobians, kernel_moments
 from agilegs.service.nbv.projection import Projected, project_map
 from agilegs.service.nbv.rasterize import (
     composite_pairs,
@@ -83,7 +84,7 @@ def screen_second_moments(
     with the derivatives of α taken through its 0.99 clamp, as FisherRF's rasterizer does).
     Differentiable in whatever ``gmap`` and ``camera.c2w`` carry a graph for (then always by
     the torch path; otherwise by the compiled kernels where ``backend`` allows, see
-    :mod:`agilegs.service.nbv.backend`).
+    :mod:`agilegs.service.nbv.kernels.backend`).
     """
     if residuals not in ("channels", "pixels"):
         raise ValueError(f"residuals must be 'channels' or 'pixels', got {residuals!r}")
@@ -223,7 +224,8 @@ def fisher_diag(
         background: background colour [3] used by the render (default black).
         fields: which blocks to return (default all five).
         tile_size, near, max_elements: as in :func:`render`.
-        backend: "auto", "numba" or "torch" (:mod:`agilegs.service.nbv.backend`); the kernels
+        backend: "auto", "numba" or "torch" (:mod:`agilegs.service.nbv.kernels.backend`); the
+        kernels
             serve every call whose pose does not require grad.
 
     Returns:

@@ -10,13 +10,9 @@ import numpy as np
 import pytest
 import torch
 
-from agilegs.client.ros2.bag import BagFrame, write_bag
-from agilegs.service.bench.scenes import (
-    SceneOptions,
-    detect_scene_kind,
-    load_bench_scene,
-    orbit_cameras,
-)
+from agilegs.client.ros2 import BagFrame, write_bag
+from agilegs.service.bench.scene_model import SceneOptions, orbit_cameras
+from agilegs.service.bench.scenes import detect_scene_kind, load_bench_scene
 from agilegs.service.cli import main
 from agilegs.service.data import bundled_scene
 from agilegs.service.nbv.camera import Camera, Intrinsics

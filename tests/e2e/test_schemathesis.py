@@ -136,7 +136,7 @@ def test_the_hooks_repair_exactly_what_json_schema_cannot_state() -> None:
         sys.path.remove(str(HERE))
     from pydantic import ValidationError
 
-    from agilegs.schemas import models as m
+    from agilegs import schemas as m
 
     body = {
         "intrinsics": {"fx": 5.0, "fy": 5.0, "cx": 1.0, "cy": 1.0, "width": 900, "height": 700},
@@ -163,10 +163,11 @@ def test_a_body_given_by_a_link_gets_a_media_type(tmp_path: Path) -> None:
     import schemathesis
     from schemathesis.core.errors import IncorrectUsage
 
-    from agilegs.service.http_app import create_app
+    from agilegs.service.server import Server
     from agilegs.service.settings import Settings
+    from agilegs.service.transports.http.app import create_app
 
-    app = create_app(Settings(state_dir=tmp_path / "state", zenoh=False), start=False)
+    app = create_app(Server(Settings(state_dir=tmp_path / "state", zenoh=False)), start=False)
     doc = app.openapi()
     schema = schemathesis.openapi.from_dict(doc)
     commit = schema["/v1/sessions/{session}/views"]["POST"]

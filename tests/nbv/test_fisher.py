@@ -5,8 +5,9 @@ from __future__ import annotations
 import pytest
 import torch
 
+from agilegs.config.selection import FIELD_NAMES
 from agilegs.service.nbv.camera import Camera, look_at
-from agilegs.service.nbv.gaussians import FIELD_NAMES, GaussianMap
+from agilegs.service.nbv.gaussians import GaussianMap
 from agilegs.service.nbv.information import (
     accumulate_information,
     expected_information_gain,
