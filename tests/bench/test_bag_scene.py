@@ -68,7 +68,7 @@ def test_a_bag_is_a_posed_scene(tmp_path: Path) -> None:
                                scene.pool_images[0].reshape(8, 2, 8, 2, 3).mean((1, 3)))
 
 
-@pytest.mark.slow
+@pytest.mark.heavy
 def test_bench_run_on_a_sqlite3_bag(tmp_path: Path) -> None:
     bag = write_bag(tmp_path / "orbit", _frames(18, 16, depth=False), storage="sqlite3",
                     poses="pose")
