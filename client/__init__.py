@@ -24,16 +24,6 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-from agilegs.schemas import (
-    GaussiansIn,
-    ImageData,
-    Intrinsics,
-    ObservationIn,
-    PoolIn,
-    Pose,
-    SelectResponse,
-)
-
 from .errors import (
     AgileGSError,
     APIError,
@@ -66,19 +56,12 @@ __all__ = [
     "BadRequestError",
     "Client",
     "ConflictError",
-    "GaussiansIn",
-    "ImageData",
     "InsufficientStorageError",
-    "Intrinsics",
     "NotFoundError",
-    "ObservationIn",
     "LimitExceededError",
     "PayloadTooLargeError",
-    "PoolIn",
-    "Pose",
     "ProtocolError",
     "RequestTimeout",
-    "SelectResponse",
     "ServerError",
     "SessionDamagedError",
     "SessionUnavailableError",

@@ -14,9 +14,9 @@ from typing import Any, TypeVar
 import numpy as np
 from pydantic import BaseModel
 
+from agilegs import schemas as m
+from agilegs.schemas import Bounds, Intrinsics
 from agilegs.schemas import decisions as d
-from agilegs.schemas import models as m
-from agilegs.schemas.geometry import Bounds, Intrinsics
 
 from . import _requests as rq
 from ._requests import Call, PoseLike

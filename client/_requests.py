@@ -13,11 +13,18 @@ import numpy as np
 from pydantic import BaseModel
 from pydantic import ValidationError as PydanticValidationError
 
-from agilegs.schemas import models as m
-from agilegs.schemas.arrays import NDArray
-from agilegs.schemas.decisions import DecisionsRequest
-from agilegs.schemas.geometry import Bounds, Intrinsics, Pose, trusted_poses
-from agilegs.schemas.ops import OPERATIONS, Operation
+from agilegs import schemas as m
+from agilegs.schemas import (
+    OPERATIONS,
+    Bounds,
+    DecisionsRequest,
+    Intrinsics,
+    NDArray,
+    Operation,
+    Pose,
+)
+from agilegs.schemas.geometry import trusted_poses
+from agilegs.schemas.views import InitialFrame
 
 from .errors import ValidationError
 
@@ -105,13 +112,13 @@ def to_observation(o: m.ObservationIn | Mapping[str, Any]) -> m.ObservationIn:
 
 
 @checked
-def to_frame(o: m.ObservationIn | Mapping[str, Any]) -> m.InitialFrame:
+def to_frame(o: m.ObservationIn | Mapping[str, Any]) -> InitialFrame:
     """An initial frame of a session (an observation at a pose)."""
-    if isinstance(o, m.InitialFrame):
+    if isinstance(o, InitialFrame):
         return o
     if isinstance(o, m.ObservationIn):
-        return m.InitialFrame.model_validate({k: getattr(o, k) for k in o.model_fields_set})
-    return cast(m.InitialFrame, m.InitialFrame.from_numpy(**dict(o)))
+        return InitialFrame.model_validate({k: getattr(o, k) for k in o.model_fields_set})
+    return cast(InitialFrame, InitialFrame.from_numpy(**dict(o)))
 
 
 @checked

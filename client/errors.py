@@ -35,8 +35,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from agilegs.schemas import codec
-from agilegs.schemas.errors import ErrorBody, ErrorItem
+from agilegs.schemas import ErrorBody, ErrorItem, codec
 
 __all__ = [
     "APIError",

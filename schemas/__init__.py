@@ -9,63 +9,30 @@ or position + quaternion x, y, z, w; bytes raw in msgpack and base64 in JSON) ar
 from .arrays import B64Bytes, DType, NDArray
 from .decisions import DecisionEvent, DecisionsOut, DecisionsRequest
 from .errors import ErrorBody, ErrorInfo, ErrorItem
-from .geometry import (
-    MAX_COORD,
-    ORTHONORMAL_ATOL,
-    QUATERNION_NORM_ATOL,
-    Bounds,
-    Intrinsics,
-    Pose,
-)
-from .models import (
-    FIELD_NAMES,
-    METHODS,
-    SESSION_ID_PATTERN,
-    SHORTLISTS,
-    Candidate,
-    CommitRequest,
+from .fields import SESSION_ID_PATTERN
+from .gaussians import GaussianArrays, GaussiansIn, GaussiansOut, GaussiansSummary
+from .geometry import Bounds, Intrinsics, Pose
+from .information import FieldSummary, InformationConfig, InformationOut, InformationSummary
+from .mapper import MapperOptions, MapperStatus
+from .ops import OPERATIONS, Operation
+from .pool import Candidate, PoolIn, PoolOut
+from .selection import ScoredCandidate, SelectDefaults, SelectRequest, SelectResponse
+from .sessions import (
     Deleted,
-    FieldSummary,
     FileProblem,
-    GaussianArrays,
-    GaussiansIn,
-    GaussiansOut,
-    GaussiansSummary,
     Health,
-    ImageData,
-    InformationConfig,
-    InformationOut,
-    InformationSummary,
-    MapperOptions,
-    MapperStatus,
-    ObservationIn,
-    ObservationsIn,
-    PoolIn,
-    PoolOut,
     Repaired,
-    ScoredCandidate,
-    SelectDefaults,
-    SelectRequest,
-    SelectResponse,
     SessionCreate,
     SessionDamage,
     SessionInfo,
     SessionList,
     SessionSummary,
-    View,
-    ViewsOut,
 )
-from .ops import OPERATIONS, Operation
+from .views import CommitRequest, ImageData, ObservationIn, ObservationsIn, View, ViewsOut
 
 __all__ = [
-    "FIELD_NAMES",
-    "MAX_COORD",
-    "METHODS",
     "OPERATIONS",
-    "ORTHONORMAL_ATOL",
-    "QUATERNION_NORM_ATOL",
     "SESSION_ID_PATTERN",
-    "SHORTLISTS",
     "B64Bytes",
     "Bounds",
     "Candidate",

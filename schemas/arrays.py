@@ -27,7 +27,7 @@ from pydantic import (
     model_validator,
 )
 
-from .forms import integral
+from agilegs.config.types import integral
 
 __all__ = ["BASE64_PATTERN", "B64Bytes", "DTYPES", "DType", "NDArray"]
 

@@ -21,51 +21,14 @@ from pydantic import BaseModel, ConfigDict, Field, create_model, model_serialize
 
 from agilegs.config.mapper import MapperConfig
 from agilegs.config.selection import (
-    COVER_ZBUFFER,
-    FIELD_NAMES,
-    FISHERRF_FIELDS,
-    METHODS,
-    MIXED_ZBUFFER,
-    POINT_ZBUFFER,
-    PRESETS,
-    SHORTLISTS,
-    AnchorConfig,
-    FieldName,
-    FisherRFConfig,
-    FisherRFField,
-    Method,
-    ScoringConfig,
     SelectConfig,
-    ShortlistStrategy,
-    preset_config,
 )
-from agilegs.config.types import deep_merge, validate_config
 
 __all__ = [
-    "COVER_ZBUFFER",
-    "FIELD_NAMES",
-    "FISHERRF_FIELDS",
-    "METHODS",
-    "MIXED_ZBUFFER",
-    "POINT_ZBUFFER",
-    "PRESETS",
-    "SHORTLISTS",
-    "AnchorConfig",
-    "FieldName",
-    "FisherRFConfig",
-    "FisherRFField",
-    "MapperConfig",
     "MapperConfigPatch",
-    "Method",
-    "ScoringConfig",
-    "SelectConfig",
     "SelectConfigPatch",
-    "ShortlistStrategy",
-    "deep_merge",
     "patch_dict",
     "patch_model",
-    "preset_config",
-    "validate_config",
 ]
 
 

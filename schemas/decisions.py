@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from .models import SelectResponse
+from .selection import SelectResponse
 
 __all__ = ["MAX_WAIT_WIRE", "DecisionEvent", "DecisionsOut", "DecisionsRequest"]
 

@@ -7,7 +7,7 @@ from typing import Annotated, Any
 from pydantic import BeforeValidator, ConfigDict, Field, StringConstraints
 from pydantic.json_schema import JsonDict
 
-from .forms import integral
+from agilegs.config.types import integral
 
 __all__ = [
     "MAX_OBSERVATIONS_WIRE",

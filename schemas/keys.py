@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import re
 
-from .models import SESSION_ID_PATTERN
+from .fields import SESSION_ID_PATTERN
 
 __all__ = [
     "CANDIDATES",

@@ -9,7 +9,12 @@ from typing import Literal
 from pydantic import BaseModel
 
 from . import decisions as d
-from . import models as m
+from .gaussians import GaussiansIn, GaussiansOut
+from .information import InformationOut
+from .pool import PoolIn, PoolOut
+from .selection import SelectRequest, SelectResponse
+from .sessions import Deleted, Health, Repaired, SessionCreate, SessionInfo, SessionList
+from .views import CommitRequest, ObservationsIn, View, ViewsOut
 
 __all__ = ["OPERATIONS", "Operation"]
 
@@ -49,33 +54,33 @@ _S = "/v1/sessions/{session}"
 OPERATIONS: dict[str, Operation] = {
     op.name: op
     for op in (
-        _op("health", "service", "GET", "/healthz", None, m.Health, "liveness and counts"),
-        _op("create_session", "service", "POST", "/v1/sessions", m.SessionCreate,
-            m.SessionInfo, "create a session"),
-        _op("list_sessions", "service", "GET", "/v1/sessions", None, m.SessionList,
+        _op("health", "service", "GET", "/healthz", None, Health, "liveness and counts"),
+        _op("create_session", "service", "POST", "/v1/sessions", SessionCreate,
+            SessionInfo, "create a session"),
+        _op("list_sessions", "service", "GET", "/v1/sessions", None, SessionList,
             "list sessions"),
-        _op("get_session", "session", "GET", _S, None, m.SessionInfo, "read a session's state"),
-        _op("delete_session", "session", "DELETE", _S, None, m.Deleted, "delete a session"),
-        _op("repair_session", "session", "POST", _S + "/repair", None, m.Repaired,
+        _op("get_session", "session", "GET", _S, None, SessionInfo, "read a session's state"),
+        _op("delete_session", "session", "DELETE", _S, None, Deleted, "delete a session"),
+        _op("repair_session", "session", "POST", _S + "/repair", None, Repaired,
             "bring a damaged session back (its last intact version, damaged frames dropped)"),
-        _op("set_gaussians", "session", "PUT", _S + "/gaussians", m.GaussiansIn, m.SessionInfo,
+        _op("set_gaussians", "session", "PUT", _S + "/gaussians", GaussiansIn, SessionInfo,
             "replace the Gaussians"),
-        _op("add_observations", "session", "POST", _S + "/observations", m.ObservationsIn,
-            m.ViewsOut, "add posed frames (acquired views; update Ĥ)"),
-        _op("list_views", "session", "GET", _S + "/views", None, m.ViewsOut,
+        _op("add_observations", "session", "POST", _S + "/observations", ObservationsIn,
+            ViewsOut, "add posed frames (acquired views; update Ĥ)"),
+        _op("list_views", "session", "GET", _S + "/views", None, ViewsOut,
             "list acquired views"),
-        _op("commit", "session", "POST", _S + "/views", m.CommitRequest, m.View,
+        _op("commit", "session", "POST", _S + "/views", CommitRequest, View,
             "acquire a view (update Ĥ)"),
-        _op("set_pool", "session", "PUT", _S + "/pool", m.PoolIn, m.PoolOut,
+        _op("set_pool", "session", "PUT", _S + "/pool", PoolIn, PoolOut,
             "replace the candidate pool"),
-        _op("extend_pool", "session", "POST", _S + "/pool", m.PoolIn, m.PoolOut,
+        _op("extend_pool", "session", "POST", _S + "/pool", PoolIn, PoolOut,
             "add candidates to the pool"),
-        _op("get_pool", "session", "GET", _S + "/pool", None, m.PoolOut, "read the pool"),
-        _op("select", "session", "POST", _S + "/select", m.SelectRequest, m.SelectResponse,
+        _op("get_pool", "session", "GET", _S + "/pool", None, PoolOut, "read the pool"),
+        _op("select", "session", "POST", _S + "/select", SelectRequest, SelectResponse,
             "choose the next view"),
-        _op("get_information", "session", "GET", _S + "/information", None, m.InformationOut,
+        _op("get_information", "session", "GET", _S + "/information", None, InformationOut,
             "read Ĥ"),
-        _op("get_gaussians", "session", "GET", _S + "/gaussians", None, m.GaussiansOut,
+        _op("get_gaussians", "session", "GET", _S + "/gaussians", None, GaussiansOut,
             "read the current Gaussians (the mapper's published map)"),
         _op("get_decisions", "session", "GET", _S + "/decisions", d.DecisionsRequest,
             d.DecisionsOut, "the decisions after a sequence number (long poll; server-sent "

@@ -9,9 +9,11 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, model_validator
 
+from agilegs.config.types import integral
+
 from .arrays import B64Bytes, NDArray
 from .fields import MAX_OBSERVATIONS_WIRE, STRICT, Id, narrowed
-from .forms import Form, integral, one_of
+from .forms import Form, one_of
 from .geometry import Intrinsics, Pose
 
 __all__ = [

@@ -20,7 +20,7 @@ from collections.abc import Sequence
 # (command path, module, help)
 COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("serve",), "agilegs.service.serve", "run the NBV server (HTTP and Zenoh)"),
-    (("demo",), "agilegs.service.demo", "closed-loop demo on the bundled scene"),
+    (("demo",), "agilegs.service.demo.run", "closed-loop demo on the bundled scene"),
     (("store", "check"), "agilegs.service.store_tool",
      "check a state folder's sessions against their checksums (offline)"),
     (("store", "repair"), "agilegs.service.store_tool",

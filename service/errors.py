@@ -13,7 +13,8 @@ from collections.abc import Iterable
 
 from pydantic import ValidationError
 
-from agilegs.schemas.errors import ERROR_STATUS, ErrorBody, ErrorCode, ErrorInfo, ErrorItem
+from agilegs.schemas import ErrorBody, ErrorInfo, ErrorItem
+from agilegs.schemas.errors import ERROR_STATUS, ErrorCode
 
 __all__ = [
     "ServiceError",

@@ -119,7 +119,7 @@ class ServerProcess:
 
             headers = {"authorization": f"Bearer {token}"} if token else {}
             return httpx.get(self.url + "/healthz", headers=headers, timeout=1).status_code == 200
-        from agilegs.client.zenoh_client import ZenohClient
+        from agilegs.client import ZenohClient
 
         with ZenohClient([self.zenoh_endpoint], token=token, wait=0, timeout=1.0,
                          credentials=self.zenoh_credentials) as zc:

@@ -1,11 +1,11 @@
 """``agilegs serve``: run one server instance (:class:`~agilegs.service.server.Server`) over
 HTTP, Zenoh or both, until SIGTERM or SIGINT.
 
-Every flag has an ``AGILEGS_*`` environment variable (see :mod:`agilegs.service.settings`);
-a flag given on the command line wins. The bearer token is read from ``AGILEGS_TOKEN`` only
-(a command line is visible to every user of the machine).
+Every flag is a field of :class:`~agilegs.service.settings.Settings` with its ``AGILEGS_*``
+environment variable; a flag given on the command line wins. The bearer token is read from
+``AGILEGS_TOKEN`` only (a command line is visible to every user of the machine).
 
-The state folder is claimed before anything else (:mod:`agilegs.service.state_dir`): a folder
+The state folder is claimed before anything else (:mod:`agilegs.service.store.state_dir`): a folder
 that cannot be created, is read-only, or is held by another server ends the command with one
 line on stderr and exit status 2. So do an HTTP address that cannot be bound (a port already
 taken: the HTTP socket is bound next, before the sessions load) and a Zenoh session that
@@ -35,155 +35,21 @@ __all__ = ["add_arguments", "build_settings", "run", "zenoh_start_error"]
 log = logging.getLogger(__name__)
 
 
-def _endpoints(text: str) -> list[str]:
-    return [e.strip() for e in text.split(",") if e.strip()]
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    a = parser.add_argument
-    a("--host", help="HTTP bind address (AGILEGS_HOST, default 127.0.0.1)")
-    a("--port", type=int, help="HTTP port (AGILEGS_PORT, default 8000)")
-    a("--state-dir", help="persistent state folder (AGILEGS_STATE_DIR, default ./agilegs-state)")
-    z = parser.add_mutually_exclusive_group()
-    z.add_argument("--zenoh", dest="zenoh", action="store_const", const=True,
-                   help="serve over Zenoh too (AGILEGS_ZENOH, the default)")
-    z.add_argument("--no-zenoh", dest="zenoh", action="store_const", const=False,
-                   help="HTTP only")
-    h = parser.add_mutually_exclusive_group()
-    h.add_argument("--http", dest="http", action="store_const", const=True,
-                   help="serve over HTTP (AGILEGS_HTTP, the default)")
-    h.add_argument("--no-http", dest="http", action="store_const", const=False,
-                   help="Zenoh only")
-    a("--zenoh-listen", action="append", type=_endpoints, metavar="ENDPOINTS",
-      help="Zenoh listen endpoints, comma-separated or repeated "
-           "(AGILEGS_ZENOH_LISTEN, default tcp/127.0.0.1:7447)")
-    a("--zenoh-connect", action="append", type=_endpoints, metavar="ENDPOINTS",
-      help="Zenoh peers / routers to connect to (AGILEGS_ZENOH_CONNECT)")
-    a("--ros2", action="append", type=_endpoints, metavar="NAMESPACE",
-      help="serve agilegs' ROS 2 topics and services under NAMESPACE over Zenoh, as "
-           "zenoh-bridge-ros2dds carries them (e.g. /bot1/agilegs); comma-separated or "
-           "repeated (AGILEGS_ROS2; see docs/ros2.md)")
-    # several instances (see agilegs.service.cluster)
-    a("--zenoh-mode", choices=["peer", "client", "router"],
-      help="Zenoh mode (AGILEGS_ZENOH_MODE, default peer; client: through a zenohd router)")
-    a("--instance-id", help="this instance's id in a cluster "
-                            "(AGILEGS_INSTANCE_ID, default <hostname>-<port>)")
-    a("--forward-timeout", type=float, help="seconds an operation forwarded to the instance "
-                                            "owning a session may take (AGILEGS_FORWARD_TIMEOUT)")
-    a("--workers", type=int, help="worker threads for session work (AGILEGS_WORKERS, 16)")
-    a("--torch-threads", type=int, help="torch intra-op threads, 0 = default "
-                                        "(AGILEGS_TORCH_THREADS)")
-    a("--max-body-bytes", type=int, help="largest request body (AGILEGS_MAX_BODY_BYTES)")
-    a("--max-inflight-body-bytes", type=int,
-      help="most bytes of request bodies in flight together (AGILEGS_MAX_INFLIGHT_BODY_BYTES)")
-    a("--header-timeout", type=float,
-      help="seconds to send a request's headers (AGILEGS_HEADER_TIMEOUT, 10)")
-    a("--body-timeout", type=float,
-      help="seconds to send a request's body (AGILEGS_BODY_TIMEOUT, 60)")
-    a("--keep-alive-timeout", type=float,
-      help="seconds an idle connection stays open (AGILEGS_KEEP_ALIVE_TIMEOUT, 5)")
-    a("--max-connections", type=int,
-      help="most HTTP connections at once (AGILEGS_MAX_CONNECTIONS, 2048)")
-    a("--max-header-bytes", type=int,
-      help="largest request head (AGILEGS_MAX_HEADER_BYTES, 16384)")
-    a("--max-pool-size", type=int, help="most candidates per pool (AGILEGS_MAX_POOL_SIZE)")
-    a("--max-image-pixels", type=int, help="most pixels per image (AGILEGS_MAX_IMAGE_PIXELS)")
-    a("--max-sessions", type=int, help="most sessions (AGILEGS_MAX_SESSIONS)")
-    a("--max-gaussians", type=int, help="most Gaussians per session (AGILEGS_MAX_GAUSSIANS)")
-    a("--max-views", type=int, help="most views per session (AGILEGS_MAX_VIEWS)")
-    a("--max-shortlist", type=int, help="largest shortlist size (AGILEGS_MAX_SHORTLIST)")
-    a("--max-poll-wait", type=float,
-      help="longest wait of a decisions poll or event stream, s (AGILEGS_MAX_POLL_WAIT, 25)")
-    a("--decision-log", type=int,
-      help="decisions held per session for get_decisions (AGILEGS_DECISION_LOG, 100)")
-    f = parser.add_mutually_exclusive_group()
-    f.add_argument("--fsync", dest="fsync", action="store_const", const=True,
-                   help="fsync before acknowledging (AGILEGS_FSYNC, the default)")
-    f.add_argument("--no-fsync", dest="fsync", action="store_const", const=False,
-                   help="skip fsync (state survives a killed process, not a power cut)")
-    m = parser.add_mutually_exclusive_group()
-    m.add_argument("--mapper", dest="mapper", action="store_const", const=True,
-                   help="train sessions' maps from the images they receive (AGILEGS_MAPPER, "
-                        "the default)")
-    m.add_argument("--no-mapper", dest="mapper", action="store_const", const=False,
-                   help="keep maps as pushed: images are stored, not trained on")
-    a("--mapper-steps-per-view", type=int,
-      help="mapper training steps per view with an image (AGILEGS_MAPPER_STEPS_PER_VIEW, 100)")
-    a("--mapper-burst", type=int,
-      help="mapper steps between two publications of the map (AGILEGS_MAPPER_BURST, 20)")
-    a("--log-level", help="log level (AGILEGS_LOG_LEVEL, default info)")
-    # what one request may cost (see agilegs.service.admission)
-    a("--read-workers", type=int, help="threads running reads (AGILEGS_READ_WORKERS, 8)")
-    a("--background-nice", type=int, help="lower OS priority of a session keeping compute "
-                                          "queued (AGILEGS_BACKGROUND_NICE, 10)")
-    a("--max-body-items", type=int,
-      help="most values in a JSON / msgpack body (AGILEGS_MAX_BODY_ITEMS)")
-    a("--max-request-decoded-bytes", type=int,
-      help="most decoded image bytes per request (AGILEGS_MAX_REQUEST_DECODED_BYTES)")
-    a("--max-inflight-decoded-bytes", type=int,
-      help="most decoded image bytes in flight (AGILEGS_MAX_INFLIGHT_DECODED_BYTES)")
-    a("--device", default=None, metavar="DEVICE",
-      help="where selections and training run: cpu (default), cuda or cuda:N")
-    a("--max-select-seconds", type=float,
-      help="largest estimated select time, s (AGILEGS_MAX_SELECT_SECONDS, 120)")
-    a("--max-select-bytes", type=int,
-      help="largest estimated select peak memory (AGILEGS_MAX_SELECT_BYTES)")
-    a("--max-session-queue", type=int,
-      help="compute requests per session running or waiting (AGILEGS_MAX_SESSION_QUEUE, 4)")
-    a("--max-queued", type=int,
-      help="compute requests running or waiting in all (AGILEGS_MAX_QUEUED, 64)")
-    a("--request-deadline", type=float,
-      help="seconds a request may take (AGILEGS_REQUEST_DEADLINE, 300)")
-    # Zenoh security (see agilegs.service.zenoh_security)
-    a("--zenoh-tls-certificate", help="PEM certificate of the tls/ listen endpoints "
-                                      "(AGILEGS_ZENOH_TLS_CERTIFICATE)")
-    a("--zenoh-tls-private-key", help="its PEM key (AGILEGS_ZENOH_TLS_PRIVATE_KEY)")
-    a("--zenoh-tls-root-ca", help="PEM CA certificate (AGILEGS_ZENOH_TLS_ROOT_CA)")
-    mt = parser.add_mutually_exclusive_group()
-    mt.add_argument("--zenoh-mtls", dest="zenoh_mtls", action="store_const", const=True,
-                    help="mutual TLS: peers need a certificate of the CA (AGILEGS_ZENOH_MTLS)")
-    mt.add_argument("--no-zenoh-mtls", dest="zenoh_mtls", action="store_const", const=False,
-                    help="no client certificates (the default)")
-    a("--zenoh-users-file", help="user:password lines: Zenoh peers must authenticate as one "
-                                 "(AGILEGS_ZENOH_USERS_FILE)")
-    a("--zenoh-user", help="the Zenoh user this instance connects as (AGILEGS_ZENOH_USER; "
-                           "its password: AGILEGS_ZENOH_PASSWORD)")
-    a("--zenoh-insecure", dest="zenoh_insecure", action="store_const", const=True,
-      help="INSECURE: with AGILEGS_TOKEN set, do not make or require Zenoh credentials: any "
-           "peer that reaches the Zenoh endpoints reads every session's data "
-           "(AGILEGS_ZENOH_INSECURE)")
-    a("--zenoh-dev-certs", metavar="DIR",
-      help="make a development CA, server and client certificate in DIR (once) and serve "
-           "tls/ endpoints with them (AGILEGS_ZENOH_DEV_CERTS)")
+    """The flags of ``agilegs serve``: one per setting
+    (:func:`agilegs.service.settings.add_flags`)."""
+    from .settings import add_flags
 
-
-_FIELDS = ("host", "port", "state_dir", "http", "zenoh", "zenoh_mode", "instance_id",
-           "forward_timeout", "workers", "torch_threads", "max_body_bytes",
-           "max_pool_size", "max_image_pixels", "max_sessions", "max_gaussians", "max_views",
-           "max_shortlist", "max_poll_wait", "decision_log", "fsync", "mapper",
-           "mapper_steps_per_view", "mapper_burst", "log_level", "read_workers", "background_nice",
-           "max_body_items", "max_request_decoded_bytes", "max_inflight_decoded_bytes",
-           "max_select_seconds", "max_select_bytes", "device", "max_session_queue", "max_queued",
-           "request_deadline", "zenoh_tls_certificate", "zenoh_tls_private_key",
-           "zenoh_tls_root_ca", "zenoh_mtls", "zenoh_users_file", "zenoh_user",
-           "zenoh_dev_certs", "zenoh_insecure", "max_inflight_body_bytes", "header_timeout",
-           "body_timeout", "keep_alive_timeout", "max_connections", "max_header_bytes")
+    parser.epilog = ("Every flag has its AGILEGS_* environment variable (named in its help); a "
+                     "flag given wins. The bearer token is read from AGILEGS_TOKEN only.")
+    add_flags(parser)
 
 
 def build_settings(args: argparse.Namespace) -> Any:
     """Settings from the environment, overridden by the flags given."""
-    from .settings import Settings
+    from .settings import settings_from_flags
 
-    overrides: dict[str, Any] = {}
-    for name in _FIELDS:
-        value = getattr(args, name, None)
-        if value is not None:
-            overrides[name] = value
-    for name in ("zenoh_listen", "zenoh_connect", "ros2"):
-        value = getattr(args, name, None)
-        if value is not None:
-            overrides[name] = [e for group in value for e in group]
-    return Settings(**overrides)
+    return settings_from_flags(args)
 
 
 def bind_http(host: str, port: int) -> socket.socket:
@@ -234,9 +100,9 @@ def zenoh_start_error(exc: BaseException, settings: Any) -> str | None:
 def run(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
 
-    from .http_edge import raise_file_limit, tune_allocator
     from .server import Server
-    from .state_dir import StateDirError
+    from .store.state_dir import StateDirError
+    from .transports.http.edge import raise_file_limit, tune_allocator
 
     try:
         settings = build_settings(args)
@@ -265,16 +131,16 @@ def run(args: argparse.Namespace) -> int:
         return 2
     import uvicorn  # before the start, so that its objects are frozen with the server's
 
-    from .http_app import create_app
+    from .transports.http.app import create_app
 
-    app = create_app(settings, server, start=False)
+    app = create_app(server, start=False)
     failed = _start(server)
     if failed:
         sock.close()
         return failed
     log.info("agilegs serve: http://%s:%d (state in %s, zenoh %s)", settings.host, settings.port,
              settings.state_dir, "on" if settings.zenoh else "off")
-    from .http_edge import uvicorn_config
+    from .transports.http.edge import uvicorn_config
 
     raise_file_limit(settings.max_connections)
     config = uvicorn.Config(app, host=settings.host, port=settings.port,

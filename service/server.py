@@ -2,11 +2,12 @@
 
 :class:`Server` wires one instance together: the sessions (:class:`SessionRegistry
 <agilegs.service.sessions.registry.SessionRegistry>`), the request pipeline
-(:class:`~agilegs.service.gateway.Gateway`), the cluster node that routes operations to the
-instance owning a session (:class:`~agilegs.service.cluster.ClusterNode`), the Zenoh
-transport (:class:`~agilegs.service.zenoh_adapter.ZenohAdapter`) with the ROS 2 one on its
-session (:class:`~agilegs.service.ros2.adapter.Ros2Adapter`) and the metrics; the HTTP
-transport is an app around it (:func:`agilegs.service.http_app.create_app`).
+(:class:`~agilegs.service.transports.gateway.Gateway`), the cluster node that routes operations to
+the instance owning a session (:class:`~agilegs.service.transports.cluster.ClusterNode`), the Zenoh
+transport (:class:`~agilegs.service.transports.zenoh.adapter.ZenohAdapter`) with the ROS 2 one on
+its
+session (:class:`~agilegs.service.transports.ros2.adapter.Ros2Adapter`) and the metrics; the HTTP
+transport is an app around it (:func:`agilegs.service.transports.http.app.create_app`).
 
 The command ``agilegs serve`` that runs one is :mod:`agilegs.service.serve`.
 """
@@ -17,16 +18,16 @@ import gc
 import logging
 from typing import TYPE_CHECKING
 
-from .cluster import ClusterNode
-from .gateway import Gateway
-from .metrics import Metrics
 from .sessions.registry import SessionRegistry
 from .settings import Settings
-from .state_dir import StateLock, claim_state_dir
-from .zenoh_adapter import ZenohAdapter
+from .store.state_dir import StateLock, claim_state_dir
+from .transports.cluster import ClusterNode
+from .transports.gateway import Gateway
+from .transports.metrics import Metrics
+from .transports.zenoh.adapter import ZenohAdapter
 
 if TYPE_CHECKING:
-    from .ros2.adapter import Ros2Adapter
+    from .transports.ros2.adapter import Ros2Adapter
 
 __all__ = ["Server"]
 
@@ -36,7 +37,7 @@ log = logging.getLogger(__name__)
 class Server:
     """One server instance: sessions, gateway, cluster node, Zenoh, metrics.
 
-    The state folder is claimed exclusively (:mod:`agilegs.service.state_dir`) from
+    The state folder is claimed exclusively (:mod:`agilegs.service.store.state_dir`) from
     :meth:`claim_state` (:meth:`start` claims it if that was not called) until :meth:`close`.
 
     Args:
@@ -63,7 +64,7 @@ class Server:
 
     def claim_state(self) -> None:
         """Claim the state folder (created if missing); a one-line
-        :class:`~agilegs.service.state_dir.StateDirError` if it is read-only, cannot be
+        :class:`~agilegs.service.store.state_dir.StateDirError` if it is read-only, cannot be
         created, or another server holds it."""
         if self.state_lock is None:
             self.state_lock = claim_state_dir(self.settings.state_dir, command="agilegs serve",
@@ -78,7 +79,7 @@ class Server:
             self.zenoh = ZenohAdapter(self.gateway, self.cluster, self.settings)
             self.zenoh.start()
             if self.settings.ros2:
-                from .ros2.adapter import Ros2Adapter
+                from .transports.ros2.adapter import Ros2Adapter
 
                 self.ros2 = Ros2Adapter(self.gateway, self.settings.ros2)
                 self.ros2.start(self.zenoh.session)

@@ -2,13 +2,13 @@
 checked, and its damaged sessions repaired, offline.
 
 ``check`` reads every session of the folder back and checks every file against the
-checksums of its manifest (:mod:`agilegs.service.store_read`); it changes nothing, and
+checksums of its manifest (:mod:`agilegs.service.store.read`); it changes nothing, and
 prints one line per session (``--json``: the ``list_sessions`` entries). Exit status 0 when
 every session checks out, 1 when one is damaged, 2 when the folder cannot be read.
 
 ``repair`` claims the folder (it refuses while a server holds it: use that server's
 ``repair_session`` operation instead) and repairs each damaged session
-(:meth:`~agilegs.service.store.SessionStore.repair`: roll back to the previous version, drop
+(:meth:`~agilegs.service.store.write.SessionStore.repair`: roll back to the previous version, drop
 damaged frames); ``--dry-run`` prints what it would do. Exit status 0 when every session
 checks out afterwards, 1 when one could not be repaired, 2 when the folder cannot be used.
 
@@ -23,11 +23,17 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, TextIO
 
-from .integrity import Damage
-from .state_dir import StateDirError, claim_state_dir, describe_holder, is_claimed, read_holder
+from .store.integrity import Damage
+from .store.state_dir import (
+    StateDirError,
+    claim_state_dir,
+    describe_holder,
+    is_claimed,
+    read_holder,
+)
 
 if TYPE_CHECKING:
-    from .store import SessionStore
+    from .store.write import SessionStore
 
 __all__ = ["add_arguments", "check", "repair", "run"]
 
@@ -64,7 +70,7 @@ def check(root: Path, only: list[str] | None = None, *, as_json: bool = False,
           out: TextIO | None = None) -> int:
     """Check every session of ``root`` (or those in ``only``); see the module docstring."""
     from .sessions.listing import damaged_summary, record_summary
-    from .store import SessionStore
+    from .store.write import SessionStore
 
     out = out or sys.stdout
     store = SessionStore(root)
@@ -100,7 +106,7 @@ def repair(root: Path, only: list[str] | None = None, *, dry_run: bool = False,
            out: TextIO | None = None) -> int:
     """Repair the damaged sessions of ``root`` (or of those in ``only``); see the module
     docstring."""
-    from .store import SessionStore, StoreError
+    from .store.write import SessionStore, StoreError
 
     out = out or sys.stdout
     try:

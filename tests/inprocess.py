@@ -13,9 +13,9 @@ import anyio.from_thread
 import httpx
 
 from agilegs.client import Client
-from agilegs.service.http_app import create_app
 from agilegs.service.server import Server
 from agilegs.service.settings import Settings
+from agilegs.service.transports.http.app import create_app
 
 BASE_URL = "http://agilegs.test"
 
@@ -67,7 +67,7 @@ def serve_in_process(state_dir: Path, **settings: Any) -> Iterator[InProcess]:
     settings.setdefault("mapper", False)
     settings.setdefault("workers", 4)
     server = Server(Settings(state_dir=state_dir, **settings))
-    app = create_app(server.settings, server)
+    app = create_app(server)
     with anyio.from_thread.start_blocking_portal() as portal:
         with portal.wrap_async_context_manager(app.router.lifespan_context(app)):
             yield InProcess(server, app, ASGIThreadTransport(app, portal))

@@ -91,7 +91,7 @@ if [ "$DEVICE" != cpu ]; then
     tests/nbv/test_cuda.py tests/nbv/test_se3.py tests/mapper/test_gsplat_render.py \
     >"$OUT/logs/tests.txt" 2>&1
   say "CUDA tests: exit $? ($(tail -1 "$OUT/logs/tests.txt"))"
-  timeout 120 "$PY" -m pytest -q -p no:cacheprovider -m cuda -rA tests/service/test_device.py \
+  timeout 120 "$PY" -m pytest -q -p no:cacheprovider -m cuda -rA tests/sessions/test_device.py \
     >"$OUT/logs/tests-server.txt" 2>&1
   say "CUDA server tests: exit $? ($(tail -1 "$OUT/logs/tests-server.txt"))"
 fi

@@ -65,6 +65,7 @@ from typing import Any
 
 import torch
 
+from agilegs.config.selection import SelectConfig
 from agilegs.config.types import validate_config
 from agilegs.service.nbv.camera import Camera, Intrinsics
 from agilegs.service.nbv.candidates import capture_pool, scene_center_radius
@@ -75,9 +76,9 @@ from agilegs.service.nbv.information import (
     fisher_diag,
     init_information,
 )
-from agilegs.service.nbv.methods import get_method, method_names
+from agilegs.service.nbv.methods.base import get_method, method_names
 from agilegs.service.nbv.rotations import quat_to_rotmat
-from agilegs.service.nbv.selectors import SelectConfig, Selection, select, select_validated
+from agilegs.service.nbv.selectors import Selection, select, select_validated
 
 from .options import add_latency_arguments, use_threads
 from .stages import ANCHOR_STAGES
@@ -238,8 +239,7 @@ class Plan:
 
 @dataclass
 class Setup:
-    """What every entry selects on: the map, the camera, the pool [D, 4, 4], the acquired
-    views [A, 4, 4], Ĥ of the acquired views and the shared settings."""
+    """What every entry selects on: map, camera, pool [D, 4, 4], acquired views [A, 4, 4], Ĥ."""
 
     gmap: GaussianMap
     intrinsics: Intrinsics
@@ -347,9 +347,8 @@ class EntryRecord:
 
 @dataclass
 class Timings:
-    """What the events measured: every entry's record, the upkeep pass of each event, the
-    process's resident set before the first selection and, on a GPU, the memory allocated
-    then and the peak during the selections."""
+    """What the events measured: every entry's record, each event's upkeep pass, the RSS before
+    the first selection and, on a GPU, the memory allocated then and the peak after it."""
 
     entries: dict[str, EntryRecord]
     upkeep_ms: list[float]

@@ -52,7 +52,7 @@ _PROFILE_HELP = {
 
 
 def _methods() -> tuple[str, ...]:
-    from agilegs.schemas.config import METHODS
+    from agilegs.config.selection import METHODS
 
     return METHODS
 

@@ -23,7 +23,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from agilegs.service.bench.scenes import BenchScene  # noqa: E402
+from agilegs.service.bench.scene_model import BenchScene
 from agilegs.service.bench.variants import display_name  # noqa: E402
 
 log = logging.getLogger(__name__)

@@ -279,7 +279,7 @@ def load_bag_scene(path: Path, opt: SceneOptions, topics: Any = None) -> BenchSc
     by type); at most twice the profile's pool and test views are decoded, evenly spaced."""
     import numpy as np
 
-    from agilegs.client.ros2.bag import read_bag
+    from agilegs.client.ros2 import read_bag
     from agilegs.service.data.images import View, target_size
     from agilegs.service.nbv.camera import Camera, Intrinsics
 

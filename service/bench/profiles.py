@@ -24,7 +24,7 @@ import argparse
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any, Literal
 
-from .scenes import SceneOptions
+from .scene_model import SceneOptions
 
 __all__ = ["PROFILES", "RESULTS_FORMAT", "DepthUse", "Profile", "resolve_profile"]
 

@@ -8,7 +8,7 @@ training then runs to ``total_steps``. Only the selection differs between method
 
 Reported per run (``DIR/runs/<scene>/<variant>/seed<k>.json``, gathered in
 ``DIR/results.json``): PSNR and SSIM on the held-out test views (LPIPS only when
-``agilegs.service.quality.lpips_available()``: its weights are never downloaded), PSNR after
+``agilegs.service.mapper.quality.lpips_available()``: its weights are never downloaded), PSNR after
 each event (the curve against the number of views), each event's selection latency (the
 ``Selection.latency_ms`` breakdown, wall clock) and the process CPU time of the ``select``
 call (``select_cpu_ms``: on a shared machine other processes inflate wall-clock times by
@@ -20,7 +20,7 @@ as the paper's main results table, plus latency, trajectory, redundancy and (whe
 ablation tables; PNG plots go next to it. A rerun with the same ``DIR`` skips the
 (scene, method, seed) runs whose file exists with the same settings.
 
-The run's state is a session's record (:class:`~agilegs.service.records.SessionRecord`: the
+The run's state is a session's record (:class:`~agilegs.service.store.records.SessionRecord`: the
 pool with the pool indices as candidate ids, the acquired views, the selector's warm state)
 and changes as a session's does: every view, the initial ones included, is acquired with
 :func:`~agilegs.service.sessions.transitions.acquire`, which takes it out of the pool and moves
@@ -56,13 +56,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from agilegs.service.mapper import Mapper, MapperConfig
+from agilegs.config.mapper import MapperConfig
+from agilegs.config.selection import SelectConfig
+from agilegs.service.mapper.mapper import Mapper
+from agilegs.service.mapper.quality import lpips, lpips_available, psnr, ssim
 from agilegs.service.nbv.information import fisher_diag, init_information
-from agilegs.service.nbv.methods import get_method
+from agilegs.service.nbv.methods.base import get_method
 from agilegs.service.nbv.rasterize import render
-from agilegs.service.nbv.selectors import SelectConfig, select
-from agilegs.service.quality import lpips, lpips_available, psnr, ssim
-from agilegs.service.records import SessionRecord
+from agilegs.service.nbv.selectors import select
 from agilegs.service.sessions.transitions import (
     Limits,
     acquire,
@@ -71,10 +72,11 @@ from agilegs.service.sessions.transitions import (
     recompute_information,
     set_pool,
 )
+from agilegs.service.store.records import SessionRecord
 
 from .profiles import RESULTS_FORMAT, Profile
 from .redundancy import run_redundancy
-from .scenes import BenchScene
+from .scene_model import BenchScene
 from .variants import Variant
 
 __all__ = [

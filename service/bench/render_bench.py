@@ -66,7 +66,7 @@ def _build(scene: str | None, n: int, res: int) -> tuple[Any, Any]:
     import torch
 
     from agilegs.service.nbv.camera import Camera, look_at
-    from agilegs.service.nbv.gaussians import GaussianMap, load_scene
+    from agilegs.service.nbv.gaussians import load_scene
 
     if scene:
         gm = load_scene(scene, max_gaussians=n, seed=0)
@@ -74,15 +74,9 @@ def _build(scene: str | None, n: int, res: int) -> tuple[Any, Any]:
         eye = c + torch.tensor([0.0, -0.6, -1.6])
         c2w = look_at(eye, c)
     else:
-        g = torch.Generator().manual_seed(0)
-        gm = GaussianMap(
-            means=torch.rand(n, 3, generator=g) - 0.5,
-            log_scales=torch.log(torch.rand(n, 3, generator=g) * 0.02 + 0.005),
-            quats=torch.randn(n, 4, generator=g),
-            opacity_logits=torch.randn(n, generator=g),
-            sh=torch.randn(n, 1, 3, generator=g) * 0.3,
-        )
-        c2w = look_at(torch.tensor([0.0, 0.0, -2.0]), torch.zeros(3))
+        from .scenes import random_cube
+
+        gm, c2w = random_cube(n)
     cam = Camera.from_c2w(c2w, fx=res, fy=res, cx=res / 2, cy=res / 2, width=res, height=res)
     return gm, cam
 
@@ -91,8 +85,8 @@ def _functions(gm: Any, cam: Any) -> dict[str, Callable[[], Any]]:
     import torch
 
     from agilegs.service.bench.render_reference import baseline_fisher_diag, baseline_render
-    from agilegs.service.nbv.backend import Backend
     from agilegs.service.nbv.information import fisher_diag
+    from agilegs.service.nbv.kernels.backend import Backend
     from agilegs.service.nbv.rasterize import render
 
     def fwd() -> None:
@@ -125,7 +119,7 @@ def _timings(scene: str | None, n: int, res: int, repeats: int, threads: list[in
     """Interleaved rounds of every (kind, thread count): median CPU and wall ms."""
     import torch
 
-    from agilegs.service.nbv.backend import set_kernel_threads
+    from agilegs.service.nbv.kernels.backend import set_kernel_threads
 
     def use(kind: str, th: int) -> None:
         kernels = kind in KERNEL_KINDS
@@ -161,7 +155,7 @@ def _timings(scene: str | None, n: int, res: int, repeats: int, threads: list[in
 def _peak(scene: str | None, n: int, res: int, kind: str, threads: int) -> dict[str, float]:
     import torch
 
-    from agilegs.service.nbv.backend import set_kernel_threads
+    from agilegs.service.nbv.kernels.backend import set_kernel_threads
 
     torch.set_num_threads(1 if kind in KERNEL_KINDS else threads)
     set_kernel_threads(threads)

@@ -48,8 +48,9 @@ def _build(scene: str | None, n: int, width: int, height: int, device: Any) -> t
     import torch
 
     from agilegs.service.bench.latency import densified
+    from agilegs.service.bench.scenes import random_cube
     from agilegs.service.nbv.camera import Camera, look_at
-    from agilegs.service.nbv.gaussians import GaussianMap, load_scene
+    from agilegs.service.nbv.gaussians import load_scene
 
     if scene:
         gm = densified(load_scene(scene), n, seed=0)
@@ -58,15 +59,7 @@ def _build(scene: str | None, n: int, width: int, height: int, device: Any) -> t
         eye = c + spread * torch.tensor([0.0, -0.6, -1.6])
         c2w = look_at(eye, c)
     else:
-        g = torch.Generator().manual_seed(0)
-        gm = GaussianMap(
-            means=torch.rand(n, 3, generator=g) - 0.5,
-            log_scales=torch.log(torch.rand(n, 3, generator=g) * 0.02 + 0.005),
-            quats=torch.randn(n, 4, generator=g),
-            opacity_logits=torch.randn(n, generator=g),
-            sh=torch.randn(n, 16, 3, generator=g) * 0.3,
-        )
-        c2w = look_at(torch.tensor([0.0, 0.0, -2.0]), torch.zeros(3))
+        gm, c2w = random_cube(n, sh_coeffs=16)
     f = 0.9 * width
     cam = Camera.from_c2w(c2w, fx=f, fy=f, cx=width / 2, cy=height / 2, width=width,
                           height=height)
@@ -77,8 +70,8 @@ def _functions(gm: Any, cam: Any, with_gsplat: bool) -> dict[str, Callable[[], A
     import torch
 
     from agilegs.config.mapper import MapperConfig
-    from agilegs.service.mapper import Mapper
     from agilegs.service.mapper.gsplat_render import render_gsplat
+    from agilegs.service.mapper.mapper import Mapper
     from agilegs.service.nbv.information import fisher_diag
     from agilegs.service.nbv.rasterize import render
 

@@ -44,7 +44,7 @@ from typing import Any
 
 from agilegs.service.bench.profiles import RESULTS_FORMAT
 from agilegs.service.bench.redundancy import redundancy_table, summarise_redundancy
-from agilegs.service.bench.scenes import BenchScene
+from agilegs.service.bench.scene_model import BenchScene
 from agilegs.service.bench.stages import anchor_split_table
 from agilegs.service.bench.variants import SHORTLIST_DISPLAY, display_name
 

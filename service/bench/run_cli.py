@@ -34,14 +34,15 @@ from rich.progress import (
 )
 from torch import Tensor
 
-from agilegs.client.ros2.bag import BagTopics
+from agilegs.client.ros2 import BagTopics
 
 from . import plots, report
 from .options import add_run_arguments as add_arguments
 from .options import flag_values, int_list, protocol_profile, str_list
 from .profiles import Profile
 from .protocol import estimate_seconds, fingerprint, run_progressive
-from .scenes import BenchScene, load_bench_scene
+from .scene_model import BenchScene
+from .scenes import load_bench_scene
 from .variants import Variant, build_variants
 
 __all__ = ["Job", "RunOutcome", "RunPlan", "add_arguments", "environment", "estimate", "parse",

@@ -59,10 +59,10 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from agilegs.client.ros2.bag import BagTopics, is_bag
-from agilegs.service.nbv.camera import Camera, Intrinsics
+from agilegs.client.ros2 import BagTopics, is_bag
+from agilegs.service.nbv.camera import Camera, Intrinsics, look_at
 from agilegs.service.nbv.candidates import capture_pool, scene_center_radius
-from agilegs.service.nbv.gaussians import SUFFIXES, load_scene
+from agilegs.service.nbv.gaussians import SUFFIXES, GaussianMap, load_scene
 from agilegs.service.nbv.rasterize import render
 
 from .posed_scenes import load_bag_scene, load_colmap_scene, load_transforms_scene
@@ -93,6 +93,7 @@ __all__ = [
     "orbit_cameras",
     "axes_crossing",
     "evenly_spaced",
+    "random_cube",
 ]
 
 
@@ -234,3 +235,17 @@ def load_bench_scene(path: PathLike, options: SceneOptions | None = None, *,
     log.info("scene %s (%s): pool %d, test %d, %dx%d", scene.name, kind, scene.pool_size,
              scene.test_poses.shape[0], scene.intrinsics.width, scene.intrinsics.height)
     return scene
+
+
+def random_cube(n: int, sh_coeffs: int = 1) -> tuple[GaussianMap, Tensor]:
+    """``n`` seeded random Gaussians in the unit cube (``sh_coeffs`` SH coefficients each) and
+    a camera-to-world pose [4, 4] two units in front of it, looking at its centre."""
+    g = torch.Generator().manual_seed(0)
+    gm = GaussianMap(
+        means=torch.rand(n, 3, generator=g) - 0.5,
+        log_scales=torch.log(torch.rand(n, 3, generator=g) * 0.02 + 0.005),
+        quats=torch.randn(n, 4, generator=g),
+        opacity_logits=torch.randn(n, generator=g),
+        sh=torch.randn(n, sh_coeffs, 3, generator=g) * 0.3,
+    )
+    return gm, look_at(torch.tensor([0.0, 0.0, -2.0]), torch.zeros(3))

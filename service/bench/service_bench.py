@@ -63,7 +63,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--ros2", default=None, metavar="NAMESPACE",
       help="the ROS 2 namespace timed (default /bench/agilegs on a started server; with "
            "--url: only when given)")
-    a("--token", default=os.environ.get("AGILEGS_TOKEN"), help="bearer token (AGILEGS_TOKEN)")
+    a("--token", help="bearer token (default: AGILEGS_TOKEN)")
     a("--zenoh-credentials", metavar="CLIENT_JSON",
       help="the server's <state-dir>/zenoh/client.json (a server with a token admits no Zenoh "
            "peer without it; default: that of the server started here)")
@@ -154,8 +154,10 @@ def check_methods(args: argparse.Namespace) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from agilegs.client import AgileGSError, Client, ZenohClient
+    from agilegs.service.settings import Credentials
 
     check_methods(args)
+    args.token = args.token or Credentials().token_value()
 
     logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per request otherwise
     server = None
@@ -302,8 +304,7 @@ def _load(url: str, args: argparse.Namespace, intr: dict[str, Any], scene: dict[
 def _neighbour(url: str, args: argparse.Namespace, intr: dict[str, Any],
                scene: dict[str, Any], poses: np.ndarray) -> dict[str, Any]:
     """The quiet session's select + commit round trips, alone and beside a flooded one."""
-    from agilegs.client import AgileGSError, Client
-    from agilegs.client.errors import APIError
+    from agilegs.client import AgileGSError, APIError, Client
 
     tag = f"{os.getpid()}"
     noisy = f"noisy-{tag}"

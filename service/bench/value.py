@@ -53,7 +53,8 @@ from .options import add_value_arguments as add_arguments
 from .options import protocol_profile
 from .profiles import Profile
 from .protocol import add_pool_view, evaluate, run_progressive
-from .scenes import BenchScene, load_bench_scene
+from .scene_model import BenchScene
+from .scenes import load_bench_scene
 from .variants import Variant, parse_variant
 
 log = logging.getLogger(__name__)

@@ -25,7 +25,7 @@ from agilegs.config.selection import (
 )
 from agilegs.config.types import deep_merge, validate_config
 
-from ..nbv.methods import method_names
+from ..nbv.methods.base import method_names
 
 __all__ = [
     "DISPLAY",

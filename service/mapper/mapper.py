@@ -52,10 +52,10 @@ from torch import Tensor
 
 from agilegs.config.mapper import MapperConfig
 from agilegs.service.data.images import View
+from agilegs.service.mapper.quality import ssim_loss
 from agilegs.service.nbv.camera import Camera
 from agilegs.service.nbv.gaussians import GaussianMap
 from agilegs.service.nbv.rasterize import render
-from agilegs.service.quality import ssim_loss
 
 from .densify import plan_densification
 from .gsplat_render import render_gsplat, resolve_rasterizer
@@ -330,7 +330,7 @@ class Mapper:
 
         Args:
             views: objects with ``camera``, ``image`` [H, W, 3] and ``depth`` [H, W] attributes
-                (e.g. :class:`~agilegs.service.data.loaders.View`); None: the acquired views
+                (e.g. :class:`~agilegs.service.data.images.View`); None: the acquired views
                 that have depth. Views without depth are skipped. The views are not added to
                 the training set (use :meth:`add_view`).
             stride: pixel stride (default ``config.init_stride``).

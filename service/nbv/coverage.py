@@ -23,8 +23,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from . import backend
 from .camera import Intrinsics
+from .kernels import backend
 
 
 @dataclass

@@ -34,10 +34,11 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from agilegs.service.nbv.backend import Backend, resolve
+from agilegs.config.selection import FIELD_NAMES
 from agilegs.service.nbv.camera import Camera, Intrinsics
-from agilegs.service.nbv.gaussians import FIELD_NAMES, GaussianMap
-from agilegs.service.nbv.kernel_ops import kernel_fisher, kernel_jacobians, kernel_moments
+from agilegs.service.nbv.gaussians import GaussianMap
+from agilegs.service.nbv.kernels.backend import Backend, resolve
+from agilegs.service.nbv.kernels.ops import kernel_fisher, kernel_jacobians, kernel_moments
 from agilegs.service.nbv.projection import Projected, project_map
 from agilegs.service.nbv.rasterize import (
     composite_pairs,
@@ -83,7 +84,7 @@ def screen_second_moments(
     with the derivatives of α taken through its 0.99 clamp, as FisherRF's rasterizer does).
     Differentiable in whatever ``gmap`` and ``camera.c2w`` carry a graph for (then always by
     the torch path; otherwise by the compiled kernels where ``backend`` allows, see
-    :mod:`agilegs.service.nbv.backend`).
+    :mod:`agilegs.service.nbv.kernels.backend`).
     """
     if residuals not in ("channels", "pixels"):
         raise ValueError(f"residuals must be 'channels' or 'pixels', got {residuals!r}")
@@ -121,14 +122,56 @@ def screen_second_moments(
         f4 = dsum * dsum * al * al
         f2 = (dsum * w * al)[:, None].expand(-1, 3)
     dx, dy = t.dx, t.dy
-    phi = torch.stack([torch.ones_like(dx), dx, dy, dx * dx, dx * dy, dy * dy], dim=1)  # [Q, 6]
-    g = pairs.gauss
-    outer = (f4[:, None] * phi)[:, :, None] * phi[:, None, :]  # [Q, 6, 6]
-    big_phi = torch.zeros(n, 36, dtype=dt, device=dev).index_add(0, g, outer.reshape(-1, 36))
-    c2 = torch.zeros(n, 18, dtype=dt, device=dev).index_add(
-        0, g, (f2[:, :, None] * phi[:, None, :]).reshape(-1, 18)).reshape(n, 3, 6)
-    mcc = torch.zeros(n, dtype=dt, device=dev).index_add(0, g, w * w)
-    return _assemble(big_phi.reshape(n, 6, 6), c2, mcc, proj.conics, proj.opacities, residuals)
+    # φφᵀ holds 15 distinct monomials dx^a dy^b (a + b <= 4): sum those, not its 36 entries
+    px = [torch.ones_like(dx), dx, dx * dx]
+    py = [torch.ones_like(dy), dy, dy * dy]
+    px += [px[2] * dx, px[2] * px[2]]
+    py += [py[2] * dy, py[2] * py[2]]
+    mono = torch.stack([px[a] * py[b] for a, b in MONOMIALS], dim=1)  # [Q, 15]
+    phi = mono[:, :6]  # (1, dx, dy, dx², dxdy, dy²) [Q, 6]
+    per_pair = torch.cat([f4[:, None] * mono, (f2[:, :, None] * phi[:, None, :]).reshape(-1, 18),
+                          (w * w)[:, None]], dim=1)  # [Q, 34]
+    sums = per_gaussian_sums(pairs.gauss, per_pair, n)  # [N, 34]
+    big_phi = sums[:, :15][:, _PHI_OUTER.to(sums.device)].reshape(n, 6, 6)
+    c2 = sums[:, 15:33].reshape(n, 3, 6)
+    mcc = sums[:, 33]
+    return _assemble(big_phi, c2, mcc, proj.conics, proj.opacities, residuals)
+
+
+MONOMIALS: tuple[tuple[int, int], ...] = (
+    (0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2),
+    (3, 0), (2, 1), (1, 2), (0, 3), (4, 0), (3, 1), (2, 2), (1, 3), (0, 4),
+)
+"""The exponents (a, b) of dx^a dy^b for a + b <= 4; the first six are φ's entries."""
+_PHI_OUTER = torch.tensor([
+    MONOMIALS.index((MONOMIALS[i][0] + MONOMIALS[j][0], MONOMIALS[i][1] + MONOMIALS[j][1]))
+    for i in range(6) for j in range(6)])
+"""Entry (i, j) of φφᵀ [36] as an index into :data:`MONOMIALS`."""
+
+Reduction = Literal["auto", "index_add", "segments"]
+
+
+def per_gaussian_sums(gauss: Tensor, values: Tensor, n: int, *,
+                      how: Reduction = "auto") -> Tensor:
+    """Σ over the pairs of each Gaussian: values [Q, C] summed by ``gauss`` [Q] into [n, C].
+
+    ``"index_add"`` scatters with additions (the CPU's way); ``"segments"`` sorts the pairs by
+    Gaussian and sums each Gaussian's run (no atomic additions: on a GPU the many pairs of
+    one Gaussian would otherwise contend for the same addresses); ``"auto"``: segments on
+    CUDA unless ``values`` carries a graph, index_add elsewhere. Both give the same sums up to
+    the order of the additions.
+    """
+    if how == "auto":
+        how = "segments" if values.is_cuda and not values.requires_grad else "index_add"
+    if how == "index_add":
+        return torch.zeros(n, values.shape[1], dtype=values.dtype,
+                           device=values.device).index_add(0, gauss, values)
+    if how != "segments":
+        raise ValueError(f"how must be auto, index_add or segments, got {how!r}")
+    order = torch.argsort(gauss, stable=True)
+    lengths = torch.bincount(gauss, minlength=n)
+    return torch.segment_reduce(values.index_select(0, order), "sum", lengths=lengths, axis=0,
+                                unsafe=True)
 
 
 def _assemble(big_phi: Tensor, c2: Tensor, mcc: Tensor, conics: Tensor, opacities: Tensor,
@@ -181,7 +224,8 @@ def fisher_diag(
         background: background colour [3] used by the render (default black).
         fields: which blocks to return (default all five).
         tile_size, near, max_elements: as in :func:`render`.
-        backend: "auto", "numba" or "torch" (:mod:`agilegs.service.nbv.backend`); the kernels
+        backend: "auto", "numba" or "torch" (:mod:`agilegs.service.nbv.kernels.backend`); the
+        kernels
             serve every call whose pose does not require grad.
 
     Returns:

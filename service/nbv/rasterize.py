@@ -1,8 +1,8 @@
 """A differentiable Gaussian rasterizer in pure torch (CPU and CUDA alike), and ``render``.
 
 On the CPU, :func:`render` hands the projection and the compositing to the compiled kernels
-(:mod:`agilegs.service.nbv.backend`, :mod:`agilegs.service.nbv.kernels`) wherever they apply;
-the pure-torch code below is their reference, and serves everything else.
+(:mod:`agilegs.service.nbv.kernels.backend`, :mod:`agilegs.service.nbv.kernels`) wherever they
+apply; the pure-torch code below is their reference, and serves everything else.
 
 It follows the reference 3D Gaussian Splatting rasterizer (Kerbl et al. 2023). The
 Gaussians are projected by :mod:`agilegs.service.nbv.projection` (EWA, low-pass, culling, SH
@@ -41,10 +41,10 @@ from typing import Any, Literal
 import torch
 from torch import Tensor
 
-from agilegs.service.nbv.backend import Backend, resolve
 from agilegs.service.nbv.camera import Camera
 from agilegs.service.nbv.gaussians import GaussianMap
-from agilegs.service.nbv.kernel_ops import kernel_composite, kernel_project
+from agilegs.service.nbv.kernels.backend import Backend, resolve
+from agilegs.service.nbv.kernels.ops import kernel_composite, kernel_project
 from agilegs.service.nbv.projection import Projected, project_map
 
 ALPHA_MIN = 1.0 / 255.0
@@ -436,7 +436,7 @@ def render(
         max_elements: candidate pixel-Gaussian pairs evaluated at once (memory bound; the
             torch path only).
         backend: "auto", "numba" (the compiled CPU kernels) or "torch" (this module's
-            pure-torch path); None: :func:`agilegs.service.nbv.backend.default_backend`. The
+            pure-torch path); None: :func:`agilegs.service.nbv.kernels.backend.default_backend`. The
             kernels composite whenever they apply (CPU, float32/float64, ``backward=
             "analytic"``) and also project unless the pose requires grad.
 

@@ -30,15 +30,21 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from agilegs.config.selection import SHORTLISTS, AnchorConfig, ScoringConfig, SelectConfig
+from agilegs.config.selection import (
+    FIELD_NAMES,
+    SHORTLISTS,
+    AnchorConfig,
+    ScoringConfig,
+    SelectConfig,
+)
 from agilegs.config.types import validate_config
 
 from .camera import Intrinsics, check_pose
 from .candidates import pool_radius, scene_center_radius
 from .errors import InputError
-from .gaussians import FIELD_NAMES, GaussianMap
+from .gaussians import GaussianMap
 from .information import eig_scores
-from .methods import STAGES, SelectionContext, get_method, method_names
+from .methods.base import STAGES, SelectionContext, get_method, method_names
 from .se3 import pose_distance
 
 __all__ = [

@@ -19,16 +19,18 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from agilegs import schemas as m
 from agilegs.config.geometry import MAX_COORD
-from agilegs.schemas import models as m
-from agilegs.schemas.geometry import Intrinsics as WireIntrinsics
-from agilegs.schemas.geometry import Pose, PoseArrayList
+from agilegs.config.selection import FIELD_NAMES
+from agilegs.schemas import Intrinsics as WireIntrinsics
+from agilegs.schemas import Pose
+from agilegs.schemas.geometry import PoseArrayList
 
 from ..errors import ServiceError, invalid, too_large
-from ..mapper import backproject_depth, nearest_neighbour_scales
+from ..mapper.points import backproject_depth, nearest_neighbour_scales
 from ..nbv.camera import Camera, Intrinsics
-from ..nbv.gaussians import FIELD_NAMES, GaussianMap
-from ..store import SessionRecord, ViewRecord
+from ..nbv.gaussians import GaussianMap
+from ..store.records import SessionRecord, ViewRecord
 
 __all__ = [
     "Frame",

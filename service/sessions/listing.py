@@ -4,11 +4,11 @@ damaged session's operations answer."""
 
 from __future__ import annotations
 
-from agilegs.schemas import models as m
+from agilegs import schemas as m
 
 from ..errors import ServiceError, session_damaged
-from ..integrity import Damage
-from ..store import SessionRecord
+from ..store.integrity import Damage
+from ..store.records import SessionRecord
 
 __all__ = ["damage_out", "damaged_error", "damaged_summary", "record_summary"]
 

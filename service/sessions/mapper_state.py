@@ -1,6 +1,6 @@
 """What a session's record says about its mapper: options, progress, steps owed.
 
-Pure functions of a :class:`~agilegs.service.store.SessionRecord` (no training here; the
+Pure functions of a :class:`~agilegs.service.store.write.SessionRecord` (no training here; the
 trainer in :mod:`agilegs.service.sessions.trainer` does that), shared by the sessions and the
 trainer.
 """
@@ -13,10 +13,12 @@ from typing import Any
 
 from pydantic import BaseModel
 
-from agilegs.schemas import models as m
-from agilegs.schemas.config import MapperConfig, patch_dict, validate_config
+from agilegs import schemas as m
+from agilegs.config.mapper import MapperConfig
+from agilegs.config.types import validate_config
+from agilegs.schemas.config import patch_dict
 
-from ..store import SessionRecord
+from ..store.records import SessionRecord
 
 __all__ = [
     "image_views",

@@ -3,7 +3,8 @@ names each operation's handler.
 
 :data:`HANDLERS` maps every operation of :data:`agilegs.schemas.ops.OPERATIONS` to the
 function that runs it on a validated request; :meth:`SessionRegistry.execute` looks it up.
-The transports never call it directly: :mod:`agilegs.service.gateway` decodes and validates a
+The transports never call it directly: :mod:`agilegs.service.transports.gateway` decodes and
+validates a
 request and dispatches it here (or, in a cluster, to the instance that owns the session).
 """
 
@@ -23,12 +24,10 @@ from typing import Any
 import torch
 from pydantic import BaseModel, ValidationError
 
-from agilegs.schemas import models as m
+from agilegs import schemas as m
+from agilegs.schemas import OPERATIONS, DecisionsOut, DecisionsRequest
 from agilegs.schemas.config import patch_dict
-from agilegs.schemas.decisions import DecisionsOut, DecisionsRequest
-from agilegs.schemas.ops import OPERATIONS
 
-from ..decisions import DecisionLog
 from ..errors import (
     conflict,
     invalid,
@@ -39,10 +38,10 @@ from ..errors import (
     too_many,
 )
 from ..errors import validation_error as _validation_error
-from ..integrity import Damage, FileProblem
 from ..nbv import cancel
 from ..settings import Settings
-from ..store import SessionStore, StoreError
+from ..store.integrity import Damage, FileProblem
+from ..store.write import SessionStore, StoreError
 from .convert import (
     empty_map,
     gaussians_from_depth,
@@ -51,6 +50,7 @@ from .convert import (
     poses_array,
     random_gaussians,
 )
+from .decisions import DecisionLog
 from .listing import damaged_error, damaged_summary
 from .mapper_state import initial_mapper_state, mapper_config
 from .selection import check_render_widths
@@ -235,7 +235,7 @@ class SessionRegistry:
 
     def repair_session(self, sid: str | None) -> m.Repaired:
         """Bring a damaged session back (:meth:`SessionStore.repair
-        <agilegs.service.store.SessionStore.repair>`); nothing changes for an intact one."""
+        <agilegs.service.store.write.SessionStore.repair>`); nothing changes for an intact one."""
         sid = self._checked_id(sid)
         with self._repairing:
             s = self.sessions.get(sid)
@@ -318,7 +318,7 @@ class SessionRegistry:
         return m.Deleted(id=s.id)
 
     def get_decisions(self, sid: str | None, req: DecisionsRequest) -> DecisionsOut:
-        """The decisions feed of a session (:mod:`agilegs.service.decisions`): after
+        """The decisions feed of a session (:mod:`agilegs.service.sessions.decisions`): after
         ``req.after``, waiting up to ``req.wait`` (at most ``max_poll_wait``) s for one. A
         poll waiting when the session is deleted answers ``closed``; a deleted session's feed
         is gone (404), as the session is."""

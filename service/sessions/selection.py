@@ -18,18 +18,18 @@ import torch
 from pydantic import ValidationError
 from torch import Tensor
 
+from agilegs import schemas as m
 from agilegs.config.selection import SelectConfig
 from agilegs.config.types import deep_merge, validate_config
-from agilegs.schemas import models as m
 from agilegs.schemas.config import patch_dict
 from agilegs.schemas.errors import ErrorCode
 
 from ..errors import ServiceError, conflict, invalid, too_large, validation_error
-from ..nbv.backend import default_backend, kernels_available
 from ..nbv.budget import KINDS, Estimate, SpeedCalibration, estimate
 from ..nbv.errors import InputError
+from ..nbv.kernels.backend import default_backend, kernels_available
 from ..nbv.selectors import Selection, select_validated
-from ..records import SessionRecord, ViewRecord
+from ..store.records import SessionRecord, ViewRecord
 from .convert import finite_float, pose_out, poses_array, view_out
 from .transitions import (
     Limits,

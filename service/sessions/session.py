@@ -1,6 +1,6 @@
 """One session: the lock, the persisted record and the operations on it.
 
-The state is an immutable :class:`~agilegs.service.records.SessionRecord`. Every change is a
+The state is an immutable :class:`~agilegs.service.store.records.SessionRecord`. Every change is a
 function of it (:mod:`agilegs.service.sessions.transitions`, the select step in
 :mod:`agilegs.service.sessions.selection`) that validates everything (a
 :class:`~agilegs.service.errors.ServiceError` leaves the session as it was) and returns the
@@ -32,16 +32,16 @@ from typing import Any, Protocol
 import numpy as np
 from torch import Tensor
 
-from agilegs.schemas import models as m
-from agilegs.schemas.geometry import Intrinsics as WireIntrinsics
+from agilegs import schemas as m
+from agilegs.schemas import Intrinsics as WireIntrinsics
 
 from ..errors import not_found, session_damaged
-from ..integrity import DamagedFile, FileProblem
 from ..nbv.cancel import checkpoint
 from ..nbv.gaussians import GaussianMap
-from ..records import SessionRecord, ViewRecord
 from ..settings import Settings
-from ..store import SessionStore
+from ..store.integrity import DamagedFile, FileProblem
+from ..store.records import SessionRecord, ViewRecord
+from ..store.write import SessionStore
 from . import transitions as tr
 from .convert import (
     Frame,

@@ -3,7 +3,7 @@
 One :class:`Trainer` per server (a single worker thread) serves every session with work,
 round-robin, one burst at a time. Each session holds a :class:`SessionTrainer` (attached as
 ``Session.mapper``; :meth:`Session.on_observation` wakes the worker) that owns a
-:class:`~agilegs.service.mapper.Mapper`, built lazily from the session's published Gaussians
+:class:`~agilegs.service.mapper.mapper.Mapper`, built lazily from the session's published Gaussians
 and its acquired views that have an image.
 
 Work owed: ``steps_per_view`` training steps per acquired view with an image (the session's
@@ -16,7 +16,7 @@ back from the store. A burst:
    record (a map replaced by ``set_gaussians`` is taken over, Adam restarting; new views with
    images are added, and with depth they extend the map where it does not cover them), then
    train ``min(AGILEGS_MAPPER_BURST, pending)`` steps (L1 + D-SSIM, densify / prune, as
-   :class:`~agilegs.service.mapper.MapperConfig` says);
+   :class:`~agilegs.config.mapper.MapperConfig` says);
 2. under the session lock: publish a snapshot of the trained map through
    :meth:`Session.replace_map`, which persists it (Gaussians, Ĥ and the mapper's progress
    in the manifest, one atomic commit) before swapping it in. Selections never see a
@@ -25,9 +25,9 @@ back from the store. A burst:
    on and publishes after the next burst instead of waiting.
 
 Ĥ across a publication (``InformationConfig.mapper_update``): by default ``carry``: Ĥ is
-carried over per Gaussian with :func:`~agilegs.service.mapper.remap_per_gaussian` along the
-composed :class:`~agilegs.service.mapper.TopologyChange` ``src`` of the burst (Gaussians kept
-as themselves keep their row, clones and split children copy their source's row, Gaussians
+carried over per Gaussian with :func:`~agilegs.service.mapper.topology.remap_per_gaussian` along the
+composed :class:`~agilegs.service.mapper.topology.TopologyChange` ``src`` of the burst (Gaussians
+kept as themselves keep their row, clones and split children copy their source's row, Gaussians
 added from depth start at λ), so Ĥ always has the published map's Gaussian count; the
 information of the views is not re-evaluated on the moved Gaussians (the paper's
 incremental Ĥ). ``recompute`` re-evaluates Ĥ = λI + Σ_v H_v on the new map from every
@@ -56,14 +56,16 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from agilegs.schemas import models as m
+from agilegs import schemas as m
+from agilegs.schemas.mapper import MapperState
 
 from ..errors import is_disk_full
-from ..mapper import Mapper, TopologyChange
+from ..mapper.mapper import Mapper
+from ..mapper.topology import TopologyChange
 from ..nbv.camera import Camera
 from ..nbv.gaussians import GaussianMap
-from ..records import SessionRecord
 from ..settings import Settings
+from ..store.records import SessionRecord
 from .convert import nbv_intrinsics
 from .mapper_state import image_views, mapper_config, mapper_options, steps_per_view
 from .session import Session
@@ -158,7 +160,7 @@ class SessionTrainer:
         views = image_views(rec)
         published = int((rec.mapper or {}).get("steps", 0))
         if not options.enabled:
-            state: m.MapperState = "off"
+            state: MapperState = "off"
         elif self.failed(rec) or self.full_until is not None:
             state = "error"
         elif (self.pending(rec) > 0 or self.dirty or self.steps != published

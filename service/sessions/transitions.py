@@ -30,13 +30,13 @@ import torch
 from torch import Tensor
 
 from ..errors import conflict, too_large, too_many
-from ..mapper import remap_per_gaussian
+from ..mapper.topology import remap_per_gaussian
 from ..nbv.camera import Intrinsics
 from ..nbv.gaussians import GaussianMap
 from ..nbv.information import accumulate_information, init_information
 from ..nbv.upkeep import information_of_views, view_information
-from ..records import SessionRecord, ViewRecord
 from ..settings import Settings
+from ..store.records import SessionRecord, ViewRecord
 from .convert import Frame, nbv_intrinsics, storable_state
 
 __all__ = [
@@ -374,7 +374,7 @@ def replace_map(rec: SessionRecord, gmap: GaussianMap, limits: Limits, *,
         src: the mapper's update: LongTensor [N_new], new Gaussian j descends from the
             current map's Gaussian ``src[j]`` (-1: new). Hhat then follows
             ``information.mapper_update``: ``carry`` (default) remaps it per Gaussian
-            (:func:`~agilegs.service.mapper.remap_per_gaussian`; new Gaussians get lambda),
+            (:func:`~agilegs.service.mapper.topology.remap_per_gaussian`; new Gaussians get lambda),
             ``recompute`` recomputes it from every acquired view on the new map.
             None (a push): Hhat is recomputed from every acquired view when the Gaussian
             count changes or ``information.recompute_on_map_change`` is set, else kept.

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 import signal
 import sys
 import threading
@@ -86,16 +85,16 @@ def _replay(args: argparse.Namespace) -> int:
 
 
 def _live(args: argparse.Namespace) -> int:
-    from agilegs.client import Client
-    from agilegs.client.errors import TransportError
+    from agilegs.client import Client, TransportError
+    from agilegs.service.settings import Credentials
 
     from .live import SessionViewer
 
-    token = args.token or os.environ.get("AGILEGS_TOKEN") or None
+    token = args.token or Credentials().token_value()
     client: Any
     if args.zenoh:
         try:
-            from agilegs.client.zenoh_client import ZenohClient
+            from agilegs.client import ZenohClient
 
             client = ZenohClient([args.zenoh], token=token, wait=0,
                                  timeout=max(30.0, args.poll + 30.0),

@@ -27,14 +27,14 @@ from typing import Any, Literal
 
 import numpy as np
 
-from agilegs.client.errors import (
+from agilegs import schemas as m
+from agilegs.client import (
     AgileGSError,
     APIError,
     AuthenticationError,
     NotFoundError,
     TransportError,
 )
-from agilegs.schemas import models as m
 
 from .canvas import SceneCanvas
 from .extra import quiet, require_viser

@@ -10,13 +10,9 @@ import numpy as np
 import pytest
 import torch
 
-from agilegs.client.ros2.bag import BagFrame, write_bag
-from agilegs.service.bench.scenes import (
-    SceneOptions,
-    detect_scene_kind,
-    load_bench_scene,
-    orbit_cameras,
-)
+from agilegs.client.ros2 import BagFrame, write_bag
+from agilegs.service.bench.scene_model import SceneOptions, orbit_cameras
+from agilegs.service.bench.scenes import detect_scene_kind, load_bench_scene
 from agilegs.service.cli import main
 from agilegs.service.data import bundled_scene
 from agilegs.service.nbv.camera import Camera, Intrinsics
@@ -72,7 +68,7 @@ def test_a_bag_is_a_posed_scene(tmp_path: Path) -> None:
                                scene.pool_images[0].reshape(8, 2, 8, 2, 3).mean((1, 3)))
 
 
-@pytest.mark.slow
+@pytest.mark.heavy
 def test_bench_run_on_a_sqlite3_bag(tmp_path: Path) -> None:
     bag = write_bag(tmp_path / "orbit", _frames(18, 16, depth=False), storage="sqlite3",
                     poses="pose")

@@ -19,13 +19,8 @@ from agilegs.service.bench.protocol import (
     run_progressive,
     trajectory_stats,
 )
-from agilegs.service.bench.scenes import (
-    SceneOptions,
-    detect_scene_kind,
-    evenly_spaced,
-    load_bench_scene,
-    orbit_cameras,
-)
+from agilegs.service.bench.scene_model import SceneOptions, evenly_spaced, orbit_cameras
+from agilegs.service.bench.scenes import detect_scene_kind, load_bench_scene
 from agilegs.service.bench.variants import Variant, build_variants, display_name
 from agilegs.service.cli import main
 from agilegs.service.data import bundled_scene

@@ -15,7 +15,8 @@ import torch
 from PIL import Image
 
 from agilegs.service.bench.profiles import PROFILES
-from agilegs.service.bench.scenes import SceneOptions, load_bench_scene
+from agilegs.service.bench.scene_model import SceneOptions
+from agilegs.service.bench.scenes import load_bench_scene
 from agilegs.service.data.colmap import rotmat_to_qvec
 
 

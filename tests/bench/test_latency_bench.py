@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from agilegs.service.bench.latency import ANCHOR_STAGES, PeakRSS, densified
+from agilegs.service.bench.latency import PeakRSS, densified
+from agilegs.service.bench.stages import ANCHOR_STAGES
 from agilegs.service.cli import main
 from agilegs.service.nbv.gaussians import GaussianMap
 

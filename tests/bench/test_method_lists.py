@@ -7,7 +7,7 @@ import itertools
 
 import pytest
 
-from agilegs.schemas.config import METHODS
+from agilegs.config.selection import METHODS
 from agilegs.service import cli
 from agilegs.service.bench.variants import build_variants
 

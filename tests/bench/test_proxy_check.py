@@ -6,7 +6,9 @@ import json
 import math
 from pathlib import Path
 
-from agilegs.service.bench.proxy_check import DEFAULT_CONFIGS, METRICS, percentile, spearman
+from agilegs.service.bench.latency import spearman
+from agilegs.service.bench.options import DEFAULT_CONFIGS
+from agilegs.service.bench.proxy_check import METRICS, percentile
 from agilegs.service.cli import main
 from agilegs.service.data import bundled_scene
 

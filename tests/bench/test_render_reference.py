@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import torch
 
+from agilegs.config.selection import FIELD_NAMES
 from agilegs.service.bench.render_reference import baseline_fisher_diag, baseline_render
 from agilegs.service.nbv.camera import Camera, look_at
-from agilegs.service.nbv.gaussians import FIELD_NAMES, GaussianMap
+from agilegs.service.nbv.gaussians import GaussianMap
 from agilegs.service.nbv.information import fisher_diag
 from agilegs.service.nbv.rasterize import render
 

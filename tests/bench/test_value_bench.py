@@ -65,10 +65,11 @@ def test_tiny_value_run(tmp_path: Path) -> None:
 
 
 def test_a_branch_differs_only_by_its_view() -> None:
+    from agilegs.config.mapper import MapperConfig
     from agilegs.service.bench.profiles import PROFILES
     from agilegs.service.bench.protocol import add_pool_view
     from agilegs.service.bench.scenes import load_bench_scene
-    from agilegs.service.mapper import Mapper, MapperConfig
+    from agilegs.service.mapper.mapper import Mapper
 
     prof = PROFILES["tiny"]
     scene = load_bench_scene(bundled_scene("teapot"), prof.scene)

@@ -10,8 +10,7 @@ import numpy as np
 import pytest
 from conftest import ring_poses
 
-from agilegs.client.ros2 import messages as m
-from agilegs.client.ros2.bag import (
+from agilegs.client.ros2 import (
     BagFrame,
     BagTopics,
     is_bag,
@@ -19,6 +18,7 @@ from agilegs.client.ros2.bag import (
     read_bag,
     write_bag,
 )
+from agilegs.client.ros2 import messages as m
 from agilegs.client.ros2.frames import matrix_to_pose_msg
 from agilegs.schemas import ObservationIn
 from agilegs.schemas.geometry import quaternion_xyzw_to_matrix

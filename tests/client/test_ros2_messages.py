@@ -11,12 +11,17 @@ import numpy as np
 import pytest
 from conftest import ROOT
 
+from agilegs.client.ros2 import (
+    FieldError,
+    Namespace,
+    axes_of_frame,
+    name_to_key,
+    normalize_namespace,
+)
 from agilegs.client.ros2 import messages as m
 from agilegs.client.ros2.frames import (
     Q_BODY_OPTICAL,
     R_BODY_OPTICAL,
-    FieldError,
-    axes_of_frame,
     camera_info_msg,
     depth_image_msg,
     depth_to_array,
@@ -28,8 +33,8 @@ from agilegs.client.ros2.frames import (
     quaternion_multiply,
     rgb_image_msg,
 )
-from agilegs.client.ros2.keys import Namespace, name_to_key, normalize_namespace
-from agilegs.schemas.geometry import Pose, quaternion_xyzw_to_matrix
+from agilegs.schemas import Pose
+from agilegs.schemas.geometry import quaternion_xyzw_to_matrix
 
 
 def _rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:

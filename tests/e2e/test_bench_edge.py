@@ -23,6 +23,7 @@ def _bench(tmp_path: Path, *args: str, timeout: float) -> tuple[str, dict]:
     return proc.stdout, json.loads(out.read_text())
 
 
+@pytest.mark.heavy
 def test_bench_edge_prints_its_figures(tmp_path: Path) -> None:
     text, res = _bench(tmp_path, "--connections", "30", "--header-timeout", "1",
                        "--body-timeout", "1", "--probes", "20", "--bodies", "4",

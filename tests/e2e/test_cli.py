@@ -84,10 +84,10 @@ def test_every_option_has_help_and_the_help_has_no_markup() -> None:
 def test_the_light_options_are_the_commands_own() -> None:
     """A command whose module imports torch defines its options in a light module, and the
     module exposes the same function as ``add_arguments``."""
-    from agilegs.schemas.config import METHODS
+    from agilegs.config.selection import METHODS
     from agilegs.service.bench.options import PROFILE_NAMES
     from agilegs.service.bench.profiles import PROFILES
-    from agilegs.service.nbv.methods import method_names
+    from agilegs.service.nbv.methods.base import method_names
 
     for module, where in OPTIONS.items():
         light, _, function = where.partition(":")

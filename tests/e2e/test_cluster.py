@@ -1,4 +1,4 @@
-"""Several ``agilegs serve`` instances joined over Zenoh (service/cluster.py).
+"""Several ``agilegs serve`` instances joined over Zenoh (service/transports/cluster.py).
 
 Two real server processes with their own state folders, joined on loopback endpoints with scouting off (B connects to A's
 listener), are driven by one Zenoh client that knows only A's endpoint and by one HTTP client
@@ -22,16 +22,12 @@ from agilegs.client import (
     Client,
     ConflictError,
     NotFoundError,
-    ObservationIn,
     SessionUnavailableError,
     ValidationError,
     ZenohClient,
 )
-from agilegs.schemas import SelectResponse
-from agilegs.service.cluster import (
-    instances_wildcard,
-    parse_instance_key,
-)
+from agilegs.schemas import ObservationIn, SelectResponse
+from agilegs.schemas.keys import instances_wildcard, parse_instance_key
 
 BOUNDS = {"min": [-0.5] * 3, "max": [0.5] * 3}
 

@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agilegs.service.capture_robot import CaptureRobot, is_capture
-from agilegs.service.demo import QUICK, Robot, make_robot
+from agilegs.service.demo.capture_robot import CaptureRobot, is_capture
+from agilegs.service.demo.run import QUICK, Robot, make_robot
 
 BUDDHA = Path(__file__).resolve().parents[2] / "service" / "data" / "scenes" / "buddha"
 

@@ -109,7 +109,7 @@ HOW: dict[tuple[str, str], How] = {
         How("skip", "needs a Docker daemon (the compose file: tests/e2e/test_deploy_files.py)"),
     ("docs/deploy.md", "pip install -e '.[service,cuda]'"):
         How("skip", "needs an NVIDIA GPU and CUDA torch (the setting without CUDA: "
-                    "tests/service/test_device.py)"),
+                    "tests/sessions/test_device.py)"),
     ("docs/gpu.md", "pip install torch --index-url https://download.pytorch.org/whl/cu128"):
         How("skip", "installs CUDA torch from the PyTorch wheel index, which CI cannot reach"),
     ("docs/gpu.md", "OUT=gpu-out bash deploy/gpu/protocol.sh"):
@@ -130,7 +130,7 @@ HOW: dict[tuple[str, str], How] = {
     ("docs/your-data.md", "# COLMAP: frames from the video, then structure from motion "
      "(sparse/0 and images/)"):
         How("skip", "needs a video and ffmpeg, COLMAP, instant-ngp and nerfstudio (what they "
-                    "write is loaded in tests/service/test_captures.py and "
+                    "write is loaded in tests/data/test_captures.py and "
                     "tests/bench/test_capture_scenes.py)"),
     ("docs/your-data.md", "agilegs bench run --scene service/data/scenes/buddha --profile cpu "
      "--methods random,agile_plus --seeds 0 --out out/buddha"):

@@ -20,10 +20,10 @@ import numpy as np
 import pytest
 from conftest import ROOT, SMALL_INTRINSICS, ServerProcess, ring_poses
 
-from agilegs.client import Client, ObservationIn
+from agilegs.client import Client
 from agilegs.client.ros2.frames import matrix_to_pose_msg, pose_msg_to_matrix
 from agilegs.client.ros2.robot import Ros2Robot
-from agilegs.schemas import PoolIn, Pose, SelectResponse
+from agilegs.schemas import ObservationIn, PoolIn, Pose, SelectResponse
 
 NS = "/bot/agilegs"
 DEMO_NS = "/demo/agilegs"
@@ -147,7 +147,7 @@ def test_the_bridge_config_and_launch_file_load() -> None:
     plugin = conf.get_json("plugins/ros2dds")
     assert '"namespace"' in plugin and "agilegs/select" in plugin
     # closed as the server is: its users file, its user, access control on the agilegs keys
-    from agilegs.service.zenoh_security import ACL_MESSAGES, OWN_USER
+    from agilegs.service.transports.zenoh.security import ACL_MESSAGES, OWN_USER
 
     assert json.loads(conf.get_json("transport/auth/usrpwd/dictionary_file"))
     assert json.loads(conf.get_json("transport/auth/usrpwd/user")) == OWN_USER

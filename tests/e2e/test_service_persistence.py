@@ -10,7 +10,8 @@ from typing import Any
 import numpy as np
 from conftest import SMALL_INTRINSICS, ring_poses
 
-from agilegs.client import AgileGSError, Client, ObservationIn
+from agilegs.client import AgileGSError, Client
+from agilegs.schemas import ObservationIn
 
 BOUNDS = {"min": [-0.5] * 3, "max": [0.5] * 3}
 

@@ -18,13 +18,8 @@ from conftest import SMALL_INTRINSICS, ring_poses
 from inprocess import serve_in_process
 from readonly import read_only_folder, small_tmpfs
 
-from agilegs.client import (
-    Client,
-    InsufficientStorageError,
-    ObservationIn,
-    SessionDamagedError,
-    TransportError,
-)
+from agilegs.client import Client, InsufficientStorageError, SessionDamagedError, TransportError
+from agilegs.schemas import ObservationIn
 
 BOUNDS = {"min": [-0.5] * 3, "max": [0.5] * 3}
 POOL = ring_poses(8)
@@ -92,7 +87,7 @@ def _error_line(done: subprocess.CompletedProcess[str]) -> str:
 
 
 def test_a_taken_port_or_endpoint_is_one_line_and_a_nonzero_exit(tmp_path: Path) -> None:
-    from agilegs.service.state_dir import is_claimed
+    from agilegs.service.store.state_dir import is_claimed
 
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))
@@ -132,7 +127,7 @@ def _fill(disk: Path) -> Path:
 
 
 def test_a_full_disk_is_507_over_http_and_zenoh(server_factory: Any, tmp_path: Path) -> None:
-    from agilegs.client.zenoh_client import ZenohClient
+    from agilegs.client import ZenohClient
 
     with small_tmpfs(tmp_path / "disk", "4m") as disk:
         srv = server_factory(disk / "state", log_path=tmp_path / "serve.log").start()

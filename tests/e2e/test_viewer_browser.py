@@ -94,6 +94,7 @@ def test_the_page_draws_the_map_as_splats_and_as_points(api: InProcess) -> None:
 
 
 @needs_chromium
+@pytest.mark.heavy
 def test_the_demo_view_writes_its_screenshot(tmp_path: Path) -> None:
     # the README's screenshot comes from this command (without --quick)
     png = tmp_path / "view.png"
@@ -110,6 +111,7 @@ def test_the_demo_view_writes_its_screenshot(tmp_path: Path) -> None:
 
 
 @needs_chromium
+@pytest.mark.heavy
 def test_the_replay_command_writes_a_screenshot(tmp_path: Path) -> None:
     out = tmp_path / "bench"
     assert main(["bench", "run", "--scene", str(bundled_scene("spot")), "--methods",
@@ -126,6 +128,7 @@ def test_the_replay_command_writes_a_screenshot(tmp_path: Path) -> None:
 
 
 @needs_chromium
+@pytest.mark.heavy
 def test_the_view_command_follows_a_session_over_http_and_zenoh(server: ServerProcess,
                                                                 tmp_path: Path) -> None:
     sid = new_id()
@@ -176,6 +179,7 @@ def test_the_viewer_follows_the_decisions_published_over_zenoh(server: ServerPro
 
 
 # ============================================================================ a server that stops
+@pytest.mark.heavy
 def test_the_viewer_survives_the_server_stopping_and_coming_back(server_factory: Any) -> None:
     srv = server_factory(zenoh=False).start()
     with Client(srv.url, timeout=10) as c, Client(srv.url, timeout=10) as vc, \

@@ -18,12 +18,11 @@ from agilegs.client import (
     Client,
     ConflictError,
     NotFoundError,
-    ObservationIn,
     TransportError,
     ValidationError,
     ZenohClient,
 )
-from agilegs.schemas import ErrorBody, SelectResponse
+from agilegs.schemas import ErrorBody, ObservationIn, SelectResponse
 
 BOUNDS = {"min": [-0.5] * 3, "max": [0.5] * 3}
 

@@ -16,8 +16,7 @@ import httpx
 import pytest
 from conftest import SMALL_INTRINSICS, gaussian_blob, ring_poses
 
-from agilegs.client import Client, ZenohClient
-from agilegs.client.errors import TransportError
+from agilegs.client import Client, TransportError, ZenohClient
 from agilegs.client.zenoh_rpc import (
     credentials,
     first_answer,
@@ -27,7 +26,7 @@ from agilegs.client.zenoh_rpc import (
 from agilegs.schemas import codec
 from agilegs.service.launch import free_port
 from agilegs.service.settings import Settings
-from agilegs.service.zenoh_security import make_dev_certs, read_users, zenoh_settings
+from agilegs.service.transports.zenoh.security import make_dev_certs, read_users, zenoh_settings
 
 TOKEN = "http-secret"
 
@@ -205,7 +204,7 @@ def test_an_unauthenticated_peer_sees_nothing_and_changes_nothing(server_factory
 def test_the_routers_secure_block_loads_with_zenoh() -> None:
     import zenoh
 
-    from agilegs.service.zenoh_security import ACL_MESSAGES, agilegs_keys
+    from agilegs.service.transports.zenoh.security import ACL_MESSAGES, agilegs_keys
 
     text = (Path(__file__).resolve().parents[2] / "deploy" / "zenoh-router.json5").read_text()
     block = text.split("// >>> secure\n", 1)[1].split("  // <<< secure", 1)[0]

@@ -10,12 +10,12 @@ import torch
 from pydantic import ValidationError
 
 from agilegs.config.mapper import MapperConfig
-from agilegs.service.mapper import Mapper
 from agilegs.service.mapper.gsplat_render import (
     gsplat_status,
     render_gsplat,
     resolve_rasterizer,
 )
+from agilegs.service.mapper.mapper import Mapper
 from agilegs.service.nbv.camera import Camera, look_at
 from agilegs.service.nbv.gaussians import GaussianMap
 from agilegs.service.nbv.rasterize import render

@@ -8,20 +8,19 @@ import math
 import pytest
 import torch
 
-from agilegs.service.nbv.anchor import (
-    AnchorConfig,
-    PoolEnvelope,
-    ProxyPsi,
-    ascend,
+from agilegs.config.selection import FIELD_NAMES, AnchorConfig
+from agilegs.service.nbv.anchor.ascent import ascend, optimize_anchor
+from agilegs.service.nbv.anchor.envelope import PoolEnvelope
+from agilegs.service.nbv.anchor.fitting import (
     information_weights,
     observation_rates,
-    optimize_anchor,
     typical_fisher_from_h_acc,
     typical_fisher_from_views,
 )
+from agilegs.service.nbv.anchor.proxy import ProxyPsi
 from agilegs.service.nbv.camera import Camera, Intrinsics, check_pose, look_at
 from agilegs.service.nbv.candidates import capture_pool
-from agilegs.service.nbv.gaussians import FIELD_NAMES, GaussianMap
+from agilegs.service.nbv.gaussians import GaussianMap
 from agilegs.service.nbv.information import accumulate_information, fisher_diag, init_information
 from agilegs.service.nbv.se3 import se3_exp
 
@@ -280,7 +279,7 @@ def test_typical_fisher_and_rates_use_the_given_lambda(scene) -> None:
 
 
 def test_exact_psi_renders_on_the_given_background(scene) -> None:
-    from agilegs.service.nbv.anchor import exact_psi_fn
+    from agilegs.service.nbv.anchor.ascent import exact_psi_fn
     from agilegs.service.nbv.information import trace_surrogate
 
     gmap, pool, _, h = scene
@@ -403,7 +402,7 @@ def test_log_form_proxy_and_its_importance_sampling(scene) -> None:
 @pytest.mark.parametrize("model", ["fitted", "directional"])
 def test_fitted_model_ranks_the_pool_like_the_exact_eig(model: str) -> None:
     """Views of the side no acquired view saw score high under the proxy and the exact EIG."""
-    from agilegs.service.nbv.selectors import eig_scores
+    from agilegs.service.nbv.information import eig_scores
 
     gmap, pool, _, _ = tiny_scene(n=300, seed=1)
     acq = pool[[0, 1, 2]]  # neighbours in capture order: one side of the blob

@@ -73,9 +73,9 @@ def _measure(q: Any, kind: str, n: int, res: int, pool: int, threads: int = 1) -
         import torch
 
         torch.set_num_threads(threads)
+        from agilegs.config.selection import SelectConfig
         from agilegs.service.bench.latency import PeakRSS, densified
         from agilegs.service.data import bundled_scene
-        from agilegs.service.nbv import backend
         from agilegs.service.nbv.camera import Camera, Intrinsics
         from agilegs.service.nbv.candidates import capture_pool, scene_center_radius
         from agilegs.service.nbv.gaussians import GaussianMap
@@ -84,8 +84,9 @@ def _measure(q: Any, kind: str, n: int, res: int, pool: int, threads: int = 1) -
             fisher_diag,
             init_information,
         )
+        from agilegs.service.nbv.kernels import backend
         from agilegs.service.nbv.rasterize import render
-        from agilegs.service.nbv.selectors import SelectConfig, select
+        from agilegs.service.nbv.selectors import select
 
         g0 = GaussianMap.load(bundled_scene("spot"))
         gm = densified(g0, n) if n > len(g0) else g0.subset(torch.arange(n))

@@ -6,9 +6,10 @@ from __future__ import annotations
 import pytest
 import torch
 
+from agilegs.config.selection import FIELD_NAMES, SelectConfig
 from agilegs.service.nbv.camera import Camera, Intrinsics
 from agilegs.service.nbv.candidates import capture_pool
-from agilegs.service.nbv.gaussians import FIELD_NAMES, GaussianMap
+from agilegs.service.nbv.gaussians import GaussianMap
 from agilegs.service.nbv.information import (
     accumulate_information,
     eig_scores,
@@ -16,7 +17,7 @@ from agilegs.service.nbv.information import (
     init_information,
 )
 from agilegs.service.nbv.methods.common import argmax_first, eig_scores_keeping_best
-from agilegs.service.nbv.selectors import SelectConfig, select, select_validated
+from agilegs.service.nbv.selectors import select, select_validated
 from agilegs.service.nbv.upkeep import information_of_views, view_information
 
 INTR = Intrinsics.from_fov(55.0, 24, 24)

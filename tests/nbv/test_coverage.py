@@ -178,8 +178,8 @@ def test_point_zbuffer_equals_the_sorted_reference(dtype: torch.dtype) -> None:
 
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_coverage_kernel_equals_the_torch_reference(dtype: torch.dtype) -> None:
-    from agilegs.service.nbv import backend
     from agilegs.service.nbv.coverage import _coverage_terms_kernel, _coverage_terms_torch
+    from agilegs.service.nbv.kernels import backend
 
     if not backend.kernels_available():
         pytest.skip("numba unavailable")

@@ -5,9 +5,10 @@ from __future__ import annotations
 import pytest
 import torch
 
+from agilegs.config.selection import FIELD_NAMES
 from agilegs.service.nbv.camera import Camera, look_at
 from agilegs.service.nbv.candidates import capture_pool
-from agilegs.service.nbv.gaussians import FIELD_NAMES, GaussianMap
+from agilegs.service.nbv.gaussians import GaussianMap
 from agilegs.service.nbv.information import fisher_diag, init_information
 from agilegs.service.nbv.methods.fisherrf import fisherrf_hessian
 from agilegs.service.nbv.rasterize import render

@@ -10,14 +10,15 @@ import numpy as np
 import pytest
 import torch
 
-from agilegs.service.nbv import backend
+from agilegs.config.selection import FIELD_NAMES
 from agilegs.service.nbv.camera import Camera, look_at
-from agilegs.service.nbv.gaussians import FIELD_NAMES, GaussianMap
+from agilegs.service.nbv.gaussians import GaussianMap
 from agilegs.service.nbv.information import (
     fisher_diag,
     projection_jacobians,
     screen_second_moments,
 )
+from agilegs.service.nbv.kernels import backend
 from agilegs.service.nbv.methods.fisherrf import fisherrf_hessian
 from agilegs.service.nbv.rasterize import render
 

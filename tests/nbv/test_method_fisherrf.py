@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from agilegs.schemas.config import FISHERRF_FIELDS, FisherRFConfig, SelectConfig
+from agilegs.config.selection import FISHERRF_FIELDS, FisherRFConfig, SelectConfig
 from agilegs.service.nbv.camera import Camera, Intrinsics, look_at
 from agilegs.service.nbv.gaussians import GaussianMap
 from agilegs.service.nbv.information import fisher_diag, init_information

@@ -7,15 +7,17 @@ from __future__ import annotations
 import pytest
 import torch
 
-from agilegs.service.nbv import backend, cancel
-from agilegs.service.nbv.anchor import AnchorConfig, ProxyPsi, optimize_anchor
+from agilegs.config.selection import FIELD_NAMES, AnchorConfig
+from agilegs.service.nbv import cancel
+from agilegs.service.nbv.anchor.ascent import optimize_anchor
 from agilegs.service.nbv.anchor.fitting import directional_rates, lower_median
-from agilegs.service.nbv.anchor.proxy import direction_factors
+from agilegs.service.nbv.anchor.proxy import ProxyPsi, direction_factors
 from agilegs.service.nbv.anchor.visibility import OpacityMaps
 from agilegs.service.nbv.camera import Camera, Intrinsics
 from agilegs.service.nbv.candidates import capture_pool, scene_center_radius
-from agilegs.service.nbv.gaussians import FIELD_NAMES, GaussianMap
+from agilegs.service.nbv.gaussians import GaussianMap
 from agilegs.service.nbv.information import accumulate_information, fisher_diag, init_information
+from agilegs.service.nbv.kernels import backend
 from agilegs.service.nbv.se3 import se3_exp
 
 pytestmark = pytest.mark.skipif(not backend.kernels_available(), reason="numba unavailable")

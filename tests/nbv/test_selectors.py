@@ -7,27 +7,27 @@ import math
 import pytest
 import torch
 
+from agilegs.config.selection import (
+    FIELD_NAMES,
+    SHORTLISTS,
+    AnchorConfig,
+    ScoringConfig,
+    SelectConfig,
+)
 from agilegs.service.bench.stages import ANCHOR_STAGES
 from agilegs.service.nbv.camera import Camera, Intrinsics
 from agilegs.service.nbv.candidates import capture_pool
-from agilegs.service.nbv.gaussians import FIELD_NAMES, GaussianMap
+from agilegs.service.nbv.gaussians import GaussianMap
 from agilegs.service.nbv.information import (
     accumulate_information,
+    eig_scores,
     expected_information_gain,
     fisher_diag,
     init_information,
 )
+from agilegs.service.nbv.methods.base import STAGES
 from agilegs.service.nbv.se3 import pose_distance
-from agilegs.service.nbv.selectors import (
-    METHODS,
-    SHORTLISTS,
-    STAGES,
-    AnchorConfig,
-    ScoringConfig,
-    SelectConfig,
-    eig_scores,
-    select,
-)
+from agilegs.service.nbv.selectors import METHODS, select
 
 INTR = Intrinsics.from_fov(55.0, 32, 32)
 
@@ -311,7 +311,7 @@ def test_leverage_shortlist_is_conditioned_on_the_acquired_views(world) -> None:
 
 
 def test_paper_preset() -> None:
-    from agilegs.schemas.config import PRESETS, preset_config
+    from agilegs.config.selection import PRESETS, preset_config
 
     cfg = preset_config("paper")
     assert cfg.anchor.psi == "exact" and cfg.scoring.condition_on_acquired is False

@@ -116,19 +116,48 @@ def _reaches(name: str, prefixes: tuple[str, ...]) -> set[str]:
     return {d for d in TYPED_GRAPH[name] if d.startswith(prefixes)}
 
 
-MATHS = "agilegs.service.nbv"
-TRANSPORTS = tuple(f"agilegs.service.{m}" for m in (
-    "gateway", "http_app", "http_routes", "http_openapi", "http_decisions", "zenoh_adapter",
-    "cluster", "server", "serve", "launch", "ros2"))
-STORE = tuple(f"agilegs.service.{m}" for m in (
-    "store", "store_read", "store_tool", "records", "integrity", "state_dir"))
+LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("settings and errors", ("settings", "errors")),
+    ("maths", ("nbv", "mapper", "data")),
+    ("store", ("store",)),
+    ("sessions", ("sessions",)),
+    ("transports", ("transports",)),
+    ("server", ("server",)),
+    ("commands", ("serve", "cli", "launch", "store_tool", "demo", "bench", "viewer")),
+)
+"""The service's layers, bottom up: the folders (or top-level modules) of ``service/`` in each.
+A module imports from its own layer and the layers below only."""
+
+
+def _layer(name: str) -> int:
+    """The layer (index in :data:`LAYERS`) of the service's module ``name``."""
+    room = name.split(".")[2]
+    found = [i for i, (_, rooms) in enumerate(LAYERS) if room in rooms]
+    assert len(found) == 1, f"{name}: service/{room} is in {len(found)} layers of LAYERS"
+    return found[0]
+
+
+def test_every_folder_of_the_service_has_one_layer() -> None:
+    rooms = {p.stem for p in (ROOT / "service").iterdir()
+             if p.suffix == ".py" and p.stem != "__init__" or (p / "__init__.py").exists()}
+    listed = [room for _, layer in LAYERS for room in layer]
+    assert sorted(listed) == sorted(rooms)
+
+
+def test_each_layer_imports_only_from_itself_and_below() -> None:
+    for name, deps in TYPED_GRAPH.items():
+        if not name.startswith("agilegs.service."):
+            continue
+        above = {d for d in deps if d.startswith("agilegs.service.") and _layer(d) > _layer(name)}
+        assert not above, (f"{name} ({LAYERS[_layer(name)][0]}) imports from a layer above: "
+                           f"{sorted(above)}")
 
 
 def test_no_forbidden_arrow() -> None:
-    """maths -> transports, store, sessions, wire; wire -> maths (or any of the service);
-    client -> service (or torch); settings -> anything of ours (or torch)."""
+    """maths -> wire (or anything of the service but the settings); wire -> service or
+    client; client -> service; config -> anything of ours."""
     forbidden = {
-        MATHS: TRANSPORTS + STORE + ("agilegs.service.sessions", "agilegs.schemas"),
+        "agilegs.service.nbv": ("agilegs.schemas", "agilegs.client"),
         "agilegs.schemas": ("agilegs.service", "agilegs.client"),
         "agilegs.client": ("agilegs.service",),
         "agilegs.config": ("agilegs.service", "agilegs.schemas", "agilegs.client"),
@@ -163,10 +192,10 @@ def test_the_maths_has_no_transport_and_the_transports_no_maths() -> None:
             assert not _third_party(path) & transports, name
             assert not {d for d in GRAPH[name]
                         if d.startswith("agilegs.service.") and not d.startswith(
-                            "agilegs.service.nbv")}, name
-    for name in ("agilegs.service.gateway", "agilegs.service.http_app",
-                 "agilegs.service.http_routes", "agilegs.service.http_openapi",
-                 "agilegs.service.zenoh_adapter", "agilegs.service.cluster"):
+                            ("agilegs.service.nbv", "agilegs.service.settings"))}, name
+    transports = [n for n in MODULES if n.startswith("agilegs.service.transports")]
+    assert len(transports) >= 15
+    for name in transports:
         assert "torch" not in _third_party(MODULES[name]), name
         assert not {d for d in GRAPH[name] if d.startswith("agilegs.service.nbv")}, name
 
@@ -188,10 +217,160 @@ def test_files_stay_small() -> None:
 
 
 def test_the_viewer_is_a_client_of_the_service() -> None:
-    # it reaches the server through the client SDK only: no torch, no server code
+    # it reaches the server through the client SDK only: no torch, no server code (its
+    # environment variable, the token, through the settings)
     viewer = [n for n in MODULES if n.startswith("agilegs.service.viewer")]
     assert len(viewer) >= 6
     for name in viewer:
         assert not _third_party(MODULES[name]) & {"torch", "fastapi", "uvicorn"}, name
         inside = {d for d in GRAPH[name] if d.startswith("agilegs.service")}
-        assert all(d.startswith("agilegs.service.viewer") for d in inside), (name, inside)
+        assert all(d.startswith("agilegs.service.viewer") or d == "agilegs.service.settings"
+                   for d in inside), (name, inside)
+
+
+def _reads_environment(tree: ast.Module) -> bool:
+    """Whether the code reads an environment variable (``os.environ.get``, ``os.getenv``,
+    ``os.environ[...]``; copying the whole environment for a child process is no read)."""
+    for node in ast.walk(tree):
+        text = ast.unparse(node)
+        if isinstance(node, ast.Attribute | ast.Name) and text in (
+                "os.environ.get", "os.getenv", "environ.get", "getenv"):
+            return True
+        if isinstance(node, ast.Subscript) and text.startswith(("os.environ[", "environ[")):
+            return True
+    return False
+
+
+def test_environment_variables_are_read_by_the_settings_only() -> None:
+    assert _reads_environment(ast.parse("import os\nx = os.environ.get('A')\n"))
+    assert _reads_environment(ast.parse("import os\nx = os.environ['A']\n"))
+    assert _reads_environment(ast.parse("import os\nx = list(map(os.environ.get, 'AB'))\n"))
+    assert not _reads_environment(ast.parse("import os\nx = dict(os.environ.items())\n"))
+    readers = {name for name, tree in TREES.items() if _reads_environment(tree)}
+    assert readers == {"agilegs.service.settings"}, readers
+
+
+# The public faces: a package whose ``__init__`` gathers the names its users import (the wire
+# contract, the client SDK and its ROS 2 part). Every other module defines what it exports.
+FACES = ("agilegs.schemas", "agilegs.client", "agilegs.client.ros2")
+TREES = {name: ast.parse(path.read_text()) for name, path in MODULES.items()}
+
+
+def _only_imports(tree: ast.Module) -> bool:
+    """Whether a module's body is imports alone (besides its docstring, ``__all__`` and
+    ``if TYPE_CHECKING:`` blocks): it re-exports and defines nothing."""
+    body = tree.body[1:] if tree.body and isinstance(tree.body[0], ast.Expr) else tree.body
+    imports = 0
+    for node in body:
+        if isinstance(node, ast.ImportFrom | ast.Import):
+            imports += not (isinstance(node, ast.ImportFrom) and node.module == "__future__")
+        elif not (isinstance(node, ast.Assign) and ast.unparse(node.targets[0]) == "__all__"
+                  or isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test)):
+            return False
+    return imports > 0
+
+
+def test_no_module_only_re_exports() -> None:
+    assert _only_imports(ast.parse('"""x"""\nfrom .a import b\n__all__ = ["b"]\n'))
+    assert not _only_imports(ast.parse('"""x"""\nfrom .a import b\nc = b\n'))
+    assert not _only_imports(ast.parse('"""x"""\n'))
+    bad = [name for name, tree in TREES.items() if name not in FACES and _only_imports(tree)]
+    assert not bad, bad
+
+
+def _absolute(node: ast.ImportFrom, name: str | None, path: Path) -> str:
+    if not node.level or name is None:
+        return node.module or ""
+    base = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
+    return ".".join(base[: len(base) - node.level + 1] + ([node.module] if node.module else []))
+
+
+def _top_level(tree: ast.Module) -> list[ast.stmt]:
+    out: list[ast.stmt] = []
+    for node in tree.body:
+        out += node.body + node.orelse if isinstance(node, ast.If) else [node]
+    return out
+
+
+def _defines(module: str, name: str) -> bool:
+    for node in _top_level(TREES[module]):
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef):
+            if node.name == name:
+                return True
+        elif isinstance(node, ast.Assign | ast.AnnAssign):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            if any(isinstance(t, ast.Name) and t.id == name for t in targets):
+                return True
+    return False
+
+
+def _origin(module: str, name: str) -> str:
+    """The module that defines ``name``, followed from ``module`` through its imports."""
+    for _ in range(20):
+        if module not in TREES or _defines(module, name):
+            return module
+        for node in _top_level(TREES[module]):
+            if isinstance(node, ast.ImportFrom) and any(
+                    (a.asname or a.name) == name for a in node.names):
+                src = _absolute(node, module, MODULES[module])
+                alias = next(a for a in node.names if (a.asname or a.name) == name)
+                if f"{src}.{alias.name}" in MODULES:
+                    return f"{src}.{alias.name}"
+                module, name = src, alias.name
+                break
+        else:
+            return module
+    return module
+
+
+def _face_names(face: str) -> set[str]:
+    for node in TREES[face].body:
+        if isinstance(node, ast.Assign) and ast.unparse(node.targets[0]) == "__all__":
+            return set(ast.literal_eval(node.value))
+    return set()
+
+
+def _import_path(importer: str, module: str, name: str) -> str:
+    """The one path ``name`` is imported from: the face of its package when the face lists
+    it (and the importer is outside the package), else the module that defines it."""
+    origin = _origin(module, name)
+    for face in sorted(FACES, key=len, reverse=True):
+        inside = importer == face or importer.startswith(face + ".")
+        if (origin.startswith(face + ".") and name in _face_names(face) and not inside
+                and _origin(face, name) == origin):
+            return face
+    return origin
+
+
+def test_one_import_path_per_name() -> None:
+    """Every import of one of our names, in the package, the tests and the deploy files,
+    names the one path of :func:`_import_path` (no import through a module that merely
+    imported it)."""
+    modules = {path.resolve(): name for name, path in MODULES.items()}
+    files = [p for d in ("config", "schemas", "client", "service", "tests", "deploy")
+             for p in (ROOT / d).rglob("*.py")]
+    assert len(files) > len(MODULES)
+    bad = []
+    for path in files:
+        importer = modules.get(path.resolve())
+        for node in ast.walk(ast.parse(path.read_text())):
+            if not isinstance(node, ast.ImportFrom):
+                continue
+            module = _absolute(node, importer, path)
+            if module not in TREES:
+                continue
+            for a in node.names:
+                if f"{module}.{a.name}" not in MODULES:
+                    want = _import_path(importer or "", module, a.name)
+                    if want != module:
+                        bad.append(f"{path.relative_to(ROOT)}:{node.lineno}: {a.name} from "
+                                   f"{module}, not {want}")
+    assert not bad, "\n".join(bad)
+
+
+def test_the_import_path_rule_sees_a_second_path() -> None:
+    assert _import_path("tests", "agilegs.schemas.geometry", "Pose") == "agilegs.schemas"
+    assert _import_path("agilegs.schemas.views", "agilegs.schemas.geometry",
+                        "Pose") == "agilegs.schemas.geometry"
+    assert _import_path("tests", "agilegs.service.sessions.registry",
+                        "Settings") == "agilegs.service.settings"

@@ -22,13 +22,13 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from agilegs.config.selection import AnchorConfig
+from agilegs.config.selection import FIELD_NAMES, AnchorConfig
 from agilegs.config.types import validate_config
 
 from ..camera import Camera, Intrinsics
 from ..cancel import checkpoint
 from ..candidates import pool_radius, scene_center_radius
-from ..gaussians import FIELD_NAMES, GaussianMap
+from ..gaussians import GaussianMap
 from ..information import fisher_diag, trace_surrogate
 from ..se3 import pose_distance, project_to_se3, se3_exp
 from .envelope import PoolEnvelope

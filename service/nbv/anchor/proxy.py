@@ -23,9 +23,9 @@ from torch import Tensor
 
 from agilegs.config.selection import POINT_ZBUFFER
 
-from .. import backend
 from ..camera import Intrinsics
 from ..gaussians import GaussianMap
+from ..kernels import backend
 from ..projection import covariance_3d
 from ..rotations import quat_to_rotmat
 from .visibility import OpacityMaps
@@ -246,7 +246,7 @@ class ProxyPsi:
 
     def uses_kernel(self, c2w: Tensor) -> bool:
         """Whether :meth:`__call__` runs the compiled kernel for poses ``c2w`` (the backend
-        allows it: :func:`agilegs.service.nbv.backend.resolve`; and the visibility is the
+        allows it: :func:`agilegs.service.nbv.kernels.backend.resolve`; and the visibility is the
         transmittance or none: the z-buffer test has no kernel)."""
         if self.grid is None and self.occluders is not None:
             return False

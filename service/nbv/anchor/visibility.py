@@ -2,7 +2,7 @@
 
 The renderer composites front to back: a Gaussian's pixels carry the transmittance T of
 everything in front of it (its Fisher information scales with T²; the proxy uses T, see
-docs/notes/2026-11-23-transmittance-visibility.md). The anchor needs T for a few thousand
+notebook/2026-11-23-transmittance-visibility.md). The anchor needs T for a few thousand
 Gaussians at hundreds of poses per selection, so it does not rasterize: :class:`OpacityMaps`
 builds, per pose, a coarse *deep opacity map* (a frustum grid
 of ``cells`` x ``cells`` screen cells by ``bins`` depth slices) of the map's optical depth,

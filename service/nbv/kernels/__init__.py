@@ -1,9 +1,12 @@
 """Compiled CPU kernels (numba) of the projection, the tile compositing and the one-pass Fisher.
 
-numpy arrays in, numpy arrays out; no torch here (:mod:`agilegs.service.nbv.backend` wraps
-these in autograd functions and picks them or the pure-torch reference). Every kernel follows
-the pure-torch rules of :mod:`agilegs.service.nbv.projection`, :mod:`agilegs.service.nbv.rasterize`
-and :mod:`agilegs.service.nbv.information` exactly:
+The compiled modules (:mod:`.binning`, :mod:`.projection`, :mod:`.walks`, :mod:`.coverage`,
+:mod:`.proxy`, with :mod:`.common`) take numpy arrays in and give numpy arrays out, no torch;
+:mod:`.ops` wraps them in autograd functions and :mod:`.backend` picks them or the pure-torch
+reference (and imports them only when they serve, so that a missing numba leaves the torch
+path working). Every kernel follows the pure-torch rules of
+:mod:`agilegs.service.nbv.projection`, :mod:`agilegs.service.nbv.rasterize` and
+:mod:`agilegs.service.nbv.information` exactly:
 
 - projection (:func:`project`): EWA with the 0.3 low-pass, the 1.3× field-of-view clamp of
   the Jacobian, culling (depth ≤ near, det ≤ 0, off screen), radius ceil(3 sqrt(λ_max)),
@@ -35,34 +38,6 @@ walks write one row per list entry, and :func:`reduce_entries` sums each Gaussia
 Threads: the kernels are serial and release the GIL; a kernel with ``part, nchunks``
 arguments does part ``part`` of ``nchunks`` (tile t in part t mod nchunks; Gaussians in
 contiguous ranges), and the parts write disjoint memory, so the caller runs them on as many
-Python threads (:mod:`agilegs.service.nbv.backend`). No numba threading layer is involved
+Python threads (:mod:`agilegs.service.nbv.kernels.backend`). No numba threading layer is involved
 (none to configure, nothing that breaks across a fork).
 """
-
-from .binning import bin_count, bin_fill, reduce_entries, visible_order
-from .common import CAM, FWD, MOMENTS, REC
-from .coverage import coverage_terms
-from .projection import PHI_INDEX, fisher_chain, jacobians, project, project_backward
-from .proxy import proxy_psi
-from .walks import composite_backward, composite_forward, fisher_tiles
-
-__all__ = [
-    "CAM",
-    "FWD",
-    "MOMENTS",
-    "PHI_INDEX",
-    "REC",
-    "bin_count",
-    "bin_fill",
-    "composite_backward",
-    "coverage_terms",
-    "composite_forward",
-    "fisher_chain",
-    "fisher_tiles",
-    "jacobians",
-    "project",
-    "project_backward",
-    "proxy_psi",
-    "reduce_entries",
-    "visible_order",
-]

@@ -20,7 +20,9 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ..anchor import PoolEnvelope, optimize_anchor_validated, typical_fisher_from_views
+from ..anchor.ascent import optimize_anchor_validated
+from ..anchor.envelope import PoolEnvelope
+from ..anchor.fitting import typical_fisher_from_views
 from ..camera import Camera
 from ..cancel import checkpoint
 from ..coverage import coverage_matrix, jl_projection, support_samples

@@ -29,7 +29,7 @@ Point by point, following JiangWenPL/FisherRF:
 
 ``fisherrf_hessian`` evaluates exactly that with the one-pass moment machinery of
 :mod:`agilegs.service.nbv.information` (channel-summed residuals; the compiled kernels where
-they apply, :mod:`agilegs.service.nbv.backend`); ``fisherrf_hessian_bruteforce`` is the slow
+they apply, :mod:`agilegs.service.nbv.kernels.backend`); ``fisherrf_hessian_bruteforce`` is the slow
 reference (one autograd backward per pixel). The rotation block is not offered:
 its kernel gradient is taken w.r.t. the unnormalised quaternion, which our projection (it
 normalises) does not expose; FisherRF leaves it out by default anyway.
@@ -44,7 +44,6 @@ from torch import Tensor
 
 from agilegs.config.selection import FISHERRF_FIELDS
 
-from ..backend import Backend, resolve
 from ..camera import Camera
 from ..cancel import checkpoint
 from ..gaussians import GaussianMap
@@ -54,7 +53,8 @@ from ..information import (
     projection_jacobians,
     screen_second_moments,
 )
-from ..kernel_ops import kernel_fisher
+from ..kernels.backend import Backend, resolve
+from ..kernels.ops import kernel_fisher
 from ..rasterize import render
 from .base import MethodResult, SelectionContext, register, timed
 from .common import argmax_first
@@ -83,7 +83,7 @@ def fisherrf_hessian(
         camera: the view.
         background: the render's background colour [3] (None: black).
         fields: blocks to return (default: means, log_scales, opacity_logits, sh).
-        backend: "auto", "numba" or "torch" (:mod:`agilegs.service.nbv.backend`).
+        backend: "auto", "numba" or "torch" (:mod:`agilegs.service.nbv.kernels.backend`).
 
     Returns:
         {field: H, the field's shape}.
