@@ -8,7 +8,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 
+
+@pytest.mark.heavy
 def test_bench_bigmap_reports_memory_time_and_refusals(tmp_path: Path) -> None:
     out = tmp_path / "bigmap.json"
     proc = subprocess.run(

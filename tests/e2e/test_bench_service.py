@@ -7,9 +7,11 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from conftest import ServerProcess
 
 
+@pytest.mark.heavy
 def test_bench_service_prints_overhead_and_load(server: ServerProcess, tmp_path: Path) -> None:
     out = tmp_path / "bench.json"
     proc = subprocess.run(

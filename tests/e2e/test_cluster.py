@@ -200,6 +200,7 @@ def test_the_decisions_feed_is_read_through_any_instance(pair: Pair) -> None:
             assert [e.decision.chosen.id for e in out.decisions] == [d.chosen.id for d in made]
 
 
+@pytest.mark.heavy
 def test_a_killed_instance_fails_clearly_and_comes_back(pair: Pair) -> None:
     zc = pair.zc
     with Client(pair.a.url) as ca:

@@ -43,6 +43,7 @@ def test_the_robot_returns_the_frames_photograph(tmp_path: Path) -> None:
 
 @pytest.mark.slow
 @pytest.mark.timeout(300)
+@pytest.mark.heavy
 def test_quick_demo_on_a_capture(tmp_path: Path) -> None:
     out = tmp_path / "out"
     env = {k: v for k, v in os.environ.items() if not k.startswith("AGILEGS_")}

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import httpx
 import numpy as np
+import pytest
 from conftest import SMALL_INTRINSICS, ServerProcess, ring_poses
 
 
@@ -29,6 +30,7 @@ def _generate(url: str, out: Path) -> None:
     assert "Unable to process schema" not in proc.stdout, proc.stdout
 
 
+@pytest.mark.heavy
 def test_a_generated_client_runs_the_robot_loop(tmp_path: Path) -> None:
     srv = ServerProcess(tmp_path / "state", zenoh=False).start()
     try:

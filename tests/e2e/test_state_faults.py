@@ -49,6 +49,7 @@ def one_line(done: subprocess.CompletedProcess[str]) -> str:
     return lines[0]
 
 
+@pytest.mark.heavy
 def test_one_server_per_state_folder(server_factory: Any, tmp_path: Path) -> None:
     state = tmp_path / "state"
     first = server_factory(state, zenoh=False).start()
@@ -126,6 +127,7 @@ def _fill(disk: Path) -> Path:
     return filler
 
 
+@pytest.mark.heavy
 def test_a_full_disk_is_507_over_http_and_zenoh(server_factory: Any, tmp_path: Path) -> None:
     from agilegs.client import ZenohClient
 
@@ -196,6 +198,7 @@ def httpx_get(url: str) -> str:
     return httpx.get(url, timeout=10).text
 
 
+@pytest.mark.heavy
 def test_store_check_and_repair_from_the_command_line(server_factory: Any,
                                                       tmp_path: Path) -> None:
     state = tmp_path / "state"
