@@ -42,6 +42,7 @@ def _frames(n: int, size: int, depth: bool) -> list[BagFrame]:
     return out
 
 
+@pytest.mark.heavy
 def test_a_bag_is_a_posed_scene(tmp_path: Path) -> None:
     frames = _frames(10, 16, depth=True)
     bag = write_bag(tmp_path / "capture", frames, storage="mcap", poses="tf")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from agilegs.config.selection import FIELD_NAMES
@@ -14,6 +15,7 @@ from agilegs.service.nbv.rasterize import render
 F64 = torch.float64
 
 
+@pytest.mark.heavy
 def test_baselines_match_the_fast_paths_float64() -> None:
     g = torch.Generator().manual_seed(3)
     n = 60
