@@ -83,12 +83,11 @@ def options_function(module: str) -> str:
 
 def _add_options(sub: argparse.ArgumentParser, module: str) -> None:
     where, _, function = options_function(module).partition(":")
-    try:
+    try:  # the options may import the command's extra too (serve's come from its settings)
         mod = importlib.import_module(where)
+        getattr(mod, function)(sub)
     except ImportError as exc:  # e.g. the viewer's extra, or torch, missing
         sub.set_defaults(_import_error=str(exc))
-        return
-    getattr(mod, function)(sub)
 
 
 def _positionals(argv: Sequence[str]) -> list[str]:
