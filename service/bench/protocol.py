@@ -63,7 +63,7 @@ from agilegs.service.mapper.quality import lpips, lpips_available, psnr, ssim
 from agilegs.service.nbv.information import fisher_diag, init_information
 from agilegs.service.nbv.methods.base import get_method
 from agilegs.service.nbv.rasterize import render
-from agilegs.service.nbv.selectors import select
+from agilegs.service.nbv.selectors import select, state_to
 from agilegs.service.sessions.transitions import (
     Limits,
     acquire,
@@ -141,17 +141,6 @@ def run_record(scene: BenchScene, gmap: Any, lam: float) -> SessionRecord:
                     max_shortlist=d, max_image_pixels=intr.width * intr.height)
     poses = scene.pool_poses.detach().cpu().numpy().astype(np.float64)
     return set_pool(rec, poses, list(range(d)), limits, "pool", replace_pool=True)
-
-
-def _on(device: torch.device, state: Any) -> Any:
-    """A warm state with its tensors on ``device`` (the record keeps them on the CPU)."""
-    if isinstance(state, Tensor):
-        return state.to(device)
-    if isinstance(state, dict):
-        return {k: _on(device, v) for k, v in state.items()}
-    if isinstance(state, list):
-        return [_on(device, v) for v in state]
-    return state
 
 
 @torch.no_grad()
@@ -369,7 +358,7 @@ class _ProgressiveRun:
             self.variant.method, gmap, h_acc, cands, self.scene.intrinsics, config=self.config,
             acquired=acq_poses,
             current_pose=acq_poses[-1] if self.embodied_k is not None else None,
-            state=_on(self.device, self.rec.warm_state), lam=self.profile.lam,
+            state=state_to(self.device, self.rec.warm_state), lam=self.profile.lam,
         )
         wall_ms = (time.perf_counter() - t0) * 1e3
         cpu_ms = (time.process_time() - c0) * 1e3

@@ -59,7 +59,20 @@ __all__ = [
     "eligible_candidates",
     "select",
     "select_validated",
+    "state_to",
 ]
+
+
+def state_to(device: torch.device | str, value: Any) -> Any:
+    """``value`` (a warm state, Hhat: tensors in dicts, lists and tuples) with every tensor on
+    ``device``; what is not a tensor is kept as it is."""
+    if isinstance(value, Tensor):
+        return value.to(device)
+    if isinstance(value, dict):
+        return {k: state_to(device, v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return type(value)(state_to(device, v) for v in value)
+    return value
 
 METHODS: tuple[str, ...] = method_names()
 

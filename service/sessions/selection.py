@@ -28,7 +28,7 @@ from ..errors import ServiceError, conflict, invalid, too_large, validation_erro
 from ..nbv.budget import KINDS, Estimate, SpeedCalibration, estimate
 from ..nbv.errors import InputError
 from ..nbv.kernels.backend import default_backend, kernels_available
-from ..nbv.selectors import Selection, select_validated
+from ..nbv.selectors import Selection, select_validated, state_to
 from ..store.records import SessionRecord, ViewRecord
 from .convert import finite_float, pose_out, poses_array, view_out
 from .transitions import (
@@ -176,25 +176,6 @@ def _reusable(rec: SessionRecord, config: SelectConfig, sel: Selection
         rec) else None
 
 
-def _to(device: torch.device, value: Any) -> Any:
-    """``value`` with every tensor in it (in dicts, lists and tuples) on ``device``."""
-    if isinstance(value, Tensor):
-        return value.to(device)
-    if isinstance(value, dict):
-        return {k: _to(device, v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return type(value)(_to(device, v) for v in value)
-    return value
-
-
-def _on_device(device: torch.device, gmap: Any, h_acc: dict[str, Tensor]
-               ) -> tuple[Any, dict[str, Tensor]]:
-    """The session's map and Hhat on ``device`` (themselves on the CPU)."""
-    if device.type == "cpu":
-        return gmap, h_acc
-    return gmap.to(device=device), {k: v.to(device) for k, v in h_acc.items()}
-
-
 def select_step(rec: SessionRecord, req: m.SelectRequest, limits: Limits, *,
                 now: float | None = None) -> Selected:
     """Choose the next view; with ``req.pool`` the pool is replaced first (unless it is the
@@ -238,21 +219,23 @@ def select_step(rec: SessionRecord, req: m.SelectRequest, limits: Limits, *,
                 if rec.views else None)
     t0 = time.perf_counter()
     dev = torch.device(limits.device)
+    gmap, h_acc = rec.gmap, rec.h_acc  # on the CPU, the record's own objects
+    if dev.type != "cpu":
+        gmap, h_acc = gmap.to(device=dev), state_to(dev, h_acc)
     try:
         sel = select_validated(
-            method, *_on_device(dev, rec.gmap, rec.h_acc), torch.from_numpy(rec.pool_poses).to(
-                device=dev, dtype=dt),
+            method, gmap, h_acc,
+            torch.from_numpy(rec.pool_poses).to(device=dev, dtype=dt),
             intrinsics_of(rec), config=config,
             acquired=None if acquired is None else acquired.to(dev), current=current,
             current_pose=None if current_pose is None else current_pose.to(dev),
-            state=_to(dev, rec.warm_state), lam=float(rec.information_config["lambda"]),
+            state=state_to(dev, rec.warm_state), lam=float(rec.information_config["lambda"]),
         )
     except InputError as exc:
         raise invalid(_ARGUMENT_FIELDS.get(exc.argument, "body"), str(exc)) from None
     if dev.type != "cpu":  # the record keeps host tensors
-        sel = dataclasses.replace(sel, state=_to(torch.device("cpu"), sel.state),
-                                  chosen_information=_to(torch.device("cpu"),
-                                                         sel.chosen_information))
+        sel = dataclasses.replace(sel, state=state_to("cpu", sel.state),
+                                  chosen_information=state_to("cpu", sel.chosen_information))
     if est is not None:
         SPEED.observe(est.seconds, time.perf_counter() - t0)
     ids = rec.pool_ids
