@@ -145,6 +145,12 @@ class AnchorConfig:
     unexplored_cells: Annotated[int, Strict(), Field(ge=2, le=64),
                                 BeforeValidator(integral)] = Field(
         default=16, description="grid points per axis of the unexplored space")
+    unexplored_shells: Annotated[int, Strict(), Field(ge=1, le=64),
+                                 BeforeValidator(integral)] = Field(
+        default=8,
+        description="radial shells of the unexplored space's expected density: an unexplored "
+        "grid point holds as many Gaussians as the observed grid points at its distance from "
+        "the map's centre do (1: the map's mean density everywhere)")
     anchors: Annotated[int, Strict(), Field(ge=1, le=8), BeforeValidator(integral)] = Field(
         default=3,
         description="anchors kept from distinct modes of psi (the ascents' end points, best "
@@ -276,6 +282,14 @@ class SelectConfig:
     shortlist: ShortlistStrategy = Field(
         default="leverage", description="shortlist strategy: the paper's 'leverage', or the "
         "ablations 'knearest', 'topnorm', 'online'")
+    probes: Annotated[int, Strict(), Field(ge=0, le=512), BeforeValidator(integral)] = Field(
+        default=1,
+        description="agile_plus: the least number of the N reranked slots given to probes, "
+        "candidates drawn uniformly from the eligible ones outside the model's shortlist. Their "
+        "exact EIG beside the model's tells whether the model still predicts it: an event "
+        "where a probe beats every model candidate doubles the probes of the next event (at "
+        "most half of N), one where the model wins halves them (at least this number); 0: "
+        "none, every slot the model's (the paper)")
     embodied_k: Annotated[int, Strict(), Field(ge=1, le=100_000),
                           BeforeValidator(integral)] | None = Field(
         default=None, description="only the K candidates nearest the current view are "
@@ -311,12 +325,13 @@ PRESETS: dict[str, dict[str, Any]] = {
     "paper": {
         "anchor": {"psi": "exact", "anchors": 1, "model": "fitted", "unexplored": False},
         "scoring": {"condition_on_acquired": False},
+        "probes": 0,
     },
 }
 """Named SelectConfig patches. ``paper``: AGILE-GS as the paper states it: one anchor, which
 ascends the trace surrogate of the exact Fisher rendered at T (through the rasterizer; its
-starts are the pool's best under the isotropic fitted proxy), and the leverage greedy starts
-from lambda_G I."""
+starts are the pool's best under the isotropic fitted proxy), the leverage greedy starts
+from lambda_G I, and AGILE-GS+ reranks the model's shortlist alone (no probes)."""
 
 
 def preset_config(name: str, **overrides: Any) -> SelectConfig:

@@ -107,6 +107,8 @@ OPTIONS: dict[str, tuple[str, Callable[[SelectConfig], SelectConfig]]] = {
                   _anchor(model="fitted")),
     "unexplored": ("the proxy also counts the unexplored part of the map's extent as "
                    "never-observed Gaussians", _anchor(unexplored=True)),
+    "flat_unexplored": ("the unexplored space holds the map's mean density everywhere (one "
+                        "radial shell)", _anchor(unexplored_shells=1)),
     "no_unexplored": ("the proxy counts only the map's Gaussians", _anchor(unexplored=False)),
     "modes": ("three anchors from distinct modes of psi (starts spread alike), the shortlist "
               "drawn across their support samples", _anchor(anchors=3)),

@@ -151,11 +151,48 @@ def test_unexplored_space_is_behind_what_was_seen() -> None:
     assert space.density > 0
     # the camera is at z = -2: what it did not see lies behind the shell, not in front
     centre, _ = scene_center_radius(gmap.means)
-    assert float((space.means[:, 2] - centre[2]).mean()) > 0.1
+    z = space.means[:, 2] - centre[2]
+    assert float((space.weight * z).sum() / space.weight.sum()) > 0.05 and float(z.mean()) > 0.05
     # with a second view from behind, less is unexplored
     both = torch.stack([_pose([0.0, 0.0, -2.0]), _pose([0.0, 0.0, 2.0])])
     assert unexplored_space(gmap, both, _seer(gmap), cells=12).unexplored_fraction < (
         space.unexplored_fraction)
+
+
+def test_shell_densities_by_hand() -> None:
+    from agilegs.service.nbv.anchor.unexplored import radial_shells, shell_densities
+
+    pts = torch.tensor([[0.0, 0, 0], [0.5, 0, 0], [0, 0.9, 0], [1.0, 1.0, 1.0], [0, 0, 1.2]],
+                       dtype=F64)
+    shell = radial_shells(pts, torch.zeros(3, dtype=F64), 1.0, 4)  # width sqrt(3) / 4
+    assert shell.tolist() == [0, 1, 2, 3, 2]
+    seen = torch.tensor([True, True, False, True, True])
+    per_cell = torch.tensor([4.0, 2.0, 7.0, 0.0, 6.0], dtype=F64)
+    # shell 2 holds one observed point (6 Gaussians) and one unobserved (not counted)
+    assert shell_densities(shell, seen, per_cell, 4).tolist() == [4.0, 2.0, 6.0, 0.0]
+    # a shell no point of which was observed expects nothing
+    assert shell_densities(shell, torch.tensor([False, True, True, True, False]), per_cell,
+                           4).tolist() == [0.0, 2.0, 7.0, 0.0]
+    # one shell: the mean over every observed point
+    one = radial_shells(pts, torch.zeros(3, dtype=F64), 1.0, 1)
+    assert shell_densities(one, seen, per_cell, 1).tolist() == [3.0]
+
+
+def test_unexplored_space_beyond_the_map_is_worth_nothing() -> None:
+    """The grid's corners lie beyond every Gaussian: at their distance the observed cells are
+    empty, so they hold no weight (with one shell they take the map's mean density)."""
+    gmap = _half_shell()
+    acq = torch.stack([_pose([0.0, 0.0, -2.0])])
+    centre, r98 = scene_center_radius(gmap.means)
+    far = float((gmap.means - centre).norm(dim=1).max())
+    radial = unexplored_space(gmap, acq, _seer(gmap), cells=12, shells=8)
+    flat = unexplored_space(gmap, acq, _seer(gmap), cells=12, shells=1)
+    # a shell's width: the grid's corner distance over 8
+    width = r98 * 1.1 * 3**0.5 / 8
+    assert float((radial.means - centre).norm(dim=1).max()) <= far + width + 1e-9
+    assert float((flat.means - centre).norm(dim=1).max()) > far + width
+    assert flat.shell_density.shape == (1,) and radial.shell_density.shape == (8,)
+    assert float(radial.shell_density[-1]) == 0.0
 
 
 def test_the_unexplored_term_draws_the_anchor_to_the_unseen_side() -> None:

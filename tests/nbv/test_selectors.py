@@ -90,7 +90,8 @@ def test_agile_returns_the_shortlist_first(world) -> None:
 def test_agile_plus_returns_argmax_phi_over_the_shortlist(world) -> None:
     gmap, h, pool, acq, phi = world
     for shortlist in SHORTLISTS:
-        cfg = SelectConfig(shortlist=shortlist, shortlist_size=6)  # type: ignore[arg-type]
+        cfg = SelectConfig(shortlist=shortlist, shortlist_size=6,  # type: ignore[arg-type]
+                           probes=0)
         plain = select("agile", gmap, h, pool, INTR, acquired=acq, config=cfg)
         plus = select("agile_plus", gmap, h, pool, INTR, acquired=acq, config=cfg)
         assert plus.shortlist == plain.shortlist
@@ -99,6 +100,79 @@ def test_agile_plus_returns_argmax_phi_over_the_shortlist(world) -> None:
         assert sorted(plus.scores) == sorted(plus.shortlist)
         for i, v in plus.scores.items():
             assert v == pytest.approx(float(phi[i]), rel=1e-4)
+
+
+def test_agile_plus_reranks_the_model_s_shortlist_and_uniform_probes(world) -> None:
+    gmap, h, pool, acq, phi = world
+    for probes in (1, 2):
+        cfg = SelectConfig(shortlist_size=6, probes=probes, seed=3)
+        model = select("agile", gmap, h, pool, INTR, acquired=acq,
+                       config=SelectConfig(shortlist_size=6 - probes, probes=0, seed=3))
+        plus = select("agile_plus", gmap, h, pool, INTR, acquired=acq, config=cfg)
+        assert plus.shortlist[: 6 - probes] == model.shortlist
+        drawn = plus.shortlist[6 - probes:]
+        assert len(drawn) == probes and not set(drawn) & set(model.shortlist)
+        assert plus.index == max(plus.shortlist, key=lambda i: (float(phi[i]),
+                                                                -plus.shortlist.index(i)))
+        d = plus.details
+        assert d["probes"] == probes
+        assert d["model_best_phi"] == pytest.approx(max(float(phi[i]) for i in model.shortlist),
+                                                    rel=1e-4)
+        assert d["probe_best_phi"] == pytest.approx(max(float(phi[i]) for i in drawn), rel=1e-4)
+        assert d["probe_won"] == (d["probe_best_phi"] > d["model_best_phi"])
+        # the next event's probes: doubled when a probe won, halved (not below the least)
+        nxt = int(plus.state["probes"])
+        assert nxt == (min(2 * probes, 3) if d["probe_won"] else max(probes // 2, probes))
+
+
+def test_probe_counts_follow_the_model_s_record(world) -> None:
+    """Along a session: a probe that wins raises the next count, a model that wins lowers it,
+    always within [config.probes, N // 2]; probes=0 draws none."""
+    gmap, h, pool, acq, phi = world
+    cfg = SelectConfig(shortlist_size=8, probes=1)
+    # a warm state that already holds more probes than the bound is clamped to N // 2
+    sel = select("agile_plus", gmap, h, pool, INTR, acquired=acq, config=cfg,
+                 state={"probes": torch.tensor(9)})
+    assert sel.details["probes"] == 4 and len(sel.shortlist) == 8
+    # probes are drawn uniformly outside the model's shortlist: over many seeds, many
+    # different candidates, never one of the model's
+    seen: set[int] = set()
+    for seed in range(40):
+        c = SelectConfig(shortlist_size=8, probes=1, seed=seed)
+        m = select("agile", gmap, h, pool, INTR, acquired=acq,
+                   config=SelectConfig(shortlist_size=7, probes=0, seed=seed)).shortlist
+        p = select("agile_plus", gmap, h, pool, INTR, acquired=acq, config=c)
+        assert p.shortlist[:7] == m
+        seen.add(p.shortlist[7])
+        assert p.shortlist[7] not in m
+    assert len(seen) >= 6
+    none = select("agile_plus", gmap, h, pool, INTR, acquired=acq,
+                  config=SelectConfig(shortlist_size=8, probes=0))
+    assert "probes" not in none.details and "probes" not in none.state
+
+
+@pytest.mark.parametrize(("phi", "probes", "won", "nxt"), [
+    ([5.0, 4.0, 3.0, 9.0], 1, True, 2),     # a probe beats the model: doubled
+    ([5.0, 4.0, 9.0, 1.0], 2, True, 4),     # up to N // 2 = 4
+    ([9.0, 4.0, 3.0, 1.0], 4, False, 2),    # the model wins: halved
+    ([9.0, 4.0, 3.0, 9.0], 1, False, 1),    # a tie is the model's; never below the least
+])
+def test_the_next_probe_count(phi, probes, won, nxt) -> None:
+    from types import SimpleNamespace
+
+    from agilegs.service.nbv.methods.agile import _judge_model
+    ctx = SimpleNamespace(config=SelectConfig(shortlist_size=8, probes=1))
+    out: dict = {"state": {}, "details": {}}
+    n_model = len(phi) - (2 if probes >= 2 else 1)
+    _judge_model(ctx, torch.tensor(phi, dtype=torch.float64), n_model, probes, out)  # type: ignore[arg-type]
+    assert out["details"]["probe_won"] is won
+    assert int(out["state"]["probes"]) == nxt
+
+
+def test_the_paper_preset_draws_no_probes() -> None:
+    from agilegs.config.selection import preset_config
+    assert preset_config("paper").probes == 0
+    assert SelectConfig().probes == 1
 
 
 def test_latency_breakdown_and_selection_fields(world) -> None:

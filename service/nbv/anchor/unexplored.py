@@ -12,9 +12,14 @@ proxy's sum as virtual Gaussians with the map's own density:
   the map's surfaces (the proxy's smooth in-frustum test times the transmittance from the
   view); its unexplored fraction is ``1 - max over the acquired views``;
 - the points that are mostly unexplored stand for Gaussians the map lacks: each is a virtual
-  Gaussian of the map's median size, expected to hold as many Gaussians as an observed cell
-  of the grid does (the Gaussians whose centres fall in observed cells over the number of
-  observed cells), never observed (Hhat = lambda: the model's prior rate).
+  Gaussian of the map's median size, never observed (Hhat = lambda: the model's prior rate),
+  expected to hold as many Gaussians as an observed cell at the same distance from the map's
+  centre does (``shells`` radial shells: the Gaussians whose centres fall in the shell's
+  observed cells over the number of those cells; none in a shell with no observed cell). An
+  unexplored corner of the grid beyond the map's extent, where the observed cells at its
+  distance are empty, or the inside of an object, which no view sees, is then worth nothing
+  however many views come: only space at a distance where the views found matter counts as
+  matter still to find.
 
 A candidate that sees unexplored points through the map (the transmittance, so that the
 inside of a seen object stays hidden) gains what a view of as many new Gaussians would; the
@@ -33,7 +38,7 @@ from ..candidates import scene_center_radius
 from ..gaussians import GaussianMap
 from .proxy import ProxyPsi
 
-__all__ = ["UnexploredSpace", "unexplored_space"]
+__all__ = ["UnexploredSpace", "radial_shells", "shell_densities", "unexplored_space"]
 
 
 @dataclass
@@ -45,7 +50,9 @@ class UnexploredSpace:
         cov: their covariance, isotropic at the map's median scale [U, 3, 3].
         weight: expected Gaussians each stands for, times its unexplored fraction [U].
         unexplored_fraction: the unexplored share of the grid's points (0 to 1).
-        density: Gaussians per observed cell.
+        density: Gaussians per observed cell, over the whole grid.
+        shell_density: Gaussians per observed cell of each radial shell [shells] (what an
+            unexplored point of that shell is expected to hold).
     """
 
     means: Tensor
@@ -53,6 +60,7 @@ class UnexploredSpace:
     weight: Tensor
     unexplored_fraction: float
     density: float
+    shell_density: Tensor
 
 
 @torch.no_grad()
@@ -66,6 +74,7 @@ def unexplored_space(
     threshold: float = 0.5,
     max_points: int = 1024,
     chunk: int = 16,
+    shells: int = 8,
     generator: torch.Generator | None = None,
 ) -> UnexploredSpace:
     """The unexplored part of ``gmap``'s extent seen from the acquired poses [A, 4, 4].
@@ -81,6 +90,7 @@ def unexplored_space(
         max_points: at most this many points are kept (drawn in proportion to their
             weight, seeded, and reweighted: the sum's expectation is unchanged).
         chunk: acquired poses evaluated at once.
+        shells: radial shells of the expected density (1: one density for the whole grid).
         generator: seeds the subsample.
     """
     dt = gmap.dtype
@@ -112,8 +122,10 @@ def unexplored_space(
     seen_cells = unexplored <= threshold
     n_seen = int(seen_cells.sum())
     density = float(per_cell[seen_cells].sum()) / n_seen if n_seen else 0.0
+    shell = radial_shells(points, centre.to(dt), half, shells)
+    shell_density = shell_densities(shell, seen_cells, per_cell, shells)
     keep = torch.nonzero(unexplored > threshold).squeeze(1)
-    weight = density * unexplored[keep]
+    weight = shell_density[shell[keep]] * unexplored[keep]
     if keep.numel() > max_points and float(weight.sum()) > 0:
         total = float(weight.sum())
         draws = torch.multinomial(weight.cpu().double(), max_points, replacement=True,
@@ -121,8 +133,31 @@ def unexplored_space(
         uniq, counts = torch.unique(draws, return_counts=True)
         keep = keep[uniq.to(dev)]
         weight = counts.to(device=dev, dtype=dt) * (total / max_points)
+    nonzero = weight > 0
+    keep, weight = keep[nonzero], weight[nonzero]
     scale = torch.exp(gmap.log_scales.detach().to(dt)).median()
     cov = (scale * scale) * torch.eye(3, dtype=dt, device=dev).expand(keep.numel(), 3, 3)
     return UnexploredSpace(means=points[keep], cov=cov.clone(), weight=weight,
                            unexplored_fraction=float(unexplored.gt(threshold).to(dt).mean()),
-                           density=density)
+                           density=density, shell_density=shell_density)
+
+
+def radial_shells(points: Tensor, centre: Tensor, half: float, shells: int) -> Tensor:
+    """The radial shell of each grid point [P, 3] -> [P] (long, 0 to ``shells`` - 1): equal
+    widths from ``centre`` out to the grid's corner (``half`` * sqrt(3))."""
+    r = (points - centre).norm(dim=1) / (half * 3.0**0.5)
+    return (r * shells).floor().long().clamp(0, max(shells, 1) - 1)
+
+
+def shell_densities(shell: Tensor, seen: Tensor, per_cell: Tensor, shells: int) -> Tensor:
+    """Gaussians per observed cell of each shell [shells]: ``per_cell`` [P] summed over the
+    observed points (``seen`` [P], bool) of each ``shell`` [P], over their number; 0 for a
+    shell without an observed point (no view found matter at that distance: the inside of a
+    seen object, the grid's corners beyond the views)."""
+    n = max(int(shells), 1)
+    dt = per_cell.dtype
+    dev = per_cell.device
+    count = torch.zeros(n, dtype=dt, device=dev).index_add_(
+        0, shell[seen], torch.ones(int(seen.sum()), dtype=dt, device=dev))
+    mass = torch.zeros(n, dtype=dt, device=dev).index_add_(0, shell[seen], per_cell[seen])
+    return mass / count.clamp_min(1)

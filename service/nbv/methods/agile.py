@@ -4,6 +4,10 @@
 M of the eligible candidates against T*'s support samples (:mod:`agilegs.service.nbv.coverage`),
 B = M Pi (a fixed seeded Johnson-Lindenstrauss projection), a shortlist of N rows, and the
 shortlist's first. ``agile_plus``: the same shortlist reranked by the exact EIG phi; the argmax.
+Beside the model's candidates the rerank scores ``probes`` drawn uniformly from the rest of
+the pool (``SelectConfig.probes``, adapted along a session from the warm state): when a probe
+beats every candidate of the model the model no longer predicts the exact EIG, and the next
+event gives the probes more of the N slots; the choice is never worse than the best probe.
 
 The shortlist strategy is ``SelectConfig.shortlist``: ``leverage`` (the paper's greedy ridge
 leverage), or the ablations ``knearest`` (the N candidates nearest the anchor under the SE(3)
@@ -203,14 +207,14 @@ def _rows(ctx: SelectionContext, anchors: list[tuple[Tensor, float]], lat: dict[
 
 def shortlist(ctx: SelectionContext, anchor_c2w: Tensor, lat: dict[str, float],
               details: dict[str, Any], modes: tuple[Tensor, list[float]] | None = None,
-              ) -> tuple[list[int], dict[int, float]]:
-    """The N-candidate shortlist of ``ctx.config.shortlist`` and its per-candidate scores
-    (conditional leverage at pick time, ||b||, distance to the anchor, or NaN for online).
-    ``modes``: the anchors of distinct modes and their psi (the best, ``anchor_c2w``,
-    first), whose support samples the coverage matrix spans together."""
+              size: int | None = None) -> tuple[list[int], dict[int, float]]:
+    """The shortlist of ``ctx.config.shortlist`` (``size`` candidates, default N) and its
+    per-candidate scores (conditional leverage at pick time, ||b||, distance to the anchor,
+    or NaN for online). ``modes``: the anchors of distinct modes and their psi (the best,
+    ``anchor_c2w``, first), whose support samples the coverage matrix spans together."""
     cfg = ctx.config
     sc = cfg.scoring
-    n_short = min(int(cfg.shortlist_size), len(ctx.eligible))
+    n_short = min(int(cfg.shortlist_size if size is None else size), len(ctx.eligible))
     if cfg.shortlist == "knearest":
         return _knearest(ctx, anchor_c2w, n_short, lat)
     anchors = [(anchor_c2w, 1.0)]
@@ -239,6 +243,43 @@ def shortlist(ctx: SelectionContext, anchor_c2w: Tensor, lat: dict[str, float],
     return picked, scores
 
 
+def probe_count(ctx: SelectionContext, n_short: int) -> int:
+    """How many of the ``n_short`` reranked slots go to probes at this event: the warm
+    state's count (``config.probes`` at the first event), at least ``config.probes``, at most
+    half of the slots (``n_short`` <= the eligible candidates, so that the model's shortlist
+    always leaves enough of them to draw from)."""
+    least = int(ctx.config.probes)
+    if least == 0:
+        return 0
+    held = ctx.state.get("probes")
+    now = int(held) if isinstance(held, Tensor) and held.numel() == 1 else least
+    return max(0, min(max(now, least), n_short // 2))
+
+
+def draw_probes(ctx: SelectionContext, picked: list[int], n: int) -> list[int]:
+    """``n`` eligible candidates outside ``picked``, drawn uniformly (seeded by the event)."""
+    if n <= 0:
+        return []
+    taken = set(picked)
+    rest = [v for v in ctx.eligible if v not in taken]
+    order = torch.randperm(len(rest), generator=ctx.generator(6))[:n].tolist()
+    return [rest[i] for i in order]
+
+
+def _judge_model(ctx: SelectionContext, phi: Tensor, n_model: int, n_probes: int,
+                 out: dict[str, Any]) -> None:
+    """Whether the model's shortlist beat the probes under the exact EIG ``phi`` [n_model +
+    n_probes] (model first), and the probe count of the next event (in the warm state)."""
+    model_best = float(phi[:n_model].max()) if n_model else float("-inf")
+    probe_best = float(phi[n_model:].max())
+    probe_won = probe_best > model_best
+    least, most = int(ctx.config.probes), int(ctx.config.shortlist_size) // 2
+    nxt = min(2 * n_probes, most) if probe_won else max(n_probes // 2, least)
+    out["state"]["probes"] = torch.tensor(max(nxt, least), dtype=torch.long)
+    out["details"].update(probes=n_probes, probe_won=probe_won, model_best_phi=model_best,
+                          probe_best_phi=probe_best)
+
+
 class AgileMethod:
     """AGILE-GS (``rerank=False``) or AGILE-GS+ (``rerank=True``)."""
 
@@ -252,16 +293,23 @@ class AgileMethod:
         lat: dict[str, float] = {}
         out: dict[str, Any] = {"state": {}, "details": {}, "psi_trace": []}
         anchor_c2w = _anchor(ctx, lat, out)
-        picked, scores = shortlist(ctx, anchor_c2w, lat, out["details"], out.get("modes"))
+        n_short = min(int(ctx.config.shortlist_size), len(ctx.eligible))
+        n_probes = probe_count(ctx, n_short) if self.rerank else 0
+        picked, scores = shortlist(ctx, anchor_c2w, lat, out["details"], out.get("modes"),
+                                   size=n_short - n_probes)
         index = picked[0]
         chosen: dict[str, Tensor] | None = None
         if self.rerank:
+            probes = draw_probes(ctx, picked, n_probes)
             with timed(lat, "rerank"):
-                sl = torch.as_tensor(picked, dtype=torch.long)
+                sl = torch.as_tensor(picked + probes, dtype=torch.long)
                 phi, chosen = eig_scores_keeping_best(
                     ctx.gmap, ctx.h_acc, ctx.pool[sl], ctx.intrinsics,
                     fields=ctx.fields, background=ctx.background)
             out["details"]["shortlist_scores"] = scores
+            if probes:
+                _judge_model(ctx, phi, len(picked), len(probes), out)
+            picked = picked + probes
             scores = {v: float(p) for v, p in zip(picked, phi)}
             index = picked[argmax_first(phi)]
         return MethodResult(
