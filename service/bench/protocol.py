@@ -246,8 +246,9 @@ class EventRecord:
     """One selection event of a run (an entry of the record's ``events``): the chosen pool
     index, the shortlist's, ``Selection.latency_ms``, the time of Ĥ recomputed on the current
     map and per acquired view (``upkeep_ms``: what an incremental Ĥ pays per committed view; 0
-    for the methods that do not read Ĥ), [pool index, score] of every finite score and the
-    anchor's camera-to-world pose [4, 4] (the replay's)."""
+    for the methods that do not read Ĥ), [pool index, score] of every finite score, the
+    anchor's camera-to-world pose [4, 4] (the replay's), and AGILE-GS+'s probes (the last
+    ``probes`` of the shortlist) with whether one of them beat the model's candidates."""
 
     event: int
     step: int
@@ -265,6 +266,8 @@ class EventRecord:
     anchor: list[list[float]] | None
     anchor_psi: float | None
     best_candidate_psi: float | None
+    probes: int | None = None
+    probe_won: bool | None = None
 
 
 class _ProgressiveRun:
@@ -381,6 +384,8 @@ class _ProgressiveRun:
             anchor=None if sel.anchor_c2w is None else _matrix(sel.anchor_c2w),
             anchor_psi=sel.details.get("anchor_psi"),
             best_candidate_psi=sel.details.get("best_candidate_psi"),
+            probes=sel.details.get("probes"),
+            probe_won=sel.details.get("probe_won"),
         )
         self.events.append(ev)
         self.times.select_s += wall_ms / 1e3

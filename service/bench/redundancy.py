@@ -10,7 +10,10 @@ degrees. For a run of the progressive protocol:
 - ``final_gap_deg``: the mean over the pool's views never acquired of the angle to the
   nearest acquired view at the end (large: part of the pool's view sphere left uncovered);
 - ``psi_ratio`` per event (methods with an anchor): ψ at the anchor over ψ at the best
-  candidate, where the event recorded both (``anchor_psi``, ``best_candidate_psi``).
+  candidate, where the event recorded both (``anchor_psi``, ``best_candidate_psi``);
+- ``probe_win_rate`` (AGILE-GS+): the share of its events where a uniform probe beat every
+  candidate of the model under the exact EIG (a model that predicts the EIG keeps it low;
+  one that does not, near probes / (probes + 1)).
 
 Only numpy: the records are JSON (``bench run``'s ``runs/<scene>/<variant>/seed<k>.json``).
 """
@@ -88,6 +91,8 @@ def run_redundancy(record: Mapping[str, Any]) -> dict[str, Any] | None:
             ratio = float(a_psi) / float(b_psi)
         events.append({"pick_angle_deg": pick, "anchor_angle_deg": a_angle, "psi_ratio": ratio})
         acquired.append(int(e["choice"]))
+    judged = [bool(e["probe_won"]) for e in record.get("events", [])
+              if e.get("probe_won") is not None]
     taken = set(acquired)
     rest = [i for i in range(centres.shape[0]) if i not in taken]
     gap = angles_to_nearest(dirs[rest], dirs[acquired]) if rest and acquired else np.zeros(0)
@@ -97,6 +102,7 @@ def run_redundancy(record: Mapping[str, Any]) -> dict[str, Any] | None:
         "anchor_angle_mean_deg": _mean([e["anchor_angle_deg"] for e in events]),
         "psi_ratio_mean": _mean([e["psi_ratio"] for e in events]),
         "final_gap_deg": float(gap.mean()) if gap.size else None,
+        "probe_win_rate": sum(judged) / len(judged) if judged else None,
     }
 
 
@@ -105,7 +111,8 @@ def summarise_redundancy(records: Sequence[Mapping[str, Any]]) -> dict[str, floa
     computed from the record when it has none)."""
     found = (r.get("redundancy") or run_redundancy(r) for r in records)
     per: list[Mapping[str, Any]] = [p for p in found if p is not None]
-    keys = ("pick_angle_mean_deg", "anchor_angle_mean_deg", "psi_ratio_mean", "final_gap_deg")
+    keys = ("pick_angle_mean_deg", "anchor_angle_mean_deg", "psi_ratio_mean", "final_gap_deg",
+            "probe_win_rate")
     return {k: _mean([p.get(k) for p in per]) for k in keys}
 
 
@@ -123,14 +130,18 @@ def redundancy_table(rows: Sequence[tuple[str, Mapping[str, float | None]]]) -> 
         "scenes: from each pick (and each anchor) to the nearest view acquired before it, and "
         "at the end from every view left in the pool to the nearest acquired one (the gap "
         "the run leaves); ψ(anchor) / ψ(best candidate): the anchor's ψ over the best "
-        "eligible candidate's, of the function the anchor ascends.",
+        "eligible candidate's, of the function the anchor ascends; probes won: the share of "
+        "AGILE-GS+'s events where a uniform probe beat the model's shortlist under the exact "
+        "EIG.",
         "",
         "| Method | pick → nearest acquired (°) | anchor → nearest acquired (°) | "
-        "final pool gap (°) | ψ(anchor) / ψ(best candidate) |",
-        "|---|---|---|---|---|",
+        "final pool gap (°) | ψ(anchor) / ψ(best candidate) | probes won |",
+        "|---|---|---|---|---|---|",
     ]
     for name, r in rows:
+        won = r.get("probe_win_rate")
         out.append(f"| {name} | {num(r.get('pick_angle_mean_deg'), 1)} | "
                    f"{num(r.get('anchor_angle_mean_deg'), 1)} | "
-                   f"{num(r.get('final_gap_deg'), 1)} | {num(r.get('psi_ratio_mean'), 2)} |")
+                   f"{num(r.get('final_gap_deg'), 1)} | {num(r.get('psi_ratio_mean'), 2)} | "
+                   f"{'–' if won is None else f'{100 * won:.0f}%'} |")
     return out + [""]

@@ -65,3 +65,16 @@ def test_a_run_record_on_a_ring() -> None:
     s = summarise_redundancy([record, other])
     assert s["final_gap_deg"] == pytest.approx(20.0)
     assert s["pick_angle_mean_deg"] == pytest.approx(60.0)
+
+
+def test_the_share_of_events_a_probe_won() -> None:
+    events = [{"choice": 1, "probes": 1, "probe_won": True},
+              {"choice": 2, "probes": 2, "probe_won": False},
+              {"choice": 3, "probes": 1, "probe_won": False},
+              {"choice": 4}]  # an event without probes does not count
+    red = run_redundancy({"pool_poses": _ring(12), "initial": [0, 6], "events": events})
+    assert red is not None and red["probe_win_rate"] == pytest.approx(1 / 3)
+    plain = run_redundancy({"pool_poses": _ring(12), "initial": [0], "events": events[3:]})
+    assert plain is not None and plain["probe_win_rate"] is None
+    assert summarise_redundancy([{"redundancy": red}, {"redundancy": plain}])[
+        "probe_win_rate"] == pytest.approx(1 / 3)
