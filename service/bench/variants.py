@@ -109,6 +109,8 @@ OPTIONS: dict[str, tuple[str, Callable[[SelectConfig], SelectConfig]]] = {
                    "never-observed Gaussians", _anchor(unexplored=True)),
     "flat_unexplored": ("the unexplored space holds the map's mean density everywhere (one "
                         "radial shell)", _anchor(unexplored_shells=1)),
+    "inside_unexplored": ("the unexplored space also counts the inside of the map's surfaces",
+                          _anchor(unexplored_inside=True)),
     "no_unexplored": ("the proxy counts only the map's Gaussians", _anchor(unexplored=False)),
     "modes": ("three anchors from distinct modes of psi (starts spread alike), the shortlist "
               "drawn across their support samples", _anchor(anchors=3)),
@@ -119,6 +121,10 @@ OPTIONS: dict[str, tuple[str, Callable[[SelectConfig], SelectConfig]]] = {
                        "typical view", _anchor(unseen="quarter_view")),
     "unconditioned": ("the leverage greedy starts from lambda_G I (not the acquired rows)",
                       _scoring(condition_on_acquired=False)),
+    "no_probes": ("AGILE-GS+ reranks the model's shortlist alone (no uniform probes)",
+                  lambda c: dataclasses.replace(c, probes=0)),
+    "probes3": ("AGILE-GS+ gives at least 3 of the N reranked slots to uniform probes",
+                lambda c: dataclasses.replace(c, probes=3)),
 }
 """Variant options: name -> (what it changes, the change)."""
 

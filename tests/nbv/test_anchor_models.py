@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 
 import torch
+from torch import Tensor
 
 from agilegs.config.selection import FIELD_NAMES, AnchorConfig
 from agilegs.service.nbv.anchor.ascent import optimize_anchor
@@ -193,6 +194,43 @@ def test_unexplored_space_beyond_the_map_is_worth_nothing() -> None:
     assert float((flat.means - centre).norm(dim=1).max()) > far + width
     assert flat.shell_density.shape == (1,) and radial.shell_density.shape == (8,)
     assert float(radial.shell_density[-1]) == 0.0
+
+
+def test_enclosed_cells_are_the_inside_of_a_closed_surface() -> None:
+    from agilegs.service.nbv.anchor.unexplored import enclosed
+
+    box = torch.zeros(6, 6, 6, dtype=torch.bool)
+    box[1, 1:5, 1:5] = box[4, 1:5, 1:5] = True
+    box[1:5, 1, 1:5] = box[1:5, 4, 1:5] = True
+    box[1:5, 1:5, 1] = box[1:5, 1:5, 4] = True
+    inner = enclosed(box)
+    assert int(inner.sum()) == 8 and bool(inner[2:4, 2:4, 2:4].all())
+    open_box = box.clone()
+    open_box[4, 1:5, 1:5] = False  # one face missing: open along +x
+    assert not bool(enclosed(open_box).any())
+
+
+def test_the_inside_of_a_closed_map_is_not_unexplored() -> None:
+    """A whole elongated ellipsoid seen from one side: its far half is unexplored, and so is
+    its inside, at distances from the centre where the surface lies elsewhere; the inside is
+    enclosed by the Gaussians and dropped (kept with ``count_inside``)."""
+    g = torch.Generator().manual_seed(2)
+    d = torch.randn(4000, 3, generator=g, dtype=F64)
+    d = d / d.norm(dim=1, keepdim=True)
+    axes = torch.tensor([0.8, 0.25, 0.25], dtype=F64)
+    gmap = GaussianMap.from_points(d * axes, torch.rand(4000, 3, generator=g, dtype=F64),
+                                   scale=0.04, opacity=0.9)
+    acq = torch.stack([_pose([0.0, 0.0, -2.0])])
+    centre, _ = scene_center_radius(gmap.means)
+    dropped = unexplored_space(gmap, acq, _seer(gmap), cells=12)
+    kept = unexplored_space(gmap, acq, _seer(gmap), cells=12, count_inside=True)
+
+    def deep(space) -> Tensor:  # noqa: ANN001
+        return (((space.means - centre) / axes).norm(dim=1) < 0.6)
+
+    assert bool(deep(kept).any())  # the inside is unexplored at a distance with matter...
+    assert not bool(deep(dropped).any())  # ...but enclosed by the map
+    assert 0 < dropped.means.shape[0] < kept.means.shape[0]
 
 
 def test_the_unexplored_term_draws_the_anchor_to_the_unseen_side() -> None:

@@ -351,7 +351,8 @@ def optimize_anchor_validated(
     if fitted and config.unexplored:
         assert acquired is not None
         space = unexplored_space(gmap, acquired, proxy, cells=config.unexplored_cells,
-                                 shells=config.unexplored_shells, generator=generator)
+                                 shells=config.unexplored_shells,
+                                 count_inside=config.unexplored_inside, generator=generator)
         if space.means.shape[0]:
             rates = prior_rate.to(dt).expand(space.means.shape[0], *prior_rate.shape)
             proxy = proxy.extended(space.means, space.cov, per_gaussian * space.weight, rates)

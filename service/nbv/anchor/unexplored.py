@@ -38,7 +38,7 @@ from ..candidates import scene_center_radius
 from ..gaussians import GaussianMap
 from .proxy import ProxyPsi
 
-__all__ = ["UnexploredSpace", "radial_shells", "shell_densities", "unexplored_space"]
+__all__ = ["UnexploredSpace", "enclosed", "radial_shells", "shell_densities", "unexplored_space"]
 
 
 @dataclass
@@ -75,6 +75,7 @@ def unexplored_space(
     max_points: int = 1024,
     chunk: int = 16,
     shells: int = 8,
+    count_inside: bool = False,
     generator: torch.Generator | None = None,
 ) -> UnexploredSpace:
     """The unexplored part of ``gmap``'s extent seen from the acquired poses [A, 4, 4].
@@ -91,6 +92,8 @@ def unexplored_space(
             weight, seeded, and reweighted: the sum's expectation is unchanged).
         chunk: acquired poses evaluated at once.
         shells: radial shells of the expected density (1: one density for the whole grid).
+        count_inside: also count the points the map encloses (:func:`enclosed`: the inside of its
+            surfaces, which no view will see).
         generator: seeds the subsample.
     """
     dt = gmap.dtype
@@ -124,7 +127,10 @@ def unexplored_space(
     density = float(per_cell[seen_cells].sum()) / n_seen if n_seen else 0.0
     shell = radial_shells(points, centre.to(dt), half, shells)
     shell_density = shell_densities(shell, seen_cells, per_cell, shells)
-    keep = torch.nonzero(unexplored > threshold).squeeze(1)
+    candidates = unexplored > threshold
+    if not count_inside:
+        candidates &= ~enclosed(per_cell.reshape(cells, cells, cells) > 0).reshape(-1)
+    keep = torch.nonzero(candidates).squeeze(1)
     weight = shell_density[shell[keep]] * unexplored[keep]
     if keep.numel() > max_points and float(weight.sum()) > 0:
         total = float(weight.sum())
@@ -140,6 +146,19 @@ def unexplored_space(
     return UnexploredSpace(means=points[keep], cov=cov.clone(), weight=weight,
                            unexplored_fraction=float(unexplored.gt(threshold).to(dt).mean()),
                            density=density, shell_density=shell_density)
+
+
+def enclosed(occupied: Tensor) -> Tensor:
+    """The empty cells of a 3D occupancy grid [X, Y, Z] (bool) that occupied cells bound on
+    all six axis directions -> [X, Y, Z] (bool): the inside of a closed surface. A map seen
+    from one side only is open towards the other, so nothing behind it is enclosed."""
+    o = occupied.to(torch.int32)
+    bounded = ~occupied
+    for dim in range(3):
+        before = o.cumsum(dim) - o  # occupied cells strictly before, along this axis
+        after = o.flip(dim).cumsum(dim).flip(dim) - o
+        bounded &= (before > 0) & (after > 0)
+    return bounded
 
 
 def radial_shells(points: Tensor, centre: Tensor, half: float, shells: int) -> Tensor:
