@@ -19,6 +19,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -30,6 +31,7 @@ from ..cancel import checkpoint
 from ..candidates import pool_radius, scene_center_radius
 from ..gaussians import GaussianMap
 from ..information import fisher_diag, trace_surrogate
+from ..kernels import backend
 from ..se3 import pose_distance, project_to_se3, se3_exp
 from .envelope import PoolEnvelope
 from .fitting import (
@@ -106,6 +108,7 @@ def ascend(
     radius: float,
     batched: bool = True,
     split: dict[str, float] | None = None,
+    compiled: bool = True,
 ) -> tuple[Tensor, Tensor, list[list[float]], int]:
     """Riemannian gradient ascent of psi from every start pose [S, 4, 4].
 
@@ -114,7 +117,14 @@ def ascend(
     (one entry per accepted step, never decreasing) and the number of psi evaluations.
     ``split``, when given, receives the poses evaluated with their gradient
     (``gradient_evaluations``) and without (``value_evaluations``), and the seconds of each
-    (``gradient_s``, ``value_s``).
+    (``gradient_s``, ``value_s``; the compiled line searches count as values).
+
+    Each step's gradients are one batch of the active starts; with ``compiled`` and a
+    :class:`ProxyPsi` whose kernel serves (:meth:`ProxyPsi.uses_kernel`), each start's line
+    search (the trials, the envelope's projection, the acceptance and the new step length)
+    is one call of the compiled :func:`agilegs.service.nbv.kernels.ascent.line_search`,
+    with a cancellation check before each; else the trials of the pending starts are
+    batches through ``psi_fn`` (the reference, which the compiled search equals).
     """
     dt = starts.dtype
     tally = split if split is not None else {}
@@ -158,13 +168,15 @@ def ascend(
     traces = [[float(v)] for v in cur]
     eta = torch.full((poses.shape[0],), config.step_size, dtype=dt, device=poses.device)
     active = torch.ones(poses.shape[0], dtype=torch.bool, device=poses.device)
-    for _ in range(config.iterations):
-        checkpoint()
-        if not bool(active.any()):
-            break
-        ids = torch.nonzero(active).squeeze(1)
-        _, grad = twist_grad(poses[ids])
-        evals += len(ids)
+    searcher = (_LineSearch(psi_fn, config, envelope, radius, dt)
+                if compiled and batched and isinstance(psi_fn, ProxyPsi)
+                and _LineSearch.serves(psi_fn, poses) else None)
+
+    def line_searches(ids: Tensor, grad: Tensor) -> int:
+        """The reference line searches of starts ``ids`` [K] along their twist gradients
+        [K, 6]: each trial a batch of the pending starts through ``psi_fn``; returns the
+        psi evaluations."""
+        n_evals = 0
         gnorm = grad.norm(dim=1)
         step_ok = torch.isfinite(gnorm) & (gnorm > 0)
         accepted = torch.zeros(len(ids), dtype=torch.bool, device=poses.device)
@@ -175,33 +187,164 @@ def ascend(
             if not bool(pending.any()):
                 break
             pid = torch.nonzero(pending).squeeze(1)
-            xi = _metric_step(grad[pid], radius, loc_eta[pid])
-            with torch.no_grad():
-                trial = poses[ids[pid]] @ se3_exp(xi)
-                if envelope is not None:
-                    trial = envelope.project(trial)
+            trial = retract(ids[pid], grad[pid], loc_eta[pid])
             val = values(trial)
-            evals += len(pid)
+            n_evals += len(pid)
             ok = torch.isfinite(val) & (val >= cur[ids[pid]])
             for j, k in enumerate(pid.tolist()):
                 if bool(ok[j]):
-                    s = int(ids[k])
-                    gain = float(val[j] - cur[s])
-                    poses[s] = trial[j]
-                    old = float(cur[s])
-                    cur[s] = val[j]
-                    traces[s].append(float(val[j]))
+                    accept(int(ids[k]), trial[j], val[j], float(loc_eta[k]))
                     accepted[k] = True
                     pending[k] = False
-                    eta[s] = min(float(loc_eta[k]) * 1.5, 4 * config.step_size)
-                    if gain <= config.min_rel_gain * abs(old):
-                        active[s] = False
                 else:
                     loc_eta[k] = loc_eta[k] * 0.5
         for k in range(len(ids)):
             if not bool(accepted[k]):
                 active[int(ids[k])] = False
+        return n_evals
+
+    def retract(sid: Tensor, grad: Tensor, step: Tensor) -> Tensor:
+        """The trial poses [K, 4, 4] of starts ``sid`` [K]: a step of length ``step`` [K]
+        along the twist gradients [K, 6], projected into the envelope."""
+        xi = _metric_step(grad, radius, step)
+        with torch.no_grad():
+            trial = poses[sid] @ se3_exp(xi)
+            if envelope is not None:
+                trial = envelope.project(trial)
+        return trial
+
+    def accept(s: int, trial: Tensor, val: Tensor, step: float) -> None:
+        gain = float(val - cur[s])
+        poses[s] = trial
+        old = float(cur[s])
+        cur[s] = val
+        traces[s].append(float(val))
+        eta[s] = min(step * 1.5, 4 * config.step_size)
+        if gain <= config.min_rel_gain * abs(old):
+            active[s] = False
+
+    def compiled_line_searches(ids: Tensor, grad: Tensor) -> int:
+        """The line searches of starts ``ids`` through the compiled kernel, which finds each
+        start's accepted trial; the accepted trials then computed by the reference's own
+        operations (so that the poses and psi kept are the reference's); a start whose
+        trial the reference's check rejects (psi within rounding of the current psi) has
+        its line search redone by the reference."""
+        assert searcher is not None
+        t0 = time.perf_counter()
+        found, counts = searcher.search(ids, grad, poses, cur, eta)
+        tally["value_s"] += time.perf_counter() - t0
+        tally["value_evaluations"] += sum(counts)
+        n_evals = sum(counts)
+        acc = [k for k, n in enumerate(found) if n > 0]
+        redo: list[int] = []
+        if acc:
+            kk = torch.tensor(acc, dtype=torch.long, device=poses.device)
+            halved = torch.tensor([0.5 ** (found[k] - 1) for k in acc], dtype=dt,
+                                  device=poses.device)
+            loc_eta = eta[ids[kk]] * halved  # the reference's step after found - 1 halvings
+            trial = retract(ids[kk], grad[kk], loc_eta)
+            t0 = time.perf_counter()
+            with torch.no_grad():
+                val = evaluate(trial).detach()
+            tally["value_s"] += time.perf_counter() - t0
+            ok = (torch.isfinite(val) & (val >= cur[ids[kk]])).tolist()
+            for j, k in enumerate(acc):
+                if ok[j]:
+                    accept(int(ids[k]), trial[j], val[j], float(loc_eta[j]))
+                else:
+                    redo.append(k)
+        for k, n in enumerate(found):
+            if n == 0:
+                active[int(ids[k])] = False
+        if redo:
+            rr = torch.tensor(redo, dtype=torch.long, device=poses.device)
+            n_redo = sum(counts[k] for k in redo)
+            tally["value_evaluations"] -= n_redo
+            n_evals += line_searches(ids[rr], grad[rr]) - n_redo
+        return n_evals
+
+    for _ in range(config.iterations):
+        checkpoint()
+        if not bool(active.any()):
+            break
+        ids = torch.nonzero(active).squeeze(1)
+        _, grad = twist_grad(poses[ids])
+        evals += len(ids)
+        if searcher is not None:
+            evals += compiled_line_searches(ids, grad)
+        else:
+            evals += line_searches(ids, grad)
     return poses, cur, traces, evals
+
+
+class _LineSearch:
+    """The line searches of :func:`ascend` through the compiled kernel, one start at a time
+    (:func:`agilegs.service.nbv.kernels.ascent.line_search`)."""
+
+    def __init__(self, proxy: ProxyPsi, config: AnchorConfig, envelope: PoolEnvelope | None,
+                 radius: float, dt: torch.dtype) -> None:
+        self.proxy = proxy
+        self.config = config
+        self.radius = radius
+        self.dt = dt
+        self.single = dt == torch.float32
+
+        def r(x: float) -> float:  # a bound the torch path applies in the poses' dtype
+            return float(torch.tensor(x, dtype=dt)) if self.single else x
+
+        if envelope is None:
+            self.env = np.zeros(15)
+        else:
+            vec = torch.cat([envelope.centre.to(dt), envelope.up.to(dt), envelope.aim.to(dt)])
+            self.env = np.concatenate([
+                vec.detach().cpu().to(torch.float64).numpy(),
+                [r(envelope.r_min), r(envelope.r_max), r(envelope.elev_min),
+                 r(envelope.elev_max), r(envelope.max_off_aim), 1.0]])
+        self.fn = backend.kernel_module().line_search
+
+    @staticmethod
+    def serves(psi_fn: Callable[[Tensor], Tensor], poses: Tensor) -> bool:
+        """Whether ``psi_fn`` is a proxy whose kernel serves ``poses`` (float32 or float64
+        on the CPU)."""
+        return (isinstance(psi_fn, ProxyPsi) and poses.dtype in (torch.float32, torch.float64)
+                and poses.device.type == "cpu" and psi_fn.uses_kernel(poses))
+
+    def search(self, ids: Tensor, grad: Tensor, poses: Tensor, cur: Tensor, eta: Tensor
+               ) -> tuple[list[int], list[int]]:
+        """The line search of each start ``ids`` [K] along its twist gradient ``grad``
+        [K, 6] from ``poses[ids]`` with psi ``cur[ids]`` and step length ``eta[ids]``:
+        the number of the accepted trial (1 for the first; 0 when none was) and the trials
+        evaluated, per start."""
+        cfg = self.config
+        gnorm = grad.norm(dim=1)
+        step_ok = (torch.isfinite(gnorm) & (gnorm > 0)).tolist()
+        # the metric step's direction and length (:func:`_metric_step` with eta = 1)
+        g = grad.clone()
+        g[:, :3] = g[:, :3] * self.radius**2
+        norm = torch.sqrt((g[:, :3] ** 2).sum(1) / self.radius**2 + (g[:, 3:] ** 2).sum(1))
+        g64 = g.detach().cpu().to(torch.float64).numpy()
+        n64 = norm.detach().cpu().to(torch.float64).tolist()
+        p64 = poses.detach().cpu().to(torch.float64).numpy()
+        kin = self.proxy._kernel_inputs()
+        out = np.empty((4, 4))
+        found: list[int] = []
+        counts: list[int] = []
+        for k, s in enumerate(ids.tolist()):
+            checkpoint()
+            if not step_ok[k]:
+                found.append(0)
+                counts.append(0)
+                continue
+            prm = np.array([float(cur[s]), float(eta[s]), 4 * cfg.step_size, cfg.min_rel_gain,
+                            float(cfg.backtracks)])
+            status, _, _, n = self.fn(
+                np.ascontiguousarray(p64[s]), np.ascontiguousarray(g64[k]), n64[k], prm,
+                self.env, self.single, kin["intr"], kin["means"], kin["sigma6"],
+                kin["weight"], kin["rate"], kin["kinds"], kin["axes"], kin["mode"],
+                kin["occ"], kin["mass"], kin["vis_prm"], kin["cells"], kin["bins"], out)
+            found.append(int(n) if status else 0)
+            counts.append(int(n))
+        return found, counts
 
 
 def optimize_anchor(
