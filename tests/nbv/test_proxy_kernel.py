@@ -11,7 +11,7 @@ import torch
 
 from agilegs.config.selection import FIELD_NAMES, AnchorConfig
 from agilegs.service.nbv import cancel
-from agilegs.service.nbv.anchor.ascent import _LineSearch, ascend, optimize_anchor
+from agilegs.service.nbv.anchor.ascent import _exp_at_zero, _LineSearch, ascend, optimize_anchor
 from agilegs.service.nbv.anchor.envelope import PoolEnvelope
 from agilegs.service.nbv.anchor.fitting import directional_rates, lower_median
 from agilegs.service.nbv.anchor.proxy import ProxyPsi, direction_factors
@@ -333,3 +333,23 @@ def test_the_compiled_line_search_serves_only_the_proxy_kernel() -> None:
         assert not _LineSearch.serves(proxy, pool)
     finally:
         backend.set_default_backend(None)
+
+
+@pytest.mark.parametrize("dtype", [F64, torch.float32])
+def test_the_twist_gradient_at_zero_equals_the_exponentials(dtype: torch.dtype) -> None:
+    # the ascent differentiates psi(project(T exp(xi))) at xi = 0 through I + hat(xi): the
+    # same value and gradient, bit for bit, as through se3_exp
+    gmap, acquired, pool, h = _scene(dtype)
+    env = _envelope(pool, gmap)
+    xi0 = 0.3 * torch.randn(pool.shape[0], 6, generator=torch.Generator().manual_seed(1),
+                            dtype=F64)
+    poses = env.project(pool @ se3_exp(xi0.to(dtype)))
+    for name, proxy in _proxies(gmap, acquired, h):
+        out = []
+        for exp in (se3_exp, _exp_at_zero):
+            xi = torch.zeros(poses.shape[0], 6, dtype=dtype, requires_grad=True)
+            val = proxy(env.project(poses @ exp(xi)))
+            (g,) = torch.autograd.grad(val.sum(), xi)
+            out.append((val.detach(), g))
+        assert float(out[0][1].abs().max()) > 0, name
+        assert torch.equal(out[0][0], out[1][0]) and torch.equal(out[0][1], out[1][1]), name

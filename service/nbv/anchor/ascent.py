@@ -32,7 +32,7 @@ from ..candidates import pool_radius, scene_center_radius
 from ..gaussians import GaussianMap
 from ..information import fisher_diag, trace_surrogate
 from ..kernels import backend
-from ..se3 import pose_distance, project_to_se3, se3_exp
+from ..se3 import hat, pose_distance, project_to_se3, se3_exp
 from .envelope import PoolEnvelope
 from .fitting import (
     directional_rates,
@@ -99,6 +99,13 @@ def _metric_step(grad: Tensor, radius: float, eta: Tensor) -> Tensor:
     return g * (eta / norm.clamp_min(1e-30)).unsqueeze(1)
 
 
+def _exp_at_zero(xi: Tensor) -> Tensor:
+    """``se3_exp(xi)`` [B, 4, 4] for twists ``xi`` [B, 6] that are zero, with its gradient
+    there: ``I + hat(xi)`` (the exponential's first order), the same numbers in either
+    pass with fewer operations."""
+    return torch.eye(4, dtype=xi.dtype, device=xi.device) + hat(xi)
+
+
 def ascend(
     psi_fn: Callable[[Tensor], Tensor],
     starts: Tensor,
@@ -151,7 +158,7 @@ def ascend(
     def twist_grad(poses: Tensor) -> tuple[Tensor, Tensor]:
         t0 = time.perf_counter()
         xi = torch.zeros(poses.shape[0], 6, dtype=dt, device=poses.device, requires_grad=True)
-        moved = poses @ se3_exp(xi)
+        moved = poses @ _exp_at_zero(xi)
         if envelope is not None:
             moved = envelope.project(moved)
         val = evaluate(moved)

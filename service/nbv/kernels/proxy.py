@@ -17,6 +17,11 @@ direction factor of each slot, 0-6); ``axes`` [S, 9] (mode 2: the local axes as 
 a row-major 3 × 3); visibility: ``occ`` [M, 3], ``mass`` [M], ``vis_prm`` [5] (centre x, y,
 z, half depth, 1 when there is a grid else 0) and the grid's ``cells`` and ``bins``.
 Modes: 0 linear (Σ w T), 1 log (Σ w log(1 + r T)), 2 directional (Σ w Σ_q log(1 + r_q f_q T)).
+
+ψ alone (no gradient, no per-sample terms) takes two shortcuts that move it by rounding only:
+the image bounds' sigmoids of an axis from one exponential, and the directional form's
+product over the slots as two interleaved products. The gradient's pass and the per-sample
+terms (which the directional fit reads) follow the reference's operations as they are.
 """
 
 from __future__ import annotations
@@ -38,6 +43,17 @@ def _sig(x: float) -> float:
         return 1.0 / (1.0 + math.exp(-x))
     e = math.exp(x)
     return e / (1.0 + e)
+
+
+@_jit
+def _sig_pair(a: float, b: float, c: float) -> float:
+    """sigmoid(a) * sigmoid(b) where a + b = L and ``c`` = exp(-L) (the two bounds of an
+    image axis), from one exponential: with e = exp(-a), e / ((1 + e)(e + c)); the two
+    sigmoids apart where e would leave the range of the formula."""
+    if a > 600.0 or a < -600.0:
+        return _sig(a) * _sig(b)
+    e = math.exp(-a)
+    return e / ((1.0 + e) * (e + c))
 
 
 @_jit
@@ -145,6 +161,10 @@ def proxy_psi(cams: np.ndarray, intr: np.ndarray, means: np.ndarray, sigma6: np.
     nq = rate.shape[1]
     f7 = np.empty(7)
     gf7 = np.empty(7)
+    # (the pairs need exp(-width / edge) well inside the range of floats)
+    reduce_only = not want_grad and not per_sample and wd / edge < 600.0 and ht / edge < 600.0
+    c_wd = math.exp(-wd / edge) if reduce_only else 0.0
+    c_ht = math.exp(-ht / edge) if reduce_only else 0.0
     dd = np.empty(3)
     for b in range(b0, b1):
         cam = cams[b]
@@ -211,11 +231,17 @@ def proxy_psi(cams: np.ndarray, intr: np.ndarray, means: np.ndarray, sigma6: np.
             u = fx * x / zs + cx
             v = fy * y / zs + cy
             s0 = _sig((z - near) / (0.25 * near))
-            s1 = _sig(u / edge)
-            s2 = _sig((wd - u) / edge)
-            s3 = _sig(v / edge)
-            s4 = _sig((ht - v) / edge)
-            inside = s0 * s1 * s2 * s3 * s4
+            if reduce_only:
+                # psi alone: each pair of opposite bounds' sigmoids from one exponential
+                s1 = s2 = s3 = s4 = 0.0
+                inside = (s0 * _sig_pair(u / edge, (wd - u) / edge, c_wd)
+                          * _sig_pair(v / edge, (ht - v) / edge, c_ht))
+            else:
+                s1 = _sig(u / edge)
+                s2 = _sig((wd - u) / edge)
+                s3 = _sig(v / edge)
+                s4 = _sig((ht - v) / edge)
+                inside = s0 * s1 * s2 * s3 * s4
             # the transmittance from the deep opacity map
             vis = 1.0
             tu = 0.0
@@ -305,6 +331,20 @@ def proxy_psi(cams: np.ndarray, intr: np.ndarray, means: np.ndarray, sigma6: np.
                 # sum_q log(1 + x_q) as one log1p of prod_q (1 + x_q) - 1, accumulated as
                 # p + x + p x (no cancellation for small x)
                 acc = 0.0
+                if not want_grad:
+                    # two running products (even and odd slots), then combined: half the
+                    # chain of dependent operations
+                    acc2 = 0.0
+                    for q in range(0, nq - 1, 2):
+                        xq = term * f7[kinds[q]] * rate[s, q]
+                        xq2 = term * f7[kinds[q + 1]] * rate[s, q + 1]
+                        acc = acc + xq + acc * xq
+                        acc2 = acc2 + xq2 + acc2 * xq2
+                    if nq % 2 == 1:
+                        xq = term * f7[kinds[nq - 1]] * rate[s, nq - 1]
+                        acc = acc + xq + acc * xq
+                    total += w * math.log1p(acc + acc2 + acc * acc2)
+                    continue
                 for k in range(7):
                     gf7[k] = 0.0
                 for q in range(nq):
