@@ -571,14 +571,17 @@ def distinct_best(poses: Tensor, scores: Tensor, k: int, separation: float,
     first)."""
     order = torch.sort(scores.detach(), descending=True, stable=True).indices
     chosen: list[int] = []
+    nearest: list[float] = []  # every pose's distance to the nearest chosen one
+    n = poses.shape[0]
     for i in order.tolist():
         if len(chosen) >= k:
             break
-        if chosen:
-            d = pose_distance(poses[chosen], poses[i].expand(len(chosen), 4, 4), radius)
-            if float(d.min()) < separation:
-                continue
+        if chosen and nearest[i] < separation:
+            continue
         chosen.append(i)
+        if len(chosen) < k:
+            d = pose_distance(poses[i].expand(n, 4, 4), poses, radius).tolist()
+            nearest = d if not nearest else [min(a, b) for a, b in zip(nearest, d)]
     return torch.tensor(chosen, dtype=torch.long, device=poses.device)
 
 

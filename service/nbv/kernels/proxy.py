@@ -18,10 +18,11 @@ a row-major 3 × 3); visibility: ``occ`` [M, 3], ``mass`` [M], ``vis_prm`` [5] (
 z, half depth, 1 when there is a grid else 0) and the grid's ``cells`` and ``bins``.
 Modes: 0 linear (Σ w T), 1 log (Σ w log(1 + r T)), 2 directional (Σ w Σ_q log(1 + r_q f_q T)).
 
-ψ alone (no gradient, no per-sample terms) takes two shortcuts that move it by rounding only:
+ψ alone (no gradient, no per-sample terms) takes shortcuts that move it by rounding only:
 the image bounds' sigmoids of an axis from one exponential, and the directional form's
-product over the slots as two interleaved products. The gradient's pass and the per-sample
-terms (which the directional fit reads) follow the reference's operations as they are.
+product over the slots as two interleaved products, its log1p from one logarithm. The
+gradient's pass and the per-sample terms (which the directional fit reads) follow the
+reference's operations as they are.
 """
 
 from __future__ import annotations
@@ -43,6 +44,16 @@ def _sig(x: float) -> float:
         return 1.0 / (1.0 + math.exp(-x))
     e = math.exp(x)
     return e / (1.0 + e)
+
+
+@_jit
+def _log1p(x: float) -> float:
+    """log(1 + x) from one logarithm, within a few ulps of ``math.log1p``: the rounding of
+    u = 1 + x corrected by x / (u - 1) (exact where u is 1)."""
+    u = 1.0 + x
+    if u == 1.0:
+        return x
+    return math.log(u) * (x / (u - 1.0))
 
 
 @_jit
@@ -343,7 +354,7 @@ def proxy_psi(cams: np.ndarray, intr: np.ndarray, means: np.ndarray, sigma6: np.
                     if nq % 2 == 1:
                         xq = term * f7[kinds[nq - 1]] * rate[s, nq - 1]
                         acc = acc + xq + acc * xq
-                    total += w * math.log1p(acc + acc2 + acc * acc2)
+                    total += w * _log1p(acc + acc2 + acc * acc2)
                     continue
                 for k in range(7):
                     gf7[k] = 0.0
