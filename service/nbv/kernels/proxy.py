@@ -87,6 +87,7 @@ def _deposit(cam: np.ndarray, intr: np.ndarray, occ: np.ndarray, mass: np.ndarra
     ez_t = r02 * t0 + r12 * t1 + r22 * t2
     cell_px = (wd / g) * (ht / g)
     grid[:] = 0.0
+    filled = np.zeros(nb, dtype=np.bool_)  # the slices that hold a deposit
     for j in range(occ.shape[0]):
         px, py, pz = occ[j, 0], occ[j, 1], occ[j, 2]
         ox = (r00 * px + r10 * py + r20 * pz) - ex_t
@@ -101,8 +102,12 @@ def _deposit(cam: np.ndarray, intr: np.ndarray, occ: np.ndarray, mass: np.ndarra
         slab = math.floor((oz - z0) / dz)
         slab = min(max(slab, 0.0), nb - 1.0)
         grid[int(slab), int(cv), int(cu)] += mass[j] / (oz * oz) / cell_px
-    # the [1, 2, 1] / 4 blur along the rows, then along the columns (zero outside)
+        filled[int(slab)] = True
+    # the [1, 2, 1] / 4 blur along the rows, then along the columns (zero outside; an empty
+    # slice stays zero)
     for k in range(nb):
+        if not filled[k]:
+            continue
         for i in range(g):
             for c in range(g):
                 s = 0.5 * grid[k, i, c]
@@ -123,9 +128,12 @@ def _deposit(cam: np.ndarray, intr: np.ndarray, occ: np.ndarray, mass: np.ndarra
         for c in range(g):
             cum[0, i, c] = 0.0
     for k in range(nb):
-        for i in range(g):
-            for c in range(g):
-                cum[k + 1, i, c] = cum[k, i, c] + grid[k, i, c]
+        if filled[k]:
+            for i in range(g):
+                for c in range(g):
+                    cum[k + 1, i, c] = cum[k, i, c] + grid[k, i, c]
+        else:
+            cum[k + 1, :, :] = cum[k, :, :]
     return z0
 
 
