@@ -353,3 +353,28 @@ def test_the_twist_gradient_at_zero_equals_the_exponentials(dtype: torch.dtype) 
             out.append((val.detach(), g))
         assert float(out[0][1].abs().max()) > 0, name
         assert torch.equal(out[0][0], out[1][0]) and torch.equal(out[0][1], out[1][1]), name
+
+
+def test_values_in_parts_are_the_values_with_a_check_before_each_part() -> None:
+    gmap, acquired, pool, h = _scene()
+    calls: list[int] = []
+
+    def between() -> None:
+        calls.append(1)
+
+    parts = -(-pool.shape[0] // 8)
+    for name, proxy in _proxies(gmap, acquired, h):
+        calls.clear()
+        with torch.no_grad():
+            whole = proxy(pool)
+            got = proxy.values_in_parts(pool, 8, between)
+        assert torch.equal(got, whole), name
+        assert len(calls) == parts, name
+        try:
+            backend.set_default_backend("torch")
+            calls.clear()
+            ref = proxy.values_in_parts(pool, 8, between)
+        finally:
+            backend.set_default_backend(None)
+        assert len(calls) == parts, name
+        torch.testing.assert_close(ref, whole, rtol=1e-10, atol=1e-12 * float(whole.abs().max()))

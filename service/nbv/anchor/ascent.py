@@ -512,11 +512,8 @@ def optimize_anchor_validated(
     with torch.no_grad():
         pool = candidates.detach().to(dt)
         placed = envelope.project(pool) if envelope is not None else pool
-        parts = []
-        for i in range(0, placed.shape[0], POOL_CHUNK):  # a cancellation check per chunk
-            checkpoint()
-            parts.append(proxy(placed[i : i + POOL_CHUNK]))
-        pool_psi = torch.cat(parts)
+        # a cancellation check per chunk
+        pool_psi = proxy.values_in_parts(placed, POOL_CHUNK, checkpoint)
     k = min(config.num_starts, pool.shape[0])
     separation = config.mode_separation * radius
     if config.anchors > 1:
