@@ -11,9 +11,10 @@ import torch
 
 from agilegs.config.selection import FIELD_NAMES, AnchorConfig
 from agilegs.service.nbv import cancel
-from agilegs.service.nbv.anchor.ascent import _exp_at_zero, _LineSearch, ascend, optimize_anchor
+from agilegs.service.nbv.anchor.ascent import _exp_at_zero, ascend, optimize_anchor
 from agilegs.service.nbv.anchor.envelope import PoolEnvelope
 from agilegs.service.nbv.anchor.fitting import directional_rates, lower_median
+from agilegs.service.nbv.anchor.line_search import CompiledLineSearch
 from agilegs.service.nbv.anchor.proxy import ProxyPsi, direction_factors
 from agilegs.service.nbv.anchor.visibility import OpacityMaps
 from agilegs.service.nbv.camera import Camera, Intrinsics
@@ -250,7 +251,7 @@ def test_the_line_search_kernels_pose_maths_equals_torch() -> None:
                            * torch.tensor([1.5, 1.5, 1.5, 0.8, 0.8, 0.8], dtype=F64))
     ref = env.project(moved)
     assert not bool(env.contains(moved).all())
-    prm = _LineSearch(dict(_proxies(gmap, _scene()[1], _scene()[3]))["linear/none"],
+    prm = CompiledLineSearch(dict(_proxies(gmap, _scene()[1], _scene()[3]))["linear/none"],
                       AnchorConfig(), env, env.radius, F64).env
     for m, r in zip(moved, ref):
         kern.envelope_project_into(m.numpy().copy(), prm, got)
@@ -307,13 +308,13 @@ def test_a_trial_the_reference_rejects_is_searched_again_by_the_reference(
         monkeypatch: pytest.MonkeyPatch) -> None:
     # a compiled search that claims the first trial of every start: where the reference's
     # check rejects it, that start's line search is the reference's
-    search = _LineSearch.search
+    search = CompiledLineSearch.search
 
-    def first(self: _LineSearch, *args: object) -> tuple[list[int], list[int]]:
+    def first(self: CompiledLineSearch, *args: object) -> tuple[list[int], list[int]]:
         found, counts = search(self, *args)  # type: ignore[arg-type]
         return [1] * len(found), counts
 
-    monkeypatch.setattr(_LineSearch, "search", first)
+    monkeypatch.setattr(CompiledLineSearch, "search", first)
     redone = 0
     for name, (p_k, v_k, t_k, e_k), _, (p_r, v_r, t_r, e_r), s_r in _ascents(F64, True, 8):
         assert t_k == t_r and torch.equal(p_k, p_r) and torch.equal(v_k, v_r), name
@@ -325,12 +326,12 @@ def test_a_trial_the_reference_rejects_is_searched_again_by_the_reference(
 def test_the_compiled_line_search_serves_only_the_proxy_kernel() -> None:
     gmap, acquired, pool, h = _scene()
     proxy = dict(_proxies(gmap, acquired, h))["directional/transmittance"]
-    assert _LineSearch.serves(proxy, pool)
-    assert not _LineSearch.serves(lambda c2w: c2w[:, 0, 3], pool)
-    assert not _LineSearch.serves(proxy, pool.to(torch.float16))
+    assert CompiledLineSearch.serves(proxy, pool)
+    assert not CompiledLineSearch.serves(lambda c2w: c2w[:, 0, 3], pool)
+    assert not CompiledLineSearch.serves(proxy, pool.to(torch.float16))
     try:
         backend.set_default_backend("torch")
-        assert not _LineSearch.serves(proxy, pool)
+        assert not CompiledLineSearch.serves(proxy, pool)
     finally:
         backend.set_default_backend(None)
 

@@ -19,7 +19,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -31,7 +30,6 @@ from ..cancel import checkpoint
 from ..candidates import pool_radius, scene_center_radius
 from ..gaussians import GaussianMap
 from ..information import fisher_diag, trace_surrogate
-from ..kernels import backend
 from ..se3 import hat, pose_distance, project_to_se3, se3_exp
 from .envelope import PoolEnvelope
 from .fitting import (
@@ -40,6 +38,7 @@ from .fitting import (
     observation_rates,
     typical_fisher_from_h_acc,
 )
+from .line_search import CompiledLineSearch
 from .proxy import ProxyPsi, pick_occluders
 from .unexplored import unexplored_space
 from .visibility import OpacityMaps
@@ -175,9 +174,9 @@ def ascend(
     traces = [[float(v)] for v in cur]
     eta = torch.full((poses.shape[0],), config.step_size, dtype=dt, device=poses.device)
     active = torch.ones(poses.shape[0], dtype=torch.bool, device=poses.device)
-    searcher = (_LineSearch(psi_fn, config, envelope, radius, dt)
+    searcher = (CompiledLineSearch(psi_fn, config, envelope, radius, dt)
                 if compiled and batched and isinstance(psi_fn, ProxyPsi)
-                and _LineSearch.serves(psi_fn, poses) else None)
+                and CompiledLineSearch.serves(psi_fn, poses) else None)
 
     def line_searches(ids: Tensor, grad: Tensor) -> int:
         """The reference line searches of starts ``ids`` [K] along their twist gradients
@@ -282,76 +281,6 @@ def ascend(
         else:
             evals += line_searches(ids, grad)
     return poses, cur, traces, evals
-
-
-class _LineSearch:
-    """The line searches of :func:`ascend` through the compiled kernel, one start at a time
-    (:func:`agilegs.service.nbv.kernels.ascent.line_search`)."""
-
-    def __init__(self, proxy: ProxyPsi, config: AnchorConfig, envelope: PoolEnvelope | None,
-                 radius: float, dt: torch.dtype) -> None:
-        self.proxy = proxy
-        self.config = config
-        self.radius = radius
-        self.dt = dt
-        self.single = dt == torch.float32
-
-        def r(x: float) -> float:  # a bound the torch path applies in the poses' dtype
-            return float(torch.tensor(x, dtype=dt)) if self.single else x
-
-        if envelope is None:
-            self.env = np.zeros(15)
-        else:
-            vec = torch.cat([envelope.centre.to(dt), envelope.up.to(dt), envelope.aim.to(dt)])
-            self.env = np.concatenate([
-                vec.detach().cpu().to(torch.float64).numpy(),
-                [r(envelope.r_min), r(envelope.r_max), r(envelope.elev_min),
-                 r(envelope.elev_max), r(envelope.max_off_aim), 1.0]])
-        self.fn = backend.kernel_module().line_search
-
-    @staticmethod
-    def serves(psi_fn: Callable[[Tensor], Tensor], poses: Tensor) -> bool:
-        """Whether ``psi_fn`` is a proxy whose kernel serves ``poses`` (float32 or float64
-        on the CPU)."""
-        return (isinstance(psi_fn, ProxyPsi) and poses.dtype in (torch.float32, torch.float64)
-                and poses.device.type == "cpu" and psi_fn.uses_kernel(poses))
-
-    def search(self, ids: Tensor, grad: Tensor, poses: Tensor, cur: Tensor, eta: Tensor
-               ) -> tuple[list[int], list[int]]:
-        """The line search of each start ``ids`` [K] along its twist gradient ``grad``
-        [K, 6] from ``poses[ids]`` with psi ``cur[ids]`` and step length ``eta[ids]``:
-        the number of the accepted trial (1 for the first; 0 when none was) and the trials
-        evaluated, per start."""
-        cfg = self.config
-        gnorm = grad.norm(dim=1)
-        step_ok = (torch.isfinite(gnorm) & (gnorm > 0)).tolist()
-        # the metric step's direction and length (:func:`_metric_step` with eta = 1)
-        g = grad.clone()
-        g[:, :3] = g[:, :3] * self.radius**2
-        norm = torch.sqrt((g[:, :3] ** 2).sum(1) / self.radius**2 + (g[:, 3:] ** 2).sum(1))
-        g64 = g.detach().cpu().to(torch.float64).numpy()
-        n64 = norm.detach().cpu().to(torch.float64).tolist()
-        p64 = poses.detach().cpu().to(torch.float64).numpy()
-        kin = self.proxy._kernel_inputs()
-        out = np.empty((4, 4))
-        found: list[int] = []
-        counts: list[int] = []
-        for k, s in enumerate(ids.tolist()):
-            checkpoint()
-            if not step_ok[k]:
-                found.append(0)
-                counts.append(0)
-                continue
-            prm = np.array([float(cur[s]), float(eta[s]), 4 * cfg.step_size, cfg.min_rel_gain,
-                            float(cfg.backtracks)])
-            status, _, _, n = self.fn(
-                np.ascontiguousarray(p64[s]), np.ascontiguousarray(g64[k]), n64[k], prm,
-                self.env, self.single, kin["intr"], kin["means"], kin["sigma6"],
-                kin["weight"], kin["rate"], kin["kinds"], kin["axes"], kin["mode"],
-                kin["occ"], kin["mass"], kin["vis_prm"], kin["cells"], kin["bins"], out)
-            found.append(int(n) if status else 0)
-            counts.append(int(n))
-        return found, counts
 
 
 def optimize_anchor(

@@ -366,11 +366,11 @@ class ProxyPsi:
         ax = (np.ascontiguousarray(axes.detach().to(torch.float64).cpu().reshape(-1, 9).numpy())
               if accumulate and axes is not None else kin["axes"])
 
-        def run(b0: int, b1: int) -> None:
+        def run(b0: int, b1: int, offset: int = 0) -> None:
             fn(cams, kin["intr"], kin["means"], kin["sigma6"], kin["weight"], kin["rate"],
-               kin["kinds"], ax, kin["mode"], kin["occ"], kin["mass"],
-               kin["vis_prm"], kin["cells"], kin["bins"], want_grad, per_sample, b0, b1, psi,
-               grad, terms, accumulate, acc)
+               kin["kinds"], ax, kin["mode"], kin["occ"], kin["mass"], kin["vis_prm"],
+               kin["cells"], kin["bins"], want_grad, per_sample, offset + b0, offset + b1,
+               psi, grad, terms, accumulate, acc)
 
         if accumulate:
             run(0, b)  # the poses add to the same rows: one thread
@@ -378,7 +378,7 @@ class ProxyPsi:
             for b0 in range(0, b, part):
                 if between is not None:
                     between()
-                backend.run_in_parts(functools.partial(_shifted, run, b0), min(b, b0 + part) - b0)
+                backend.run_in_parts(functools.partial(run, offset=b0), min(b, b0 + part) - b0)
         else:
             backend.run_in_parts(run, b)
         dt, dev = c2w.dtype, c2w.device
@@ -514,11 +514,6 @@ class ProxyPsi:
         self.sigma6 = torch.stack(
             [c[:, 0, 0], c[:, 1, 1], c[:, 2, 2], 2 * c[:, 0, 1], 2 * c[:, 0, 2], 2 * c[:, 1, 2]]
         )
-
-
-def _shifted(fn: Callable[[int, int], None], offset: int, b0: int, b1: int) -> None:
-    """``fn`` over the range [b0, b1) shifted by ``offset``."""
-    fn(offset + b0, offset + b1)
 
 
 DIRECTION_KINDS = ("isotropic", "world_x", "world_y", "world_z", "local_0", "local_1",
