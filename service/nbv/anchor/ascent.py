@@ -127,10 +127,11 @@ def ascend(
 
     Each step's gradients are one batch of the active starts; with ``compiled`` and a
     :class:`ProxyPsi` whose kernel serves (:meth:`ProxyPsi.uses_kernel`), each start's line
-    search (the trials, the envelope's projection, the acceptance and the new step length)
-    is one call of the compiled :func:`agilegs.service.nbv.kernels.ascent.line_search`,
-    with a cancellation check before each; else the trials of the pending starts are
-    batches through ``psi_fn`` (the reference, which the compiled search equals).
+    search runs on the compiled kernels (:class:`.line_search.CompiledLineSearch`: each
+    trial's step, retraction and projection, then its psi), with a cancellation check
+    before each start, and finds the accepted trial, which the reference's operations then
+    compute; else the trials of the pending starts are batches through ``psi_fn`` (the
+    reference, which the compiled search equals).
     """
     dt = starts.dtype
     tally = split if split is not None else {}

@@ -1,10 +1,11 @@
 """The line searches of the anchor's ascent (:func:`agilegs.service.nbv.anchor.ascent.ascend`)
-through the compiled kernel :func:`agilegs.service.nbv.kernels.ascent.line_search`: per start,
-the number of the trial the reference's backtracking would accept, and the trials it
-evaluated."""
+through compiled kernels: per start, the number of the trial the reference's backtracking would
+accept, and the trials it evaluated; each trial's pose by
+:func:`agilegs.service.nbv.kernels.ascent.trial_pose`, its ψ by the proxy's kernel."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import numpy as np
@@ -22,8 +23,11 @@ __all__ = ["CompiledLineSearch"]
 
 
 class CompiledLineSearch:
-    """The line searches of :func:`ascend` through the compiled kernel, one start at a time
-    (:func:`agilegs.service.nbv.kernels.ascent.line_search`)."""
+    """The line searches of :func:`~agilegs.service.nbv.anchor.ascent.ascend` through the
+    compiled kernels, one start at a time: the trials' poses
+    (:func:`agilegs.service.nbv.kernels.ascent.trial_pose`) and their ψ
+    (:func:`agilegs.service.nbv.kernels.proxy.proxy_psi`), in turn; the numbers the torch
+    path holds in float32 (the trial pose, ψ, the step length) rounded as it does."""
 
     def __init__(self, proxy: ProxyPsi, config: AnchorConfig, envelope: PoolEnvelope | None,
                  radius: float, dt: torch.dtype) -> None:
@@ -44,7 +48,7 @@ class CompiledLineSearch:
                 vec.detach().cpu().to(torch.float64).numpy(),
                 [r(envelope.r_min), r(envelope.r_max), r(envelope.elev_min),
                  r(envelope.elev_max), r(envelope.max_off_aim), 1.0]])
-        self.fn = backend.kernel_module().line_search
+        self.kernels = backend.kernel_module()
 
     @staticmethod
     def serves(psi_fn: Callable[[Tensor], Tensor], poses: Tensor) -> bool:
@@ -70,22 +74,34 @@ class CompiledLineSearch:
         n64 = norm.detach().cpu().to(torch.float64).tolist()
         p64 = poses.detach().cpu().to(torch.float64).numpy()
         kin = self.proxy._kernel_inputs()
-        out = np.empty((4, 4))
+        trial_pose, psi_fn = self.kernels.trial_pose, self.kernels.proxy_psi
+        cams = np.empty((1, 12))
+        psi = np.zeros(1)
+        dpsi, terms, acc = np.zeros((1, 12)), np.zeros((1, 1)), np.zeros((1, 7))
+        args = (kin["intr"], kin["means"], kin["sigma6"], kin["weight"], kin["rate"],
+                kin["kinds"], kin["axes"], kin["mode"], kin["occ"], kin["mass"],
+                kin["vis_prm"], kin["cells"], kin["bins"], False, False, 0, 1, psi, dpsi,
+                terms, False, acc)
         found: list[int] = []
         counts: list[int] = []
         for k, s in enumerate(ids.tolist()):
             checkpoint()
+            found.append(0)
+            counts.append(0)
             if not step_ok[k]:
-                found.append(0)
-                counts.append(0)
                 continue
-            prm = np.array([float(cur[s]), float(eta[s]), 4 * cfg.step_size, cfg.min_rel_gain,
-                            float(cfg.backtracks)])
-            status, _, _, n = self.fn(
-                np.ascontiguousarray(p64[s]), np.ascontiguousarray(g64[k]), n64[k], prm,
-                self.env, self.single, kin["intr"], kin["means"], kin["sigma6"],
-                kin["weight"], kin["rate"], kin["kinds"], kin["axes"], kin["mode"],
-                kin["occ"], kin["mass"], kin["vis_prm"], kin["cells"], kin["bins"], out)
-            found.append(int(n) if status else 0)
-            counts.append(int(n))
+            pose, step, now = np.ascontiguousarray(p64[s]), float(eta[s]), float(cur[s])
+            for n in range(cfg.backtracks + 1):
+                trial_pose(pose, g64[k], n64[k], step, self.env, self.single, cams)
+                psi_fn(cams, *args)
+                val = float(np.float32(psi[0])) if self.single else float(psi[0])
+                counts[-1] = n + 1
+                if math.isfinite(val) and val >= now:
+                    found[-1] = n + 1
+                    break
+                step = self.round(step * 0.5)
         return found, counts
+
+    def round(self, x: float) -> float:
+        """``x`` as the torch path holds it (float32 or float64)."""
+        return float(np.float32(x)) if self.single else x

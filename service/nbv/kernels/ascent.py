@@ -1,23 +1,22 @@
-"""The line search of the anchor's ascent (:func:`agilegs.service.nbv.anchor.ascent.ascend`)
-for one start, compiled: the backtracking trials of one step, each the twist step, the
-retraction ``T exp(xi^)``, the projection into the pool envelope
-(:meth:`agilegs.service.nbv.anchor.envelope.PoolEnvelope.project`) and ψ of the trial pose by
-the proxy's kernel (:func:`agilegs.service.nbv.kernels.proxy.proxy_psi`), then the step's
-acceptance and the new step length.
+"""The trial poses of the anchor's line search
+(:func:`agilegs.service.nbv.anchor.ascent.ascend`), compiled: the twist step, the retraction
+``T exp(xi^)`` and the projection into the pool envelope
+(:meth:`agilegs.service.nbv.anchor.envelope.PoolEnvelope.project`), as the camera row the
+proxy's kernel (:func:`agilegs.service.nbv.kernels.proxy.proxy_psi`) takes; the driver
+(:class:`agilegs.service.nbv.anchor.line_search.CompiledLineSearch`) calls the two in turn.
+No kernel here calls one of another file: numba's on-disk cache of a kernel checks only the
+file it is defined in.
 
 The rules are the torch path's, step for step (:func:`~agilegs.service.nbv.se3.se3_exp` with
 its Taylor branch below t² = 1e-2, the envelope's clamps and fallbacks, Rodrigues' turn back
 towards the aim). Arithmetic is float64; with ``single`` the values the torch path holds in
-float32 (the step length's factor and the twist, the trial pose, ψ, the gain, the new step
-length) are rounded to float32 where it stores them, so that a float32 map's ascent compares
-the same numbers up to the float32 rounding of the pose's arithmetic.
+float32 (the step length's factor, the twist, the trial pose) are rounded to float32 where it
+stores them.
 
 Layouts: ``pose`` [4, 4] (c2w); ``gstep`` [6] the metric step direction (the twist gradient
 with its translation scaled by r², :func:`~agilegs.service.nbv.anchor.ascent._metric_step`)
-and ``gnorm`` its length in the metric; ``env`` [14] (centre, up, aim, r_min, r_max,
-elev_min, elev_max, max_off_aim, 1 when there is an envelope else 0); ``prm`` [5]
-(current ψ, initial step length, largest step length, minimal relative gain, backtracks);
-the proxy's arrays as :func:`~agilegs.service.nbv.kernels.proxy.proxy_psi` takes them.
+and ``gnorm`` its length in the metric; ``env`` [15] (centre, up, aim, r_min, r_max,
+elev_min, elev_max, max_off_aim, 1 when there is an envelope else 0).
 """
 
 from __future__ import annotations
@@ -27,7 +26,6 @@ import math
 import numpy as np
 
 from .common import jit as _jit
-from .proxy import proxy_psi
 
 _TAYLOR_T2 = 1e-2
 _A = (1.0, -1.0 / 6, 1.0 / 120, -1.0 / 5040, 1.0 / 362880)
@@ -164,58 +162,25 @@ def envelope_project_into(c2w: np.ndarray, env: np.ndarray, out: np.ndarray) -> 
 
 
 @_jit
-def line_search(pose: np.ndarray, gstep: np.ndarray, gnorm: float, prm: np.ndarray,
-                env: np.ndarray, single: bool, intr: np.ndarray, means: np.ndarray,
-                sigma6: np.ndarray, weight: np.ndarray, rate: np.ndarray, kinds: np.ndarray,
-                axes: np.ndarray, mode: int, occ: np.ndarray, mass: np.ndarray,
-                vis_prm: np.ndarray, cells: int, bins: int, out_pose: np.ndarray
-                ) -> tuple[int, float, float, int]:
-    """The backtracking line search of one start from ``pose`` [4, 4]: trials of step length
-    ``prm[1]``, halved after each rejected one, at most ``prm[4] + 1``; a trial is accepted
-    when its ψ is finite and not below the current ψ ``prm[0]``.
-
-    Returns (status, ψ, step length, trials): status 0 when no trial was accepted, 1 when
-    one was (its pose in ``out_pose``, its ψ, the step length grown by 1.5, at most
-    ``prm[2]``), 2 when one was but its gain is at most ``prm[3]`` times |current ψ| (the
-    start stops).
-    """
-    cur, eta, cap, min_gain = prm[0], prm[1], prm[2], prm[3]
-    trials = int(prm[4]) + 1
+def trial_pose(pose: np.ndarray, gstep: np.ndarray, gnorm: float, eta: float,
+               env: np.ndarray, single: bool, cams: np.ndarray) -> None:
+    """The trial pose of a step of length ``eta`` from ``pose`` [4, 4] along ``gstep`` [6]
+    (metric length ``gnorm``): ``project(pose exp(xi^))``, xi = gstep * eta / gnorm, as the
+    proxy kernel's camera row into ``cams`` [1, 12] (rotation row-major, then the centre)."""
     xi = np.empty(6)
     step = np.empty((4, 4))
     moved = np.empty((4, 4))
     trial = np.empty((4, 4))
-    cams = np.empty((1, 12))
-    psi = np.zeros(1)
-    grad = np.zeros((1, 12))
-    terms = np.zeros((1, 1))
-    acc = np.zeros((1, 7))
-    for n in range(trials):
-        scale = _r32(eta / (gnorm if gnorm > 1e-30 else 1e-30), single)
-        for j in range(6):
-            xi[j] = _r32(gstep[j] * scale, single)
-        se3_exp_into(xi, step)
-        for i in range(4):
-            for j in range(4):
-                moved[i, j] = (pose[i, 0] * step[0, j] + pose[i, 1] * step[1, j]
-                               + pose[i, 2] * step[2, j] + pose[i, 3] * step[3, j])
-        envelope_project_into(moved, env, trial)
-        if single:
-            for i in range(4):
-                for j in range(4):
-                    trial[i, j] = _r32(trial[i, j], True)
-        for i in range(3):
-            for j in range(3):
-                cams[0, 3 * i + j] = trial[i, j]
-            cams[0, 9 + i] = trial[i, 3]
-        proxy_psi(cams, intr, means, sigma6, weight, rate, kinds, axes, mode, occ, mass,
-                  vis_prm, cells, bins, False, False, 0, 1, psi, grad, terms, False, acc)
-        val = _r32(psi[0], single)
-        if math.isfinite(val) and val >= cur:
-            out_pose[:, :] = trial
-            gain = _r32(val - cur, single)
-            grown = _r32(min(eta * 1.5, cap), single)
-            status = 2 if gain <= min_gain * abs(cur) else 1
-            return status, val, grown, n + 1
-        eta = _r32(eta * 0.5, single)
-    return 0, cur, eta, trials
+    scale = _r32(eta / (gnorm if gnorm > 1e-30 else 1e-30), single)
+    for j in range(6):
+        xi[j] = _r32(gstep[j] * scale, single)
+    se3_exp_into(xi, step)
+    for i in range(4):
+        for j in range(4):
+            moved[i, j] = (pose[i, 0] * step[0, j] + pose[i, 1] * step[1, j]
+                           + pose[i, 2] * step[2, j] + pose[i, 3] * step[3, j])
+    envelope_project_into(moved, env, trial)
+    for i in range(3):
+        for j in range(3):
+            cams[0, 3 * i + j] = _r32(trial[i, j], single)
+        cams[0, 9 + i] = _r32(trial[i, 3], single)
