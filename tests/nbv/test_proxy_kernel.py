@@ -1,16 +1,20 @@
 """The compiled kernel of the anchor's proxy psi against its pure-torch reference: values,
 per-sample terms and gradients in the pose (float64), the ascent's decisions, threads, the
-dispatch, and the anchor's cancellation points."""
+dispatch, and the anchor's cancellation points; the compiled line search of the ascent
+against the reference ascent."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
 from agilegs.config.selection import FIELD_NAMES, AnchorConfig
 from agilegs.service.nbv import cancel
-from agilegs.service.nbv.anchor.ascent import optimize_anchor
+from agilegs.service.nbv.anchor.ascent import _exp_at_zero, ascend, optimize_anchor
+from agilegs.service.nbv.anchor.envelope import PoolEnvelope
 from agilegs.service.nbv.anchor.fitting import directional_rates, lower_median
+from agilegs.service.nbv.anchor.line_search import CompiledLineSearch
 from agilegs.service.nbv.anchor.proxy import ProxyPsi, direction_factors
 from agilegs.service.nbv.anchor.visibility import OpacityMaps
 from agilegs.service.nbv.camera import Camera, Intrinsics
@@ -223,3 +227,155 @@ def test_lower_median_is_torch_median(n: int, dtype: torch.dtype) -> None:
     assert got.dtype == dtype and torch.equal(got, x.median())
     x[1 % n] = float("nan")
     assert torch.isnan(lower_median(x)) == torch.isnan(x.median())
+
+
+def _envelope(pool: torch.Tensor, gmap: GaussianMap) -> PoolEnvelope:
+    centre, _ = scene_center_radius(gmap.means)
+    return PoolEnvelope.from_pool(pool, centre.to(pool.dtype), 0.05)
+
+
+def test_the_line_search_kernels_pose_maths_equals_torch() -> None:
+    gmap, _, pool, _ = _scene()
+    env = _envelope(pool, gmap)
+    kern = backend.kernel_module()
+    g = torch.Generator().manual_seed(4)
+    # twists on both sides of se3_exp's Taylor branch (t^2 < 1e-2)
+    xi = torch.randn(40, 6, generator=g, dtype=F64) * torch.tensor([0.02, 0.5]).repeat_interleave(
+        20).unsqueeze(1)
+    got = np.zeros((4, 4))
+    for x, ref in zip(xi, se3_exp(xi)):
+        kern.se3_exp_into(x.numpy().copy(), got)
+        np.testing.assert_allclose(got, ref.numpy(), rtol=0, atol=1e-15)
+    # poses moved off the pool, far out and turned away: every clamp of the envelope acts
+    moved = pool @ se3_exp(torch.randn(pool.shape[0], 6, generator=g, dtype=F64)
+                           * torch.tensor([1.5, 1.5, 1.5, 0.8, 0.8, 0.8], dtype=F64))
+    ref = env.project(moved)
+    assert not bool(env.contains(moved).all())
+    prm = CompiledLineSearch(dict(_proxies(gmap, _scene()[1], _scene()[3]))["linear/none"],
+                      AnchorConfig(), env, env.radius, F64).env
+    for m, r in zip(moved, ref):
+        kern.envelope_project_into(m.numpy().copy(), prm, got)
+        np.testing.assert_allclose(got, r.numpy(), rtol=0, atol=1e-12)
+    kern.envelope_project_into(moved[0].numpy().copy(), np.zeros(15), got)  # no envelope
+    np.testing.assert_array_equal(got, moved[0].numpy())
+
+
+def _ascents(dtype: torch.dtype, with_envelope: bool, iterations: int
+             ) -> list[tuple[str, tuple, dict, tuple, dict]]:
+    """The compiled and the reference ascent of every proxy form from four pool starts."""
+    gmap, acquired, pool, h = _scene(dtype)
+    env = _envelope(pool, gmap) if with_envelope else None
+    radius = env.radius if env is not None else 1.0
+    cfg = AnchorConfig(iterations=iterations, backtracks=4, step_size=0.3, min_rel_gain=1e-3)
+    starts = pool[torch.tensor([0, 5, 9, 14])]
+    out = []
+    for name, proxy in _proxies(gmap, acquired, h):
+        runs = []
+        for compiled in (True, False):
+            split: dict[str, float] = {}
+            runs += [ascend(proxy, starts, config=cfg, envelope=env, radius=radius,
+                            split=split, compiled=compiled), split]
+        out.append((name, *runs))
+    return out
+
+
+@pytest.mark.parametrize(("dtype", "with_envelope", "iterations"),
+                         [(F64, True, 8), (F64, False, 8), (torch.float32, True, 3)])
+def test_the_compiled_line_search_equals_the_reference_ascent(
+        dtype: torch.dtype, with_envelope: bool, iterations: int) -> None:
+    # long ascents from several starts: steps accepted, trials rejected and halved, starts
+    # stopping by the gain rule and by a failed line search. The ascent is not continuous
+    # in the pose at the envelope's bounds (a pose the projection put on a bound passes the
+    # clamp's gradient or not by the last bit), so only the same numbers bit for bit are
+    # the same ascent: the compiled search only finds the accepted trial, which the
+    # reference's operations then compute
+    backtracked = 0
+    for name, (p_k, v_k, t_k, e_k), s_k, (p_r, v_r, t_r, e_r), s_r in _ascents(
+            dtype, with_envelope, iterations):
+        assert e_k == e_r, name
+        assert s_k["value_evaluations"] == s_r["value_evaluations"], name
+        assert s_k["gradient_evaluations"] == s_r["gradient_evaluations"], name
+        assert t_k == t_r, name
+        assert torch.equal(p_k, p_r), name
+        assert torch.equal(v_k, v_r), name
+        assert p_k.dtype == v_k.dtype == dtype
+        assert sum(len(t) - 1 for t in t_r) > 0, name  # steps were taken
+        backtracked += int(s_r["value_evaluations"]) - sum(len(t) - 1 for t in t_r)
+    assert backtracked > 0  # some trials were rejected
+
+
+def test_a_trial_the_reference_rejects_is_searched_again_by_the_reference(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    # a compiled search that claims the first trial of every start: where the reference's
+    # check rejects it, that start's line search is the reference's
+    search = CompiledLineSearch.search
+
+    def first(self: CompiledLineSearch, *args: object) -> tuple[list[int], list[int]]:
+        found, counts = search(self, *args)  # type: ignore[arg-type]
+        return [1] * len(found), counts
+
+    monkeypatch.setattr(CompiledLineSearch, "search", first)
+    redone = 0
+    for name, (p_k, v_k, t_k, e_k), _, (p_r, v_r, t_r, e_r), s_r in _ascents(F64, True, 8):
+        assert t_k == t_r and torch.equal(p_k, p_r) and torch.equal(v_k, v_r), name
+        assert e_k == e_r, name
+        redone += int(s_r["value_evaluations"]) > sum(len(t) - 1 for t in t_r)
+    assert redone > 0
+
+
+def test_the_compiled_line_search_serves_only_the_proxy_kernel() -> None:
+    gmap, acquired, pool, h = _scene()
+    proxy = dict(_proxies(gmap, acquired, h))["directional/transmittance"]
+    assert CompiledLineSearch.serves(proxy, pool)
+    assert not CompiledLineSearch.serves(lambda c2w: c2w[:, 0, 3], pool)
+    assert not CompiledLineSearch.serves(proxy, pool.to(torch.float16))
+    try:
+        backend.set_default_backend("torch")
+        assert not CompiledLineSearch.serves(proxy, pool)
+    finally:
+        backend.set_default_backend(None)
+
+
+@pytest.mark.parametrize("dtype", [F64, torch.float32])
+def test_the_twist_gradient_at_zero_equals_the_exponentials(dtype: torch.dtype) -> None:
+    # the ascent differentiates psi(project(T exp(xi))) at xi = 0 through I + hat(xi): the
+    # same value and gradient, bit for bit, as through se3_exp
+    gmap, acquired, pool, h = _scene(dtype)
+    env = _envelope(pool, gmap)
+    xi0 = 0.3 * torch.randn(pool.shape[0], 6, generator=torch.Generator().manual_seed(1),
+                            dtype=F64)
+    poses = env.project(pool @ se3_exp(xi0.to(dtype)))
+    for name, proxy in _proxies(gmap, acquired, h):
+        out = []
+        for exp in (se3_exp, _exp_at_zero):
+            xi = torch.zeros(poses.shape[0], 6, dtype=dtype, requires_grad=True)
+            val = proxy(env.project(poses @ exp(xi)))
+            (g,) = torch.autograd.grad(val.sum(), xi)
+            out.append((val.detach(), g))
+        assert float(out[0][1].abs().max()) > 0, name
+        assert torch.equal(out[0][0], out[1][0]) and torch.equal(out[0][1], out[1][1]), name
+
+
+def test_values_in_parts_are_the_values_with_a_check_before_each_part() -> None:
+    gmap, acquired, pool, h = _scene()
+    calls: list[int] = []
+
+    def between() -> None:
+        calls.append(1)
+
+    parts = -(-pool.shape[0] // 8)
+    for name, proxy in _proxies(gmap, acquired, h):
+        calls.clear()
+        with torch.no_grad():
+            whole = proxy(pool)
+            got = proxy.values_in_parts(pool, 8, between)
+        assert torch.equal(got, whole), name
+        assert len(calls) == parts, name
+        try:
+            backend.set_default_backend("torch")
+            calls.clear()
+            ref = proxy.values_in_parts(pool, 8, between)
+        finally:
+            backend.set_default_backend(None)
+        assert len(calls) == parts, name
+        torch.testing.assert_close(ref, whole, rtol=1e-10, atol=1e-12 * float(whole.abs().max()))

@@ -30,7 +30,7 @@ from ..cancel import checkpoint
 from ..candidates import pool_radius, scene_center_radius
 from ..gaussians import GaussianMap
 from ..information import fisher_diag, trace_surrogate
-from ..se3 import pose_distance, project_to_se3, se3_exp
+from ..se3 import hat, pose_distance, project_to_se3, se3_exp
 from .envelope import PoolEnvelope
 from .fitting import (
     directional_rates,
@@ -38,6 +38,7 @@ from .fitting import (
     observation_rates,
     typical_fisher_from_h_acc,
 )
+from .line_search import CompiledLineSearch
 from .proxy import ProxyPsi, pick_occluders
 from .unexplored import unexplored_space
 from .visibility import OpacityMaps
@@ -97,6 +98,13 @@ def _metric_step(grad: Tensor, radius: float, eta: Tensor) -> Tensor:
     return g * (eta / norm.clamp_min(1e-30)).unsqueeze(1)
 
 
+def _exp_at_zero(xi: Tensor) -> Tensor:
+    """``se3_exp(xi)`` [B, 4, 4] for twists ``xi`` [B, 6] that are zero, with its gradient
+    there: ``I + hat(xi)`` (the exponential's first order), the same numbers in either
+    pass with fewer operations."""
+    return torch.eye(4, dtype=xi.dtype, device=xi.device) + hat(xi)
+
+
 def ascend(
     psi_fn: Callable[[Tensor], Tensor],
     starts: Tensor,
@@ -106,6 +114,7 @@ def ascend(
     radius: float,
     batched: bool = True,
     split: dict[str, float] | None = None,
+    compiled: bool = True,
 ) -> tuple[Tensor, Tensor, list[list[float]], int]:
     """Riemannian gradient ascent of psi from every start pose [S, 4, 4].
 
@@ -114,7 +123,15 @@ def ascend(
     (one entry per accepted step, never decreasing) and the number of psi evaluations.
     ``split``, when given, receives the poses evaluated with their gradient
     (``gradient_evaluations``) and without (``value_evaluations``), and the seconds of each
-    (``gradient_s``, ``value_s``).
+    (``gradient_s``, ``value_s``; the compiled line searches count as values).
+
+    Each step's gradients are one batch of the active starts; with ``compiled`` and a
+    :class:`ProxyPsi` whose kernel serves (:meth:`ProxyPsi.uses_kernel`), each start's line
+    search runs on the compiled kernels (:class:`.line_search.CompiledLineSearch`: each
+    trial's step, retraction and projection, then its psi), with a cancellation check
+    before each start, and finds the accepted trial, which the reference's operations then
+    compute; else the trials of the pending starts are batches through ``psi_fn`` (the
+    reference, which the compiled search equals).
     """
     dt = starts.dtype
     tally = split if split is not None else {}
@@ -141,7 +158,7 @@ def ascend(
     def twist_grad(poses: Tensor) -> tuple[Tensor, Tensor]:
         t0 = time.perf_counter()
         xi = torch.zeros(poses.shape[0], 6, dtype=dt, device=poses.device, requires_grad=True)
-        moved = poses @ se3_exp(xi)
+        moved = poses @ _exp_at_zero(xi)
         if envelope is not None:
             moved = envelope.project(moved)
         val = evaluate(moved)
@@ -158,13 +175,15 @@ def ascend(
     traces = [[float(v)] for v in cur]
     eta = torch.full((poses.shape[0],), config.step_size, dtype=dt, device=poses.device)
     active = torch.ones(poses.shape[0], dtype=torch.bool, device=poses.device)
-    for _ in range(config.iterations):
-        checkpoint()
-        if not bool(active.any()):
-            break
-        ids = torch.nonzero(active).squeeze(1)
-        _, grad = twist_grad(poses[ids])
-        evals += len(ids)
+    searcher = (CompiledLineSearch(psi_fn, config, envelope, radius, dt)
+                if compiled and batched and isinstance(psi_fn, ProxyPsi)
+                and CompiledLineSearch.serves(psi_fn, poses) else None)
+
+    def line_searches(ids: Tensor, grad: Tensor) -> int:
+        """The reference line searches of starts ``ids`` [K] along their twist gradients
+        [K, 6]: each trial a batch of the pending starts through ``psi_fn``; returns the
+        psi evaluations."""
+        n_evals = 0
         gnorm = grad.norm(dim=1)
         step_ok = torch.isfinite(gnorm) & (gnorm > 0)
         accepted = torch.zeros(len(ids), dtype=torch.bool, device=poses.device)
@@ -175,32 +194,93 @@ def ascend(
             if not bool(pending.any()):
                 break
             pid = torch.nonzero(pending).squeeze(1)
-            xi = _metric_step(grad[pid], radius, loc_eta[pid])
-            with torch.no_grad():
-                trial = poses[ids[pid]] @ se3_exp(xi)
-                if envelope is not None:
-                    trial = envelope.project(trial)
+            trial = retract(ids[pid], grad[pid], loc_eta[pid])
             val = values(trial)
-            evals += len(pid)
+            n_evals += len(pid)
             ok = torch.isfinite(val) & (val >= cur[ids[pid]])
             for j, k in enumerate(pid.tolist()):
                 if bool(ok[j]):
-                    s = int(ids[k])
-                    gain = float(val[j] - cur[s])
-                    poses[s] = trial[j]
-                    old = float(cur[s])
-                    cur[s] = val[j]
-                    traces[s].append(float(val[j]))
+                    accept(int(ids[k]), trial[j], val[j], float(loc_eta[k]))
                     accepted[k] = True
                     pending[k] = False
-                    eta[s] = min(float(loc_eta[k]) * 1.5, 4 * config.step_size)
-                    if gain <= config.min_rel_gain * abs(old):
-                        active[s] = False
                 else:
                     loc_eta[k] = loc_eta[k] * 0.5
         for k in range(len(ids)):
             if not bool(accepted[k]):
                 active[int(ids[k])] = False
+        return n_evals
+
+    def retract(sid: Tensor, grad: Tensor, step: Tensor) -> Tensor:
+        """The trial poses [K, 4, 4] of starts ``sid`` [K]: a step of length ``step`` [K]
+        along the twist gradients [K, 6], projected into the envelope."""
+        xi = _metric_step(grad, radius, step)
+        with torch.no_grad():
+            trial = poses[sid] @ se3_exp(xi)
+            if envelope is not None:
+                trial = envelope.project(trial)
+        return trial
+
+    def accept(s: int, trial: Tensor, val: Tensor, step: float) -> None:
+        gain = float(val - cur[s])
+        poses[s] = trial
+        old = float(cur[s])
+        cur[s] = val
+        traces[s].append(float(val))
+        eta[s] = min(step * 1.5, 4 * config.step_size)
+        if gain <= config.min_rel_gain * abs(old):
+            active[s] = False
+
+    def compiled_line_searches(ids: Tensor, grad: Tensor) -> int:
+        """The line searches of starts ``ids`` through the compiled kernel, which finds each
+        start's accepted trial; the accepted trials then computed by the reference's own
+        operations (so that the poses and psi kept are the reference's); a start whose
+        trial the reference's check rejects (psi within rounding of the current psi) has
+        its line search redone by the reference."""
+        assert searcher is not None
+        t0 = time.perf_counter()
+        found, counts = searcher.search(ids, grad, poses, cur, eta)
+        tally["value_s"] += time.perf_counter() - t0
+        tally["value_evaluations"] += sum(counts)
+        n_evals = sum(counts)
+        acc = [k for k, n in enumerate(found) if n > 0]
+        redo: list[int] = []
+        if acc:
+            kk = torch.tensor(acc, dtype=torch.long, device=poses.device)
+            halved = torch.tensor([0.5 ** (found[k] - 1) for k in acc], dtype=dt,
+                                  device=poses.device)
+            loc_eta = eta[ids[kk]] * halved  # the reference's step after found - 1 halvings
+            trial = retract(ids[kk], grad[kk], loc_eta)
+            t0 = time.perf_counter()
+            with torch.no_grad():
+                val = evaluate(trial).detach()
+            tally["value_s"] += time.perf_counter() - t0
+            ok = (torch.isfinite(val) & (val >= cur[ids[kk]])).tolist()
+            for j, k in enumerate(acc):
+                if ok[j]:
+                    accept(int(ids[k]), trial[j], val[j], float(loc_eta[j]))
+                else:
+                    redo.append(k)
+        for k, n in enumerate(found):
+            if n == 0:
+                active[int(ids[k])] = False
+        if redo:
+            rr = torch.tensor(redo, dtype=torch.long, device=poses.device)
+            n_redo = sum(counts[k] for k in redo)
+            tally["value_evaluations"] -= n_redo
+            n_evals += line_searches(ids[rr], grad[rr]) - n_redo
+        return n_evals
+
+    for _ in range(config.iterations):
+        checkpoint()
+        if not bool(active.any()):
+            break
+        ids = torch.nonzero(active).squeeze(1)
+        _, grad = twist_grad(poses[ids])
+        evals += len(ids)
+        if searcher is not None:
+            evals += compiled_line_searches(ids, grad)
+        else:
+            evals += line_searches(ids, grad)
     return poses, cur, traces, evals
 
 
@@ -363,11 +443,8 @@ def optimize_anchor_validated(
     with torch.no_grad():
         pool = candidates.detach().to(dt)
         placed = envelope.project(pool) if envelope is not None else pool
-        parts = []
-        for i in range(0, placed.shape[0], POOL_CHUNK):  # a cancellation check per chunk
-            checkpoint()
-            parts.append(proxy(placed[i : i + POOL_CHUNK]))
-        pool_psi = torch.cat(parts)
+        # a cancellation check per chunk
+        pool_psi = proxy.values_in_parts(placed, POOL_CHUNK, checkpoint)
     k = min(config.num_starts, pool.shape[0])
     separation = config.mode_separation * radius
     if config.anchors > 1:
@@ -422,14 +499,17 @@ def distinct_best(poses: Tensor, scores: Tensor, k: int, separation: float,
     first)."""
     order = torch.sort(scores.detach(), descending=True, stable=True).indices
     chosen: list[int] = []
+    nearest: list[float] = []  # every pose's distance to the nearest chosen one
+    n = poses.shape[0]
     for i in order.tolist():
         if len(chosen) >= k:
             break
-        if chosen:
-            d = pose_distance(poses[chosen], poses[i].expand(len(chosen), 4, 4), radius)
-            if float(d.min()) < separation:
-                continue
+        if chosen and nearest[i] < separation:
+            continue
         chosen.append(i)
+        if len(chosen) < k:
+            d = pose_distance(poses[i].expand(n, 4, 4), poses, radius).tolist()
+            nearest = d if not nearest else [min(a, b) for a, b in zip(nearest, d)]
     return torch.tensor(chosen, dtype=torch.long, device=poses.device)
 
 

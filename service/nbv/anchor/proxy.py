@@ -14,6 +14,8 @@ to Hhat is in :mod:`agilegs.service.nbv.anchor.fitting`.
 from __future__ import annotations
 
 import dataclasses
+import functools
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -326,12 +328,29 @@ class ProxyPsi:
         f = direction_factors(self.means.to(dt), c2w[:, :3, 3], axes.to(dt))
         return w, (w.unsqueeze(-1) * f).sum(0)
 
+    def values_in_parts(self, c2w: Tensor, part: int, between: Callable[[], None]
+                        ) -> Tensor:
+        """psi for poses [B, 4, 4] -> [B] without gradient, ``part`` poses at a time with
+        ``between()`` called before each part (a cancellation check): through the kernel
+        (the poses converted once, the parts as ranges of one array) where
+        :meth:`uses_kernel` says so, else parts of :meth:`reference`."""
+        if not self.uses_kernel(c2w):
+            parts = []
+            for i in range(0, c2w.shape[0], part):
+                between()
+                with torch.no_grad():
+                    parts.append(self.reference(c2w[i : i + part]))
+            return torch.cat(parts) if parts else c2w.new_zeros(0)
+        return self._kernel(c2w, want_grad=False, part=part, between=between)[0]
+
     def _kernel(self, c2w: Tensor, want_grad: bool, per_sample: bool = False,
-                axes: Tensor | None = None) -> tuple[Tensor, Tensor | None]:
+                axes: Tensor | None = None, part: int = 0,
+                between: Callable[[], None] | None = None) -> tuple[Tensor, Tensor | None]:
         """The kernel at poses [B, 4, 4]: psi [B] (or the per-sample terms [B, S]) and, with
         ``want_grad``, d psi / d c2w [B, 4, 4] (zero in the last row); with ``per_sample``
         and ``axes`` [S, 3, 3], the terms and their sum over the poses times each direction
-        factor [S, 7] (:meth:`terms_and_factors`)."""
+        factor [S, 7] (:meth:`terms_and_factors`). ``part`` > 0: the poses in ranges of that
+        many, ``between()`` called before each."""
         kin = self._kernel_inputs()
         b = c2w.shape[0]
         pose = c2w.detach().to(torch.float64).cpu()
@@ -347,16 +366,21 @@ class ProxyPsi:
         ax = (np.ascontiguousarray(axes.detach().to(torch.float64).cpu().reshape(-1, 9).numpy())
               if accumulate and axes is not None else kin["axes"])
 
-        def part(b0: int, b1: int) -> None:
+        def run(b0: int, b1: int, offset: int = 0) -> None:
             fn(cams, kin["intr"], kin["means"], kin["sigma6"], kin["weight"], kin["rate"],
-               kin["kinds"], ax, kin["mode"], kin["occ"], kin["mass"],
-               kin["vis_prm"], kin["cells"], kin["bins"], want_grad, per_sample, b0, b1, psi,
-               grad, terms, accumulate, acc)
+               kin["kinds"], ax, kin["mode"], kin["occ"], kin["mass"], kin["vis_prm"],
+               kin["cells"], kin["bins"], want_grad, per_sample, offset + b0, offset + b1,
+               psi, grad, terms, accumulate, acc)
 
         if accumulate:
-            part(0, b)  # the poses add to the same rows: one thread
+            run(0, b)  # the poses add to the same rows: one thread
+        elif part > 0:
+            for b0 in range(0, b, part):
+                if between is not None:
+                    between()
+                backend.run_in_parts(functools.partial(run, offset=b0), min(b, b0 + part) - b0)
         else:
-            backend.run_in_parts(part, b)
+            backend.run_in_parts(run, b)
         dt, dev = c2w.dtype, c2w.device
         if per_sample:
             return (torch.from_numpy(terms).to(device=dev, dtype=dt),

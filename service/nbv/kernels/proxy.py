@@ -17,6 +17,12 @@ direction factor of each slot, 0-6); ``axes`` [S, 9] (mode 2: the local axes as 
 a row-major 3 × 3); visibility: ``occ`` [M, 3], ``mass`` [M], ``vis_prm`` [5] (centre x, y,
 z, half depth, 1 when there is a grid else 0) and the grid's ``cells`` and ``bins``.
 Modes: 0 linear (Σ w T), 1 log (Σ w log(1 + r T)), 2 directional (Σ w Σ_q log(1 + r_q f_q T)).
+
+ψ alone (no gradient, no per-sample terms) takes shortcuts that move it by rounding only:
+the image bounds' sigmoids of an axis from one exponential, and the directional form's
+product over the slots as two interleaved products, its log1p from one logarithm. The
+gradient's pass and the per-sample terms (which the directional fit reads) follow the
+reference's operations as they are.
 """
 
 from __future__ import annotations
@@ -41,6 +47,27 @@ def _sig(x: float) -> float:
 
 
 @_jit
+def _log1p(x: float) -> float:
+    """log(1 + x) from one logarithm, within a few ulps of ``math.log1p``: the rounding of
+    u = 1 + x corrected by x / (u - 1) (exact where u is 1)."""
+    u = 1.0 + x
+    if u == 1.0:
+        return x
+    return math.log(u) * (x / (u - 1.0))
+
+
+@_jit
+def _sig_pair(a: float, b: float, c: float) -> float:
+    """sigmoid(a) * sigmoid(b) where a + b = L and ``c`` = exp(-L) (the two bounds of an
+    image axis), from one exponential: with e = exp(-a), e / ((1 + e)(e + c)); the two
+    sigmoids apart where e would leave the range of the formula."""
+    if a > 600.0 or a < -600.0:
+        return _sig(a) * _sig(b)
+    e = math.exp(-a)
+    return e / ((1.0 + e) * (e + c))
+
+
+@_jit
 def _deposit(cam: np.ndarray, intr: np.ndarray, occ: np.ndarray, mass: np.ndarray,
              vis_prm: np.ndarray, g: int, nb: int, grid: np.ndarray, tmp: np.ndarray,
              cum: np.ndarray) -> float:
@@ -60,6 +87,7 @@ def _deposit(cam: np.ndarray, intr: np.ndarray, occ: np.ndarray, mass: np.ndarra
     ez_t = r02 * t0 + r12 * t1 + r22 * t2
     cell_px = (wd / g) * (ht / g)
     grid[:] = 0.0
+    filled = np.zeros(nb, dtype=np.bool_)  # the slices that hold a deposit
     for j in range(occ.shape[0]):
         px, py, pz = occ[j, 0], occ[j, 1], occ[j, 2]
         ox = (r00 * px + r10 * py + r20 * pz) - ex_t
@@ -74,8 +102,12 @@ def _deposit(cam: np.ndarray, intr: np.ndarray, occ: np.ndarray, mass: np.ndarra
         slab = math.floor((oz - z0) / dz)
         slab = min(max(slab, 0.0), nb - 1.0)
         grid[int(slab), int(cv), int(cu)] += mass[j] / (oz * oz) / cell_px
-    # the [1, 2, 1] / 4 blur along the rows, then along the columns (zero outside)
+        filled[int(slab)] = True
+    # the [1, 2, 1] / 4 blur along the rows, then along the columns (zero outside; an empty
+    # slice stays zero)
     for k in range(nb):
+        if not filled[k]:
+            continue
         for i in range(g):
             for c in range(g):
                 s = 0.5 * grid[k, i, c]
@@ -96,9 +128,12 @@ def _deposit(cam: np.ndarray, intr: np.ndarray, occ: np.ndarray, mass: np.ndarra
         for c in range(g):
             cum[0, i, c] = 0.0
     for k in range(nb):
-        for i in range(g):
-            for c in range(g):
-                cum[k + 1, i, c] = cum[k, i, c] + grid[k, i, c]
+        if filled[k]:
+            for i in range(g):
+                for c in range(g):
+                    cum[k + 1, i, c] = cum[k, i, c] + grid[k, i, c]
+        else:
+            cum[k + 1, :, :] = cum[k, :, :]
     return z0
 
 
@@ -145,6 +180,10 @@ def proxy_psi(cams: np.ndarray, intr: np.ndarray, means: np.ndarray, sigma6: np.
     nq = rate.shape[1]
     f7 = np.empty(7)
     gf7 = np.empty(7)
+    # (the pairs need exp(-width / edge) well inside the range of floats)
+    reduce_only = not want_grad and not per_sample and wd / edge < 600.0 and ht / edge < 600.0
+    c_wd = math.exp(-wd / edge) if reduce_only else 0.0
+    c_ht = math.exp(-ht / edge) if reduce_only else 0.0
     dd = np.empty(3)
     for b in range(b0, b1):
         cam = cams[b]
@@ -211,11 +250,17 @@ def proxy_psi(cams: np.ndarray, intr: np.ndarray, means: np.ndarray, sigma6: np.
             u = fx * x / zs + cx
             v = fy * y / zs + cy
             s0 = _sig((z - near) / (0.25 * near))
-            s1 = _sig(u / edge)
-            s2 = _sig((wd - u) / edge)
-            s3 = _sig(v / edge)
-            s4 = _sig((ht - v) / edge)
-            inside = s0 * s1 * s2 * s3 * s4
+            if reduce_only:
+                # psi alone: each pair of opposite bounds' sigmoids from one exponential
+                s1 = s2 = s3 = s4 = 0.0
+                inside = (s0 * _sig_pair(u / edge, (wd - u) / edge, c_wd)
+                          * _sig_pair(v / edge, (ht - v) / edge, c_ht))
+            else:
+                s1 = _sig(u / edge)
+                s2 = _sig((wd - u) / edge)
+                s3 = _sig(v / edge)
+                s4 = _sig((ht - v) / edge)
+                inside = s0 * s1 * s2 * s3 * s4
             # the transmittance from the deep opacity map
             vis = 1.0
             tu = 0.0
@@ -305,6 +350,20 @@ def proxy_psi(cams: np.ndarray, intr: np.ndarray, means: np.ndarray, sigma6: np.
                 # sum_q log(1 + x_q) as one log1p of prod_q (1 + x_q) - 1, accumulated as
                 # p + x + p x (no cancellation for small x)
                 acc = 0.0
+                if not want_grad:
+                    # two running products (even and odd slots), then combined: half the
+                    # chain of dependent operations
+                    acc2 = 0.0
+                    for q in range(0, nq - 1, 2):
+                        xq = term * f7[kinds[q]] * rate[s, q]
+                        xq2 = term * f7[kinds[q + 1]] * rate[s, q + 1]
+                        acc = acc + xq + acc * xq
+                        acc2 = acc2 + xq2 + acc2 * xq2
+                    if nq % 2 == 1:
+                        xq = term * f7[kinds[nq - 1]] * rate[s, nq - 1]
+                        acc = acc + xq + acc * xq
+                    total += w * _log1p(acc + acc2 + acc * acc2)
+                    continue
                 for k in range(7):
                     gf7[k] = 0.0
                 for q in range(nq):
