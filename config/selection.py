@@ -147,12 +147,12 @@ class AnchorConfig:
         default=16, description="grid points per axis of the unexplored space")
     unexplored_shells: Annotated[int, Strict(), Field(ge=1, le=64),
                                  BeforeValidator(integral)] = Field(
-        default=8,
+        default=1,
         description="radial shells of the unexplored space's expected density: an unexplored "
         "grid point holds as many Gaussians as the observed grid points at its distance from "
         "the map's centre do (1: the map's mean density everywhere)")
     unexplored_inside: Bool = Field(
-        default=False,
+        default=True,
         description="also count as unexplored the grid points the map's Gaussians enclose on "
         "all six axis directions (the inside of its surfaces, which no view sees)")
     anchors: Annotated[int, Strict(), Field(ge=1, le=8), BeforeValidator(integral)] = Field(

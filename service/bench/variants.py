@@ -107,10 +107,12 @@ OPTIONS: dict[str, tuple[str, Callable[[SelectConfig], SelectConfig]]] = {
                   _anchor(model="fitted")),
     "unexplored": ("the proxy also counts the unexplored part of the map's extent as "
                    "never-observed Gaussians", _anchor(unexplored=True)),
-    "flat_unexplored": ("the unexplored space holds the map's mean density everywhere (one "
-                        "radial shell)", _anchor(unexplored_shells=1)),
-    "inside_unexplored": ("the unexplored space also counts the inside of the map's surfaces",
-                          _anchor(unexplored_inside=True)),
+    "radial_unexplored": ("the unexplored space expects the density the views found at each "
+                          "distance from the map's centre (8 radial shells)",
+                          _anchor(unexplored_shells=8)),
+    "enclosed_unexplored": ("the unexplored space leaves out the inside of the map's "
+                            "surfaces (what its Gaussians enclose on all six axis directions)",
+                            _anchor(unexplored_inside=False)),
     "no_unexplored": ("the proxy counts only the map's Gaussians", _anchor(unexplored=False)),
     "modes": ("three anchors from distinct modes of psi (starts spread alike), the shortlist "
               "drawn across their support samples", _anchor(anchors=3)),

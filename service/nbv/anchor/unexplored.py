@@ -74,8 +74,8 @@ def unexplored_space(
     threshold: float = 0.5,
     max_points: int = 1024,
     chunk: int = 16,
-    shells: int = 8,
-    count_inside: bool = False,
+    shells: int = 1,
+    count_inside: bool = True,
     generator: torch.Generator | None = None,
 ) -> UnexploredSpace:
     """The unexplored part of ``gmap``'s extent seen from the acquired poses [A, 4, 4].
