@@ -13,6 +13,10 @@ with the exact EIG, the unexplored share of ψ, and where the unexplored points 
     python notebook/2026-11-27-many-views/trace.py snap service/data/scenes/bob \
         --profile cpu_long --every 5 --out bob.pt
     python notebook/2026-11-27-many-views/trace.py parts agile bob.pt
+    python notebook/2026-11-27-many-views/trace.py parts agile --set transmittance_cells=32 bob.pt
+
+Note: ``parts`` needs unexplored points to split ψ; its line shows only the pick's
+percentile when the variant has none (``agile@no_unexplored``).
 """
 
 from __future__ import annotations
@@ -105,8 +109,9 @@ def parts(args: argparse.Namespace) -> None:
                 c, r = scene_center_radius(gmap.means.detach())
                 um = prox.means[n_map:]
                 dist = ((um - c).norm(dim=1) / r)
-                line += (f"  rho total {spearman(total, phi):+.2f} map {spearman(psi_map, phi):+.2f}"
-                         f" unexplored {spearman(psi_un, phi):+.2f}  unexplored share "
+                line += (f"  rho total {spearman(total, phi):+.2f} "
+                         f"map {spearman(psi_map, phi):+.2f} "
+                         f"unexplored {spearman(psi_un, phi):+.2f}  unexplored share "
                          f"{float((psi_un / total).mean()):.2f}  points {um.shape[0]} "
                          f"(r/r98 median {float(dist.median()):.2f})  map-only pick pct "
                          f"{eig_percentile(phi, float(phi[int(torch.argmax(psi_map))])):5.1f}")

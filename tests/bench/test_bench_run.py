@@ -38,7 +38,7 @@ RUN_KEYS = {
 EVENT_KEYS = {  # what the report, the plots and the replay (agilegs view --run) read
     "event", "step", "views_before", "choice", "shortlist", "eligible", "latency_ms",
     "select_wall_ms", "select_cpu_ms", "information_ms", "upkeep_ms", "num_gaussians",
-    "scores", "anchor", "anchor_psi", "best_candidate_psi",
+    "scores", "anchor", "anchor_psi", "best_candidate_psi", "probes", "probe_won",
 }
 
 
@@ -68,6 +68,13 @@ def test_tiny_run_writes_outputs_and_rerun_skips(tmp_path: Path) -> None:
             assert set(ev) == EVENT_KEYS, set(ev) ^ EVENT_KEYS
             assert ev["latency_ms"]["total"] > 0.0 and ev["select_cpu_ms"] >= 0.0
             assert 0 <= ev["choice"] < scene["pool"]
+            # AGILE-GS+'s probes are the shortlist's last and were scored with it
+            if method == "agile_plus":
+                assert ev["probes"] >= 1 and isinstance(ev["probe_won"], bool)
+                scored = {int(v) for v, _ in ev["scores"]}
+                assert set(ev["shortlist"][-ev["probes"]:]) <= scored
+            else:
+                assert ev["probes"] is None and ev["probe_won"] is None
         assert run["curve"][-1]["views"] == prof.view_budget
         assert all(set(c) == {"views", "step", "psnr"} for c in run["curve"])
         assert run["path_length"] > 0.0 and run["mean_index_jump"] > 0.0
