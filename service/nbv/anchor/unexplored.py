@@ -13,13 +13,14 @@ proxy's sum as virtual Gaussians with the map's own density:
   view); its unexplored fraction is ``1 - max over the acquired views``;
 - the points that are mostly unexplored stand for Gaussians the map lacks: each is a virtual
   Gaussian of the map's median size, never observed (Hhat = lambda: the model's prior rate),
-  expected to hold as many Gaussians as an observed cell at the same distance from the map's
-  centre does (``shells`` radial shells: the Gaussians whose centres fall in the shell's
-  observed cells over the number of those cells; none in a shell with no observed cell). An
-  unexplored corner of the grid beyond the map's extent, where the observed cells at its
-  distance are empty, or the inside of an object, which no view sees, is then worth nothing
-  however many views come: only space at a distance where the views found matter counts as
-  matter still to find.
+  expected to hold as many Gaussians as an observed cell of the grid does (the Gaussians whose
+  centres fall in observed cells over the number of observed cells).
+
+Two refinements are options, off by default (they measured worse on the benchmark's scenes):
+``shells`` > 1 takes that density per radial shell, from the observed cells at the point's
+distance from the map's centre (none in a shell with no observed cell), so that a corner of
+the grid beyond the map is worth nothing; ``count_inside=False`` leaves out the points the
+map's occupied cells enclose on all six axis directions (:func:`enclosed`).
 
 A candidate that sees unexplored points through the map (the transmittance, so that the
 inside of a seen object stays hidden) gains what a view of as many new Gaussians would; the
