@@ -60,7 +60,9 @@ class SessionCreate(BaseModel):
         description="initial posed frames (each with a pose; no candidate_id or view_id)",
     )
     init_gaussians: WireInt = Field(
-        default=1000, ge=0, le=1_000_000, description="Gaussians created from bounds or depth"
+        default=1000, ge=0, le=1_000_000,
+        description="Gaussians created from bounds or depth (with depth, 0 keeps one per valid "
+                    "depth pixel; more than max_gaussians is refused)"
     )
     seed: WireInt = Field(default=0, ge=0, le=2**63 - 1,
                           description="seed of the initialisation")

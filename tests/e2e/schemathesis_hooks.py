@@ -13,7 +13,8 @@
   (here at most :data:`SIDE` per side, which also keeps the fuzzed selections cheap).
   Positive cases create sessions on the server under test, with Gaussians: they drop
   ``?instance=``, whose valid values are the ids of a cluster's live instances, and a creation
-  that would give the map none gets bounds (so that later stateful steps can select). Negative cases are left exactly as
+  that would give the map none gets bounds, and one without a pool gets four candidates (so
+  that later stateful steps can select). Negative cases are left exactly as
   generated.
 * A link that gives the whole request body (``x-schemathesis: {merge_body: false}``: the
   chosen candidate to ``commit``, a committed view to ``add_observations``) makes a case
@@ -250,16 +251,40 @@ def _fresh_id(body: Any) -> None:
 def _with_gaussians(body: Any) -> None:
     """A session's creation body that gives the map no Gaussians (no upload, no depth frame,
     no bounds, or none of them asked for) gets bounds and a few: another valid body, whose
-    session later steps can select on."""
+    session later steps can select on. One that asks for a Gaussian per depth pixel
+    (``init_gaussians`` 0), whose count no schema bounds, asks for a few instead."""
     if not isinstance(body, dict) or body.get("gaussians") is not None:
         return
     frames = body.get("frames") or []
     if any(isinstance(f, dict) and f.get("depth") is not None for f in frames):
+        if body.get("init_gaussians") == 0:  # one per depth pixel: may pass max_gaussians
+            body["init_gaussians"] = 50
         return
     if body.get("bounds") is None:
         body["bounds"] = {"min": [-1.0, -1.0, -1.0], "max": [1.0, 1.0, 1.0]}
     if body.get("init_gaussians", 1) == 0:
         body["init_gaussians"] = 50
+
+
+def _with_pool(body: Any) -> None:
+    """A session's creation body without a pool gets four candidates on a ring around the
+    origin, facing it: another valid body, on whose session a selection can answer (and
+    whose chosen candidate the links carry on to a commit or an observation)."""
+    if not isinstance(body, dict) or body.get("pool") is not None:
+        return
+    poses = []
+    for k in range(4):
+        a = k * math.pi / 2
+        eye = np.array([3.0 * math.cos(a), 3.0 * math.sin(a), 0.5])
+        z = -eye / np.linalg.norm(eye)  # looks at the origin (camera +z forward)
+        x = np.cross(z, [0.0, 0.0, 1.0])
+        x /= np.linalg.norm(x)
+        y = np.cross(z, x)
+        m = np.eye(4)
+        m[:3, :3] = np.stack([x, y, z], axis=1)
+        m[:3, 3] = eye
+        poses.append({"matrix": m.tolist()})
+    body["pool"] = {"poses": poses}
 
 
 @schemathesis.hook
@@ -273,6 +298,7 @@ def map_case(ctx: Any, case: Any) -> Any:
             repair(case.body)
             if case.method.upper() == "POST" and case.path == "/v1/sessions":
                 _with_gaussians(case.body)
+                _with_pool(case.body)
                 _fresh_id(case.body)
         if isinstance(case.query, dict):
             # ?instance= places a session on a cluster's instance: only the live instances' ids

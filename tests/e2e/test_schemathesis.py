@@ -9,7 +9,8 @@ meet the rules JSON Schema cannot state). A run fails on any failure of any chec
 
 Two sizes, both in the heavy lane (``pytest -m heavy``, which ``.ci/run`` runs after the
 suite): a short run (:data:`CI`, under a minute on two cores) and the long one (:data:`FULL`:
-every phase, the coverage phase's boundary cases included). ``docs/benchmarks.md`` has the command of the long run
+every phase, the coverage phase's boundary cases included). Each is followed by a
+stateful-only run over the robot's loop (:data:`WORKFLOW`) on the same server. ``docs/benchmarks.md`` has the command of the long run
 (10,000+ cases).
 """
 
@@ -23,6 +24,7 @@ import sys
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
 from conftest import ServerProcess
@@ -32,7 +34,7 @@ HERE = Path(__file__).resolve().parent
 #: tight limits keep whatever the fuzzer creates small (and exercise the limits)
 FUZZ_ENV = {
     "AGILEGS_MAX_GAUSSIANS": "300", "AGILEGS_MAX_IMAGE_PIXELS": "1024",
-    "AGILEGS_MAX_POOL_SIZE": "16", "AGILEGS_MAX_SESSIONS": "100000", "AGILEGS_MAX_VIEWS": "8",
+    "AGILEGS_MAX_POOL_SIZE": "16", "AGILEGS_MAX_SESSIONS": "100000", "AGILEGS_MAX_VIEWS": "64",
     "AGILEGS_MAX_SHORTLIST": "8", "AGILEGS_MAX_BODY_BYTES": str(2**20),
     "AGILEGS_MAX_POLL_WAIT": "0.2",  # decisions polls and streams end quickly
 }
@@ -80,42 +82,63 @@ def stateful_toml(size: Fuzz) -> str:
             f"[phases.stateful.generation]\nmax-examples = {size.scenarios}\n")
 
 
-def fuzz(tmp_path: Path, size: Fuzz) -> None:
-    """Run schemathesis of ``size`` against a fresh server and check its reports."""
+#: the robot's loop, whose operations a second, stateful-only run follows alone: among all
+#: of them (every session operation links to every other) a select is followed by an
+#: observation too seldom for one run to reach it on every seed
+WORKFLOW = ("create_session", "set_pool", "select", "commit", "add_observations",
+            "get_information")
+
+
+def _run(srv: ServerProcess, tmp_path: Path, name: str, size: Fuzz, args: list[str],
+         timeout: float) -> tuple[dict[str, Any], Counter[tuple[str, str, int]]]:
+    """One schemathesis run of ``args`` against ``srv``: its JSON summary (checked: no
+    failure, no error, every phase it ran succeeded, no 5xx) and its (method, route, status)
+    counts."""
     exe = shutil.which("schemathesis") or str(Path(sys.executable).parent / "schemathesis")
-    srv = ServerProcess(tmp_path / "state", zenoh=False, env=FUZZ_ENV).start()
-    report = tmp_path / "report"
-    config = tmp_path / "schemathesis.toml"
+    report = tmp_path / name
+    config = tmp_path / f"{name}.toml"
     config.write_text(stateful_toml(size))
-    try:
-        env = {**os.environ, "PYTHONPATH": str(HERE), "SCHEMATHESIS_HOOKS": "schemathesis_hooks"}
-        cmd = [exe, "--config-file", str(config), "run", f"{srv.url}/openapi.json",
-               "--checks", "all", "--phases", size.phases,
-               "--max-examples", str(size.max_examples),
-               "--seed", "7", "--request-timeout", "60", "--max-response-time", "60",
-               "--workers", "1",
-               "--report", "json,har", "--report-dir", str(report)]
-        proc = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True,
-                              timeout=size.timeout)
-    finally:
-        srv.stop()
+    env = {**os.environ, "PYTHONPATH": str(HERE), "SCHEMATHESIS_HOOKS": "schemathesis_hooks"}
+    cmd = [exe, "--config-file", str(config), "run", f"{srv.url}/openapi.json",
+           "--checks", "all", "--seed", "7", "--request-timeout", "60",
+           "--max-response-time", "60", "--workers", "1",
+           "--report", "json,har", "--report-dir", str(report), *args]
+    proc = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True,
+                          timeout=timeout)
+    (report / "output.txt").write_text(proc.stdout + proc.stderr)  # the whole, for a failure
     out = proc.stdout[-6000:] + proc.stderr[-2000:]
     summary = json.loads(next(report.glob("json-*.json")).read_text())
     assert summary["failures"] == [] and summary["errors"] == [], out
     assert proc.returncode == 0, out
     phases = summary["phases"]
-    ran = [p for p in ("coverage", "fuzzing", "stateful") if p in size.phases.split(",")]
-    assert all(phases[p]["status"] == "success" for p in ran), phases
+    ran = [p for p in ("coverage", "fuzzing", "stateful") if phases[p]["status"] != "skip"]
+    assert ran and all(phases[p]["status"] == "success" for p in ran), phases
     entries = json.loads(next(report.glob("har-*.json")).read_text())["log"]["entries"]
     statuses = Counter((e["request"]["method"], _route(e["request"]["url"]),
                         e["response"]["status"]) for e in entries)
     assert not [k for k in statuses if k[2] >= 500], statuses
-    reached = {(m, r) for m, r, status in statuses if status == 200}
+    return summary, statuses
+
+
+def fuzz(tmp_path: Path, size: Fuzz) -> None:
+    """Run schemathesis of ``size`` against a fresh server, then its stateful phase over the
+    robot's loop alone, and check both reports."""
+    srv = ServerProcess(tmp_path / "state", zenoh=False, env=FUZZ_ENV).start()
+    try:
+        summary, statuses = _run(srv, tmp_path, "report", size,
+                                 ["--phases", size.phases, "--max-examples",
+                                  str(size.max_examples)], size.timeout)
+        only = [a for op in WORKFLOW for a in ("--include-operation-id", op)]
+        _, loop = _run(srv, tmp_path, "workflow", size, ["--phases", "stateful", *only],
+                       size.timeout)
+    finally:
+        srv.stop()
+    reached = {(m, r) for m, r, status in statuses + loop if status == 200}
     assert REACHED <= reached, sorted(REACHED - reached)
     assert summary["test_cases"]["generated"] >= size.min_cases, summary["test_cases"]
 
 
-@pytest.mark.timeout(300)
+@pytest.mark.timeout(600)
 @pytest.mark.heavy
 def test_schemathesis_finds_nothing(tmp_path: Path) -> None:
     fuzz(tmp_path, CI)
