@@ -25,13 +25,13 @@ from torch import Tensor
 from agilegs.config.selection import FIELD_NAMES, AnchorConfig
 from agilegs.config.types import validate_config
 
-from ..camera import Camera, Intrinsics
+from ..camera import Intrinsics
 from ..cancel import checkpoint
 from ..candidates import pool_radius, scene_center_radius
 from ..gaussians import GaussianMap
-from ..information import fisher_diag, trace_surrogate
 from ..se3 import hat, pose_distance, project_to_se3, se3_exp
 from .envelope import PoolEnvelope
+from .exact import ExactPsi, exact_psi_fn
 from .fitting import (
     directional_rates,
     information_weights,
@@ -131,7 +131,10 @@ def ascend(
     trial's step, retraction and projection, then its psi), with a cancellation check
     before each start, and finds the accepted trial, which the reference's operations then
     compute; else the trials of the pending starts are batches through ``psi_fn`` (the
-    reference, which the compiled search equals).
+    reference, which the compiled search equals). With ``compiled`` and an
+    :class:`.exact.ExactPsi` whose values run on the compiled kernels, the gradients are its
+    differences of values (:meth:`.exact.ExactPsi.twist_gradient`); else (and always with
+    ``compiled=False``) torch autograd through ``psi_fn``.
     """
     dt = starts.dtype
     tally = split if split is not None else {}
@@ -155,8 +158,15 @@ def ascend(
             out.append(psi_fn(p.unsqueeze(0))[0])
         return torch.stack(out)
 
-    def twist_grad(poses: Tensor) -> tuple[Tensor, Tensor]:
+    def twist_grad(poses: Tensor, center: Tensor) -> tuple[Tensor, Tensor]:
         t0 = time.perf_counter()
+        if differences:
+            assert isinstance(psi_fn, ExactPsi)
+            val, g = psi_fn.twist_gradient(poses, envelope=envelope, radius=radius,
+                                           center=center)
+            tally["gradient_s"] += time.perf_counter() - t0
+            tally["gradient_evaluations"] += poses.shape[0]
+            return val, g
         xi = torch.zeros(poses.shape[0], 6, dtype=dt, device=poses.device, requires_grad=True)
         moved = poses @ _exp_at_zero(xi)
         if envelope is not None:
@@ -175,6 +185,7 @@ def ascend(
     traces = [[float(v)] for v in cur]
     eta = torch.full((poses.shape[0],), config.step_size, dtype=dt, device=poses.device)
     active = torch.ones(poses.shape[0], dtype=torch.bool, device=poses.device)
+    differences = compiled and isinstance(psi_fn, ExactPsi) and psi_fn.differences(poses)
     searcher = (CompiledLineSearch(psi_fn, config, envelope, radius, dt)
                 if compiled and batched and isinstance(psi_fn, ProxyPsi)
                 and CompiledLineSearch.serves(psi_fn, poses) else None)
@@ -275,7 +286,7 @@ def ascend(
         if not bool(active.any()):
             break
         ids = torch.nonzero(active).squeeze(1)
-        _, grad = twist_grad(poses[ids])
+        _, grad = twist_grad(poses[ids], cur[ids])
         evals += len(ids)
         if searcher is not None:
             evals += compiled_line_searches(ids, grad)
@@ -511,32 +522,3 @@ def distinct_best(poses: Tensor, scores: Tensor, k: int, separation: float,
             d = pose_distance(poses[i].expand(n, 4, 4), poses, radius).tolist()
             nearest = d if not nearest else [min(a, b) for a, b in zip(nearest, d)]
     return torch.tensor(chosen, dtype=torch.long, device=poses.device)
-
-
-def exact_psi_fn(
-    gmap: GaussianMap,
-    h_acc: dict[str, Tensor],
-    intrinsics: Intrinsics,
-    config: AnchorConfig,
-    fields: tuple[str, ...],
-    *,
-    background: Tensor | None = None,
-) -> Callable[[Tensor], Tensor]:
-    """psi(T) = trace_surrogate(fisher_diag(gmap, camera(T)), h_acc) at reduced resolution
-    (``config.resolution``, default 64 pixels wide), rendered on ``background`` (the one Hhat
-    was computed with); poses [B, 4, 4] -> [B], differentiable in the poses."""
-    width = config.resolution or 64
-    height = max(1, round(width * intrinsics.height / intrinsics.width))
-    small = intrinsics.scaled(width, height)
-    h_sel = {k: h_acc[k] for k in fields}
-
-    def psi(c2w: Tensor) -> Tensor:
-        out = []
-        for pose in c2w:
-            checkpoint()
-            cam = Camera(c2w=pose, intrinsics=small)
-            fd = fisher_diag(gmap, cam, fields=fields, background=background)
-            out.append(trace_surrogate(fd, h_sel))
-        return torch.stack([torch.as_tensor(o) for o in out])
-
-    return psi
