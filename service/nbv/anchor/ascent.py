@@ -43,7 +43,7 @@ from .proxy import ProxyPsi, pick_occluders
 from .unexplored import unexplored_space
 from .visibility import OpacityMaps
 
-__all__ = ["AnchorResult", "ascend", "distinct_best", "exact_psi_fn", "optimize_anchor",
+__all__ = ["AnchorResult", "ascend", "distinct_best", "optimize_anchor",
            "optimize_anchor_validated"]
 
 
