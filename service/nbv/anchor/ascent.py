@@ -30,6 +30,7 @@ from ..cancel import checkpoint
 from ..candidates import pool_radius, scene_center_radius
 from ..gaussians import GaussianMap
 from ..se3 import hat, pose_distance, project_to_se3, se3_exp
+from .carry import fingerprint, pack, settings_key, unpack
 from .envelope import PoolEnvelope
 from .exact import ExactPsi, exact_psi_fn
 from .fitting import (
@@ -72,7 +73,9 @@ class AnchorResult:
             ``visibility`` (the opacity maps), ``rates`` (the model fitted over the acquired
             views, the importance sample), ``unexplored`` (unexplored space), ``starts``
             (the pool's psi, the starts), ``ascent``); ``ascent_split``, the ascent's
-            evaluations with and without the gradient, and their seconds (:func:`ascend`).
+            evaluations with and without the gradient, and their seconds (:func:`ascend`);
+            ``carried``, whether the proxy was the previous event's, and ``carry``, the
+            parts to keep for the next (with ``carry_over_tolerance`` > 0).
     """
 
     c2w: Tensor
@@ -311,6 +314,7 @@ def optimize_anchor(
     acquired: Tensor | None = None,
     lam: float | None = None,
     background: Tensor | None = None,
+    carried: Any = None,
 ) -> AnchorResult:
     """Find the anchor T* = argmax psi(T): :func:`optimize_anchor_validated` (same arguments)
     once ``config`` is validated (a ``ValueError`` naming the field)."""
@@ -318,6 +322,7 @@ def optimize_anchor(
         gmap, h_acc, candidates, intrinsics, config=validate_config(AnchorConfig, config),
         fields=fields, num_acquired=num_acquired, envelope=envelope, warm_c2w=warm_c2w,
         typical=typical, generator=generator, acquired=acquired, lam=lam, background=background,
+        carried=carried,
     )
 
 
@@ -337,6 +342,7 @@ def optimize_anchor_validated(
     acquired: Tensor | None = None,
     lam: float | None = None,
     background: Tensor | None = None,
+    carried: Any = None,
 ) -> AnchorResult:
     """Find the anchor T* = argmax psi(T) (see the module docstring), with ``config``
     validated by the caller (:func:`optimize_anchor` validates it).
@@ -358,6 +364,8 @@ def optimize_anchor_validated(
         lam: the lambda in ``h_acc`` (None: estimated, see ``fitting.prior_floor``).
         background: the background colour [3] Hhat's Fisher was rendered with (the exact
             psi renders with it too; None: black).
+        carried: the parts a previous event kept (its ``extra["carry"]``, through the warm
+            state), reused while ``config.carry_over_tolerance`` allows (:mod:`.carry`).
     """
     timings: dict[str, float] = {}
     last = [time.perf_counter()]
@@ -382,6 +390,90 @@ def optimize_anchor_validated(
         edge=config.edge_softness * prox_intr.width,
         generator=generator,
     )
+    now: dict[str, Any] | None = None
+    key = ""
+    reused = None
+    if config.carry_over_tolerance > 0 and typical is None:
+        now = fingerprint(gmap, h_acc, fields, radius)
+        key = settings_key(config, prox_intr, fields)
+        reused = unpack(carried, now=now, key=key, tolerance=config.carry_over_tolerance,
+                        intrinsics=prox_intr, dtype=dt)
+    if reused is not None:
+        proxy, kept = reused
+        extra.update(kept)
+        extra["carry"] = carried
+        for stage in ("visibility", "rates", "unexplored"):
+            lap(stage)
+    else:
+        proxy = _build_proxy(gmap, h_acc, prox_intr, common, config=config, fields=fields,
+                             num_acquired=num_acquired, typical=typical, generator=generator,
+                             acquired=acquired, lam=lam, extra=extra, lap=lap)
+        if now is not None:
+            extra["carry"] = pack(proxy, extra, now, key)
+    extra["carried"] = reused is not None
+    # starts: best pool candidates under the proxy (+ the previous anchor)
+    with torch.no_grad():
+        pool = candidates.detach().to(dt)
+        placed = envelope.project(pool) if envelope is not None else pool
+        # a cancellation check per chunk
+        pool_psi = proxy.values_in_parts(placed, POOL_CHUNK, checkpoint)
+    k = min(config.num_starts, pool.shape[0])
+    separation = config.mode_separation * radius
+    if config.anchors > 1:
+        best = distinct_best(pool, pool_psi, k, separation, radius)
+    else:
+        best = torch.topk(pool_psi, k).indices
+    starts = pool[best]
+    if config.warm_start and warm_c2w is not None:
+        starts = torch.cat([starts, warm_c2w.detach().to(dt).reshape(1, 4, 4)])
+    # the ascent moves on SE(3): poses within the wire's tolerance start from the nearest
+    # rigid transform
+    starts = project_to_se3(starts)
+    lap("starts")
+    split: dict[str, float] = {}
+    if config.psi == "proxy":
+        poses, vals, traces, evals = ascend(
+            proxy, starts, config=config, envelope=envelope, radius=radius, batched=True,
+            split=split,
+        )
+    else:
+        exact = exact_psi_fn(gmap, h_acc, intrinsics, config, fields, background=background)
+        poses, vals, traces, evals = ascend(
+            exact, starts, config=config, envelope=envelope, radius=radius, batched=False,
+            split=split,
+        )
+    win = int(torch.argmax(vals))
+    modes = distinct_best(poses, vals, config.anchors, separation, radius)
+    lap("ascent")
+    extra["timings_s"] = timings
+    extra["ascent_split"] = split
+    extra["start_indices"] = [int(i) for i in best]
+    extra["proxy_samples"] = int(proxy.means.shape[0])
+    return AnchorResult(
+        c2w=poses[win].detach(),
+        psi=float(vals[win]),
+        psi_trace=traces[win],
+        traces=traces,
+        starts=starts,
+        evaluations=evals,
+        pool_psi=pool_psi.detach(),
+        modes=poses[modes].detach(),
+        mode_psi=[float(vals[i]) for i in modes],
+        extra=extra,
+    )
+
+
+
+def _build_proxy(gmap: GaussianMap, h_acc: dict[str, Tensor], prox_intr: Intrinsics,
+                 common: dict[str, Any], *, config: AnchorConfig, fields: tuple[str, ...],
+                 num_acquired: int, typical: dict[str, Tensor] | None,
+                 generator: torch.Generator | None, acquired: Tensor | None,
+                 lam: float | None, extra: dict[str, Any],
+                 lap: Callable[[str], None]) -> ProxyPsi:
+    """The proxy psi of the anchor's settings: its visibility, the model's rates and the
+    unexplored space (``lap`` after each stage; diagnostics into ``extra``)."""
+    dt = gmap.dtype
+
     if config.visibility == "transmittance":
         center, r98 = scene_center_radius(gmap.means)
         common["grid"] = OpacityMaps.build(
@@ -450,57 +542,7 @@ def optimize_anchor_validated(
         extra["unexplored_fraction"] = space.unexplored_fraction
         extra["unexplored_points"] = int(space.means.shape[0])
     lap("unexplored")
-    # starts: best pool candidates under the proxy (+ the previous anchor)
-    with torch.no_grad():
-        pool = candidates.detach().to(dt)
-        placed = envelope.project(pool) if envelope is not None else pool
-        # a cancellation check per chunk
-        pool_psi = proxy.values_in_parts(placed, POOL_CHUNK, checkpoint)
-    k = min(config.num_starts, pool.shape[0])
-    separation = config.mode_separation * radius
-    if config.anchors > 1:
-        best = distinct_best(pool, pool_psi, k, separation, radius)
-    else:
-        best = torch.topk(pool_psi, k).indices
-    starts = pool[best]
-    if config.warm_start and warm_c2w is not None:
-        starts = torch.cat([starts, warm_c2w.detach().to(dt).reshape(1, 4, 4)])
-    # the ascent moves on SE(3): poses within the wire's tolerance start from the nearest
-    # rigid transform
-    starts = project_to_se3(starts)
-    lap("starts")
-    split: dict[str, float] = {}
-    if config.psi == "proxy":
-        poses, vals, traces, evals = ascend(
-            proxy, starts, config=config, envelope=envelope, radius=radius, batched=True,
-            split=split,
-        )
-    else:
-        exact = exact_psi_fn(gmap, h_acc, intrinsics, config, fields, background=background)
-        poses, vals, traces, evals = ascend(
-            exact, starts, config=config, envelope=envelope, radius=radius, batched=False,
-            split=split,
-        )
-    win = int(torch.argmax(vals))
-    modes = distinct_best(poses, vals, config.anchors, separation, radius)
-    lap("ascent")
-    extra["timings_s"] = timings
-    extra["ascent_split"] = split
-    extra["start_indices"] = [int(i) for i in best]
-    extra["proxy_samples"] = int(proxy.means.shape[0])
-    return AnchorResult(
-        c2w=poses[win].detach(),
-        psi=float(vals[win]),
-        psi_trace=traces[win],
-        traces=traces,
-        starts=starts,
-        evaluations=evals,
-        pool_psi=pool_psi.detach(),
-        modes=poses[modes].detach(),
-        mode_psi=[float(vals[i]) for i in modes],
-        extra=extra,
-    )
-
+    return proxy
 
 def distinct_best(poses: Tensor, scores: Tensor, k: int, separation: float,
                   radius: float) -> Tensor:
