@@ -1,6 +1,6 @@
 """Per-event stage times of AGILE-GS with and without the anchor's parts carried over.
 
-Ran at the commit that added ``AnchorConfig.carry_over_tolerance``, from the repository root:
+Ran at commit 278cf8c (which added ``AnchorConfig.carry_over_tolerance``), from the root:
 ``python carry_over.py``. ``bench latency``'s setup (the plant, 20k Gaussians, 128², pool 200,
 5 acquired views, one thread); the events acquire the full-pool EIG's picks of that benchmark
 (185, 168, 96), then three more selections repeat the last event without an acquisition.
