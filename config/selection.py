@@ -222,6 +222,13 @@ class AnchorConfig:
     edge_softness: Softness = Field(
         default=0.05, description="width of the proxy's sigmoid image-bound test, as a "
         "fraction of the image width")
+    carry_over_tolerance: UnitFloat = Field(
+        default=0.0,
+        description="reuse the previous event's pose-independent parts of the anchor (the "
+        "proxy: its sample, rates, opacity maps and unexplored points; kept in the warm "
+        "state) while the map's per-field sums of |parameter|, Hhat's per-field sums and "
+        "the pool's radius are within this fraction of their values when the parts were "
+        "built, with the same settings (0: rebuilt every event)")
 
 
 @dataclass(config=SETTINGS_CONFIG)

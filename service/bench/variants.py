@@ -114,6 +114,9 @@ OPTIONS: dict[str, tuple[str, Callable[[SelectConfig], SelectConfig]]] = {
                             "surfaces (what its Gaussians enclose on all six axis directions)",
                             _anchor(unexplored_inside=False)),
     "no_unexplored": ("the proxy counts only the map's Gaussians", _anchor(unexplored=False)),
+    "carry_over": ("the anchor's pose-independent parts (the proxy) reused from the last event "
+                   "while the map's and Hhat's per-field sums are within 20% of theirs at the "
+                   "build", _anchor(carry_over_tolerance=0.2)),
     "modes": ("three anchors from distinct modes of psi (starts spread alike), the shortlist "
               "drawn across their support samples", _anchor(anchors=3)),
     "one_anchor": ("one anchor, the shortlist drawn around it", _anchor(anchors=1)),

@@ -279,7 +279,7 @@ def test_typical_fisher_and_rates_use_the_given_lambda(scene) -> None:
 
 
 def test_exact_psi_renders_on_the_given_background(scene) -> None:
-    from agilegs.service.nbv.anchor.ascent import exact_psi_fn
+    from agilegs.service.nbv.anchor.exact import exact_psi_fn
     from agilegs.service.nbv.information import trace_surrogate
 
     gmap, pool, _, h = scene

@@ -8,8 +8,10 @@ pool's envelope (:mod:`.envelope`). Two psi behind one option (``AnchorConfig.ps
   in-frustum and visibility terms at T, with an observation model fitted to Hhat over the
   acquired views (:mod:`.fitting`).
 - ``"exact"``: ``trace_surrogate(fisher_diag(gmap, camera(T)), h_acc)`` through the rasterizer
-  at reduced resolution, differentiated by autograd w.r.t. the twist: faithful, but seconds per
-  step on a CPU and rough (the rasterizer's hard cut-offs).
+  at reduced resolution (:mod:`.exact`): its values on the compiled Fisher, its twist gradient
+  by forward differences of them (six values a gradient); on the torch path, autograd w.r.t.
+  the twist. Faithful, but a Fisher pass per value and rough (the rasterizer's hard
+  cut-offs).
 
 The settings are :class:`~agilegs.config.selection.AnchorConfig`.
 """

@@ -25,13 +25,14 @@ from torch import Tensor
 from agilegs.config.selection import FIELD_NAMES, AnchorConfig
 from agilegs.config.types import validate_config
 
-from ..camera import Camera, Intrinsics
+from ..camera import Intrinsics
 from ..cancel import checkpoint
 from ..candidates import pool_radius, scene_center_radius
 from ..gaussians import GaussianMap
-from ..information import fisher_diag, trace_surrogate
 from ..se3 import hat, pose_distance, project_to_se3, se3_exp
+from .carry import fingerprint, pack, settings_key, unpack
 from .envelope import PoolEnvelope
+from .exact import ExactPsi, exact_psi_fn
 from .fitting import (
     directional_rates,
     information_weights,
@@ -43,7 +44,7 @@ from .proxy import ProxyPsi, pick_occluders
 from .unexplored import unexplored_space
 from .visibility import OpacityMaps
 
-__all__ = ["AnchorResult", "ascend", "distinct_best", "exact_psi_fn", "optimize_anchor",
+__all__ = ["AnchorResult", "ascend", "distinct_best", "optimize_anchor",
            "optimize_anchor_validated"]
 
 
@@ -72,7 +73,9 @@ class AnchorResult:
             ``visibility`` (the opacity maps), ``rates`` (the model fitted over the acquired
             views, the importance sample), ``unexplored`` (unexplored space), ``starts``
             (the pool's psi, the starts), ``ascent``); ``ascent_split``, the ascent's
-            evaluations with and without the gradient, and their seconds (:func:`ascend`).
+            evaluations with and without the gradient, and their seconds (:func:`ascend`);
+            ``carried``, whether the proxy was the previous event's, and ``carry``, the
+            parts to keep for the next (with ``carry_over_tolerance`` > 0).
     """
 
     c2w: Tensor
@@ -131,7 +134,10 @@ def ascend(
     trial's step, retraction and projection, then its psi), with a cancellation check
     before each start, and finds the accepted trial, which the reference's operations then
     compute; else the trials of the pending starts are batches through ``psi_fn`` (the
-    reference, which the compiled search equals).
+    reference, which the compiled search equals). With ``compiled`` and an
+    :class:`.exact.ExactPsi` whose values run on the compiled kernels, the gradients are its
+    differences of values (:meth:`.exact.ExactPsi.twist_gradient`); else (and always with
+    ``compiled=False``) torch autograd through ``psi_fn``.
     """
     dt = starts.dtype
     tally = split if split is not None else {}
@@ -155,8 +161,15 @@ def ascend(
             out.append(psi_fn(p.unsqueeze(0))[0])
         return torch.stack(out)
 
-    def twist_grad(poses: Tensor) -> tuple[Tensor, Tensor]:
+    def twist_grad(poses: Tensor, center: Tensor) -> tuple[Tensor, Tensor]:
         t0 = time.perf_counter()
+        if differences:
+            assert isinstance(psi_fn, ExactPsi)
+            val, g = psi_fn.twist_gradient(poses, envelope=envelope, radius=radius,
+                                           center=center)
+            tally["gradient_s"] += time.perf_counter() - t0
+            tally["gradient_evaluations"] += poses.shape[0]
+            return val, g
         xi = torch.zeros(poses.shape[0], 6, dtype=dt, device=poses.device, requires_grad=True)
         moved = poses @ _exp_at_zero(xi)
         if envelope is not None:
@@ -175,6 +188,7 @@ def ascend(
     traces = [[float(v)] for v in cur]
     eta = torch.full((poses.shape[0],), config.step_size, dtype=dt, device=poses.device)
     active = torch.ones(poses.shape[0], dtype=torch.bool, device=poses.device)
+    differences = compiled and isinstance(psi_fn, ExactPsi) and psi_fn.differences(poses)
     searcher = (CompiledLineSearch(psi_fn, config, envelope, radius, dt)
                 if compiled and batched and isinstance(psi_fn, ProxyPsi)
                 and CompiledLineSearch.serves(psi_fn, poses) else None)
@@ -275,7 +289,7 @@ def ascend(
         if not bool(active.any()):
             break
         ids = torch.nonzero(active).squeeze(1)
-        _, grad = twist_grad(poses[ids])
+        _, grad = twist_grad(poses[ids], cur[ids])
         evals += len(ids)
         if searcher is not None:
             evals += compiled_line_searches(ids, grad)
@@ -300,6 +314,7 @@ def optimize_anchor(
     acquired: Tensor | None = None,
     lam: float | None = None,
     background: Tensor | None = None,
+    carried: Any = None,
 ) -> AnchorResult:
     """Find the anchor T* = argmax psi(T): :func:`optimize_anchor_validated` (same arguments)
     once ``config`` is validated (a ``ValueError`` naming the field)."""
@@ -307,6 +322,7 @@ def optimize_anchor(
         gmap, h_acc, candidates, intrinsics, config=validate_config(AnchorConfig, config),
         fields=fields, num_acquired=num_acquired, envelope=envelope, warm_c2w=warm_c2w,
         typical=typical, generator=generator, acquired=acquired, lam=lam, background=background,
+        carried=carried,
     )
 
 
@@ -326,6 +342,7 @@ def optimize_anchor_validated(
     acquired: Tensor | None = None,
     lam: float | None = None,
     background: Tensor | None = None,
+    carried: Any = None,
 ) -> AnchorResult:
     """Find the anchor T* = argmax psi(T) (see the module docstring), with ``config``
     validated by the caller (:func:`optimize_anchor` validates it).
@@ -347,6 +364,8 @@ def optimize_anchor_validated(
         lam: the lambda in ``h_acc`` (None: estimated, see ``fitting.prior_floor``).
         background: the background colour [3] Hhat's Fisher was rendered with (the exact
             psi renders with it too; None: black).
+        carried: the parts a previous event kept (its ``extra["carry"]``, through the warm
+            state), reused while ``config.carry_over_tolerance`` allows (:mod:`.carry`).
     """
     timings: dict[str, float] = {}
     last = [time.perf_counter()]
@@ -371,6 +390,90 @@ def optimize_anchor_validated(
         edge=config.edge_softness * prox_intr.width,
         generator=generator,
     )
+    now: dict[str, Any] | None = None
+    key = ""
+    reused = None
+    if config.carry_over_tolerance > 0 and typical is None:
+        now = fingerprint(gmap, h_acc, fields, radius)
+        key = settings_key(config, prox_intr, fields)
+        reused = unpack(carried, now=now, key=key, tolerance=config.carry_over_tolerance,
+                        intrinsics=prox_intr, dtype=dt)
+    if reused is not None:
+        proxy, kept = reused
+        extra.update(kept)
+        extra["carry"] = carried
+        for stage in ("visibility", "rates", "unexplored"):
+            lap(stage)
+    else:
+        proxy = _build_proxy(gmap, h_acc, prox_intr, common, config=config, fields=fields,
+                             num_acquired=num_acquired, typical=typical, generator=generator,
+                             acquired=acquired, lam=lam, extra=extra, lap=lap)
+        if now is not None:
+            extra["carry"] = pack(proxy, extra, now, key)
+    extra["carried"] = reused is not None
+    # starts: best pool candidates under the proxy (+ the previous anchor)
+    with torch.no_grad():
+        pool = candidates.detach().to(dt)
+        placed = envelope.project(pool) if envelope is not None else pool
+        # a cancellation check per chunk
+        pool_psi = proxy.values_in_parts(placed, POOL_CHUNK, checkpoint)
+    k = min(config.num_starts, pool.shape[0])
+    separation = config.mode_separation * radius
+    if config.anchors > 1:
+        best = distinct_best(pool, pool_psi, k, separation, radius)
+    else:
+        best = torch.topk(pool_psi, k).indices
+    starts = pool[best]
+    if config.warm_start and warm_c2w is not None:
+        starts = torch.cat([starts, warm_c2w.detach().to(dt).reshape(1, 4, 4)])
+    # the ascent moves on SE(3): poses within the wire's tolerance start from the nearest
+    # rigid transform
+    starts = project_to_se3(starts)
+    lap("starts")
+    split: dict[str, float] = {}
+    if config.psi == "proxy":
+        poses, vals, traces, evals = ascend(
+            proxy, starts, config=config, envelope=envelope, radius=radius, batched=True,
+            split=split,
+        )
+    else:
+        exact = exact_psi_fn(gmap, h_acc, intrinsics, config, fields, background=background)
+        poses, vals, traces, evals = ascend(
+            exact, starts, config=config, envelope=envelope, radius=radius, batched=False,
+            split=split,
+        )
+    win = int(torch.argmax(vals))
+    modes = distinct_best(poses, vals, config.anchors, separation, radius)
+    lap("ascent")
+    extra["timings_s"] = timings
+    extra["ascent_split"] = split
+    extra["start_indices"] = [int(i) for i in best]
+    extra["proxy_samples"] = int(proxy.means.shape[0])
+    return AnchorResult(
+        c2w=poses[win].detach(),
+        psi=float(vals[win]),
+        psi_trace=traces[win],
+        traces=traces,
+        starts=starts,
+        evaluations=evals,
+        pool_psi=pool_psi.detach(),
+        modes=poses[modes].detach(),
+        mode_psi=[float(vals[i]) for i in modes],
+        extra=extra,
+    )
+
+
+
+def _build_proxy(gmap: GaussianMap, h_acc: dict[str, Tensor], prox_intr: Intrinsics,
+                 common: dict[str, Any], *, config: AnchorConfig, fields: tuple[str, ...],
+                 num_acquired: int, typical: dict[str, Tensor] | None,
+                 generator: torch.Generator | None, acquired: Tensor | None,
+                 lam: float | None, extra: dict[str, Any],
+                 lap: Callable[[str], None]) -> ProxyPsi:
+    """The proxy psi of the anchor's settings: its visibility, the model's rates and the
+    unexplored space (``lap`` after each stage; diagnostics into ``extra``)."""
+    dt = gmap.dtype
+
     if config.visibility == "transmittance":
         center, r98 = scene_center_radius(gmap.means)
         common["grid"] = OpacityMaps.build(
@@ -439,57 +542,7 @@ def optimize_anchor_validated(
         extra["unexplored_fraction"] = space.unexplored_fraction
         extra["unexplored_points"] = int(space.means.shape[0])
     lap("unexplored")
-    # starts: best pool candidates under the proxy (+ the previous anchor)
-    with torch.no_grad():
-        pool = candidates.detach().to(dt)
-        placed = envelope.project(pool) if envelope is not None else pool
-        # a cancellation check per chunk
-        pool_psi = proxy.values_in_parts(placed, POOL_CHUNK, checkpoint)
-    k = min(config.num_starts, pool.shape[0])
-    separation = config.mode_separation * radius
-    if config.anchors > 1:
-        best = distinct_best(pool, pool_psi, k, separation, radius)
-    else:
-        best = torch.topk(pool_psi, k).indices
-    starts = pool[best]
-    if config.warm_start and warm_c2w is not None:
-        starts = torch.cat([starts, warm_c2w.detach().to(dt).reshape(1, 4, 4)])
-    # the ascent moves on SE(3): poses within the wire's tolerance start from the nearest
-    # rigid transform
-    starts = project_to_se3(starts)
-    lap("starts")
-    split: dict[str, float] = {}
-    if config.psi == "proxy":
-        poses, vals, traces, evals = ascend(
-            proxy, starts, config=config, envelope=envelope, radius=radius, batched=True,
-            split=split,
-        )
-    else:
-        exact = exact_psi_fn(gmap, h_acc, intrinsics, config, fields, background=background)
-        poses, vals, traces, evals = ascend(
-            exact, starts, config=config, envelope=envelope, radius=radius, batched=False,
-            split=split,
-        )
-    win = int(torch.argmax(vals))
-    modes = distinct_best(poses, vals, config.anchors, separation, radius)
-    lap("ascent")
-    extra["timings_s"] = timings
-    extra["ascent_split"] = split
-    extra["start_indices"] = [int(i) for i in best]
-    extra["proxy_samples"] = int(proxy.means.shape[0])
-    return AnchorResult(
-        c2w=poses[win].detach(),
-        psi=float(vals[win]),
-        psi_trace=traces[win],
-        traces=traces,
-        starts=starts,
-        evaluations=evals,
-        pool_psi=pool_psi.detach(),
-        modes=poses[modes].detach(),
-        mode_psi=[float(vals[i]) for i in modes],
-        extra=extra,
-    )
-
+    return proxy
 
 def distinct_best(poses: Tensor, scores: Tensor, k: int, separation: float,
                   radius: float) -> Tensor:
@@ -511,32 +564,3 @@ def distinct_best(poses: Tensor, scores: Tensor, k: int, separation: float,
             d = pose_distance(poses[i].expand(n, 4, 4), poses, radius).tolist()
             nearest = d if not nearest else [min(a, b) for a, b in zip(nearest, d)]
     return torch.tensor(chosen, dtype=torch.long, device=poses.device)
-
-
-def exact_psi_fn(
-    gmap: GaussianMap,
-    h_acc: dict[str, Tensor],
-    intrinsics: Intrinsics,
-    config: AnchorConfig,
-    fields: tuple[str, ...],
-    *,
-    background: Tensor | None = None,
-) -> Callable[[Tensor], Tensor]:
-    """psi(T) = trace_surrogate(fisher_diag(gmap, camera(T)), h_acc) at reduced resolution
-    (``config.resolution``, default 64 pixels wide), rendered on ``background`` (the one Hhat
-    was computed with); poses [B, 4, 4] -> [B], differentiable in the poses."""
-    width = config.resolution or 64
-    height = max(1, round(width * intrinsics.height / intrinsics.width))
-    small = intrinsics.scaled(width, height)
-    h_sel = {k: h_acc[k] for k in fields}
-
-    def psi(c2w: Tensor) -> Tensor:
-        out = []
-        for pose in c2w:
-            checkpoint()
-            cam = Camera(c2w=pose, intrinsics=small)
-            fd = fisher_diag(gmap, cam, fields=fields, background=background)
-            out.append(trace_surrogate(fd, h_sel))
-        return torch.stack([torch.as_tensor(o) for o in out])
-
-    return psi

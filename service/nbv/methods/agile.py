@@ -88,8 +88,11 @@ def _anchor(ctx: SelectionContext, lat: dict[str, float], out: dict[str, Any]) -
             acquired=acquired.to(dt) if acquired is not None else None,
             lam=ctx.lam,
             background=ctx.background,
+            carried=ctx.state.get("anchor_parts"),
         )
         out["state"]["anchor_c2w"] = res.c2w.clone()
+        if "carry" in res.extra:
+            out["state"]["anchor_parts"] = res.extra.pop("carry")
     # the anchor's stages, apart: "anchor.<stage>" (within "anchor", not added to it)
     for stage, sec in res.extra.get("timings_s", {}).items():
         lat[f"anchor.{stage}"] = sec * 1e3
@@ -120,6 +123,8 @@ def _anchor(ctx: SelectionContext, lat: dict[str, float], out: dict[str, Any]) -
         anchor_starts=[ctx.eligible[i] for i in res.extra.get("start_indices", [])],
         proxy_samples=res.extra.get("proxy_samples"),
     )
+    if cfg.anchor.carry_over_tolerance > 0:
+        out["details"]["anchor_carried"] = bool(res.extra.get("carried"))
     if res.pool_psi is not None:
         out["details"]["pool_proxy_psi"] = {
             v: float(p) for v, p in zip(ctx.eligible, res.pool_psi)
