@@ -21,8 +21,12 @@ Starts ``agilegs serve`` in a subprocess on free loopback ports (or uses ``--url
    same state) while ``--flood-clients`` clients flood another session with
    ``--flood-method`` selects (each sent again as soon as it is answered or refused):
    the quiet session's p50 and p99 round trips, unloaded and loaded, and their ratios.
+4. **Deadline.** Every selection method, ``--deadline-requests`` times after ``--warmup``
+   untimed ones, over HTTP JSON with
+   ``X-Deadline-Ms: --deadline-ms``: the answers' statuses and how long after the deadline
+   the client had its answer (the overshoot: round trip - deadline), p50 and max.
 
-``--phases`` picks which run (default all three).
+``--phases`` picks which run (default all four).
 
 With ``--instance ID`` (and ``--url`` / ``--zenoh`` of another instance of the same cluster)
 the sessions are created on instance ``ID``: every request then goes through the instance the
@@ -80,12 +84,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     a("--load-method", default="agile", help="selection method of the load phase")
     a("--instance", help="create the sessions on this instance of a cluster (requests to "
       "--url's instance are then forwarded to it)")
-    a("--phases", default="overhead,load,neighbour",
-      help="which phases run: overhead, load, neighbour (comma-separated)")
+    a("--phases", default="overhead,load,neighbour,deadline",
+      help="which phases run: overhead, load, neighbour, deadline (comma-separated)")
     a("--flood-clients", type=int, default=8, help="clients flooding the noisy session")
     a("--flood-method", default="full_eig", help="selection method of the flood")
     a("--neighbour-selections", type=int, default=30,
       help="select + commit of the quiet session, unloaded and loaded")
+    a("--deadline-ms", type=float, default=50.0,
+      help="the deadline phase's X-Deadline-Ms (milliseconds)")
+    a("--deadline-requests", type=int, default=5,
+      help="selections per method in the deadline phase")
     a("--json", dest="json_out", help="also write the results here")
 
 
@@ -182,7 +190,7 @@ def run(args: argparse.Namespace) -> int:
                                            credentials=args.zenoh_credentials)
         c = clients["http-msgpack"]
         phases = {p.strip() for p in args.phases.split(",") if p.strip()}
-        unknown = phases - {"overhead", "load", "neighbour"}
+        unknown = phases - {"overhead", "load", "neighbour", "deadline"}
         if unknown:
             raise SystemExit(f"--phases: unknown phase(s) {', '.join(sorted(unknown))}")
         f = args.size / 2 / np.tan(np.radians(25))
@@ -210,6 +218,8 @@ def run(args: argparse.Namespace) -> int:
                         return cl.select(sid, method=args.method, pool=poses)
                 results["overhead"][f"{name}/{shape}"] = _time_selects(
                     select, args.requests, args.warmup)
+        if "deadline" in phases:
+            results["deadline"] = _deadline(url, args, sid)
         c.delete_session(sid)
         if "load" in phases:
             results["load"] = _load(url, args, intr, scene, poses)
@@ -257,6 +267,32 @@ class _Ros2Client:
 
     def close(self) -> None:
         self.robot.close()
+
+
+def _deadline(url: str, args: argparse.Namespace, sid: str) -> dict[str, Any]:
+    """Each method's selections (no commit) with ``X-Deadline-Ms``: statuses (str -> count)
+    and the overshoot past the deadline (ms, p50 and max) per method."""
+    import httpx
+
+    headers = {"x-deadline-ms": f"{args.deadline_ms:g}"}
+    if args.token:
+        headers["authorization"] = f"Bearer {args.token}"
+    out: dict[str, Any] = {"deadline_ms": args.deadline_ms, "methods": {}}
+    with httpx.Client(base_url=url, timeout=600.0, headers=headers) as h:
+        for method in METHODS:
+            log.info("deadline: %s", method)
+            statuses: dict[str, int] = {}
+            over: list[float] = []
+            for _ in range(args.warmup):  # a process's first calls compile or load kernels
+                h.post(f"/v1/sessions/{sid}/select", json={"method": method})
+            for _ in range(args.deadline_requests):
+                t = time.perf_counter()
+                r = h.post(f"/v1/sessions/{sid}/select", json={"method": method})
+                over.append((time.perf_counter() - t) * 1e3 - args.deadline_ms)
+                statuses[str(r.status_code)] = statuses.get(str(r.status_code), 0) + 1
+            out["methods"][method] = {"statuses": statuses, "overshoot_ms": {
+                "p50": statistics.median(over), "max": max(over)}}
+    return out
 
 
 def _load(url: str, args: argparse.Namespace, intr: dict[str, Any], scene: dict[str, Any],
@@ -399,4 +435,13 @@ def _print(results: dict[str, Any]) -> None:
         out.write(f"{'loaded':<12}{b['p50']:>9.1f} ms{b['p99']:>9.1f} ms\n")
         out.write(f"{'ratio':<12}{nb['p50_ratio']:>11.2f}x{nb['p99_ratio']:>11.2f}x"
                   f"   ({nb['errors']} errors)\n")
+    dl = results.get("deadline")
+    if dl is not None:
+        out.write(f"\ndeadline: X-Deadline-Ms {dl['deadline_ms']:g}, answered after the "
+                  f"deadline by (overshoot)\n")
+        out.write(f"{'method':<12}{'statuses':<20}{'p50':>10}{'max':>12}\n")
+        for method, m in dl["methods"].items():
+            st = ", ".join(f"{k} x{v}" for k, v in sorted(m["statuses"].items()))
+            o = m["overshoot_ms"]
+            out.write(f"{method:<12}{st:<20}{o['p50']:>7.1f} ms{o['max']:>9.1f} ms\n")
     out.flush()

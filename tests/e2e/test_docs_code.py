@@ -155,6 +155,10 @@ HOW: dict[tuple[str, str], How] = {
         How("parse", "a benchmark of minutes (its small run: tests/e2e/test_bench_service.py)"),
     ("docs/benchmarks.md", "OMP_NUM_THREADS=1 agilegs bench service --phases neighbour"):
         How("parse", "a benchmark of minutes (its small run: tests/e2e/test_bench_service.py)"),
+    ("docs/benchmarks.md", "OMP_NUM_THREADS=1 agilegs bench service --phases deadline --scene "
+     "$S/plant/plant.splat \\"):
+        How("parse", "a benchmark of minutes (its small run: tests/e2e/test_bench_service.py)",
+            env=(("S", "service/data/scenes"),)),
     ("docs/benchmarks.md", "OMP_NUM_THREADS=1 agilegs bench bigmap --json bigmap.json     "
      "# default limits"):
         How("parse", "a million-Gaussian server session, minutes and GiBs (its small run: "
