@@ -5,39 +5,18 @@ from __future__ import annotations
 
 import pytest
 import torch
+from test_anchor import INTR, tiny_scene
 
 from agilegs.config.selection import FIELD_NAMES, AnchorConfig
 from agilegs.service.nbv.anchor import exact
 from agilegs.service.nbv.anchor.ascent import _exp_at_zero, ascend, optimize_anchor
 from agilegs.service.nbv.anchor.envelope import PoolEnvelope
 from agilegs.service.nbv.anchor.exact import ExactPsi
-from agilegs.service.nbv.camera import Camera, Intrinsics
-from agilegs.service.nbv.candidates import capture_pool
-from agilegs.service.nbv.gaussians import GaussianMap
-from agilegs.service.nbv.information import accumulate_information, fisher_diag, init_information
 from agilegs.service.nbv.kernels.backend import kernels_available, set_default_backend
 
 pytestmark = pytest.mark.skipif(not kernels_available(), reason="numba kernels unavailable")
 
 POSES = [1, 3, 5, 12, 17, 20]
-INTR = Intrinsics.from_fov(55.0, 32, 32)
-
-
-def tiny_scene(n: int = 250, seed: int = 0):
-    """A blob of ``n`` Gaussians (float64), a 24-camera capture pool and Hhat from 3 of its
-    views (as ``tests/nbv/test_anchor.py``'s)."""
-    g = torch.Generator().manual_seed(seed)
-    pts = 0.3 * torch.randn(n, 3, generator=g, dtype=torch.float64)
-    pts[:, 0] *= 1.5
-    cols = torch.rand(n, 3, generator=g, dtype=torch.float64)
-    gmap = GaussianMap.from_points(pts, cols, scale=0.05, opacity=0.7)
-    pool = capture_pool([0.0, 0.0, 0.0], 2.0, 24, seed=seed, dtype=torch.float64)
-    acq = pool[[0, 8, 9]]
-    h = init_information(gmap, 1e-6)
-    with torch.no_grad():
-        for p in acq:
-            h = accumulate_information(h, fisher_diag(gmap, Camera(c2w=p, intrinsics=INTR)))
-    return gmap, pool, acq, h
 
 
 @pytest.fixture(scope="module")
