@@ -167,15 +167,14 @@ def ascend(
             assert isinstance(psi_fn, ExactPsi)
             val, g = psi_fn.twist_gradient(poses, envelope=envelope, radius=radius,
                                            center=center)
-            tally["gradient_s"] += time.perf_counter() - t0
-            tally["gradient_evaluations"] += poses.shape[0]
-            return val, g
-        xi = torch.zeros(poses.shape[0], 6, dtype=dt, device=poses.device, requires_grad=True)
-        moved = poses @ _exp_at_zero(xi)
-        if envelope is not None:
-            moved = envelope.project(moved)
-        val = evaluate(moved)
-        (g,) = torch.autograd.grad(val.sum(), xi)
+        else:
+            xi = torch.zeros(poses.shape[0], 6, dtype=dt, device=poses.device,
+                             requires_grad=True)
+            moved = poses @ _exp_at_zero(xi)
+            if envelope is not None:
+                moved = envelope.project(moved)
+            val = evaluate(moved)
+            (g,) = torch.autograd.grad(val.sum(), xi)
         tally["gradient_s"] += time.perf_counter() - t0
         tally["gradient_evaluations"] += poses.shape[0]
         return val.detach(), g.detach()
@@ -463,7 +462,6 @@ def optimize_anchor_validated(
     )
 
 
-
 def _build_proxy(gmap: GaussianMap, h_acc: dict[str, Tensor], prox_intr: Intrinsics,
                  common: dict[str, Any], *, config: AnchorConfig, fields: tuple[str, ...],
                  num_acquired: int, typical: dict[str, Tensor] | None,
@@ -543,6 +541,7 @@ def _build_proxy(gmap: GaussianMap, h_acc: dict[str, Tensor], prox_intr: Intrins
         extra["unexplored_points"] = int(space.means.shape[0])
     lap("unexplored")
     return proxy
+
 
 def distinct_best(poses: Tensor, scores: Tensor, k: int, separation: float,
                   radius: float) -> Tensor:
