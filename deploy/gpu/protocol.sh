@@ -1,13 +1,15 @@
 #!/usr/bin/env bash
 # The paper's protocol on one NVIDIA GPU, in one go (docs/gpu.md):
 #
-#   1. gsplat's CUDA extension built (once per machine, in the background), then the CUDA tests;
-#   2. bench latency on the GPU at 100k and 1M Gaussians (512x512, a pool of 100): every
-#      method's selection time and its ratios to the full-pool EIG and FisherRF;
-#   3. bench render on the GPU at 100k and 1M Gaussians, 512x512 and 1024x768: this project's
-#      rasterizer and Fisher, gsplat, a mapper training step against gsplat's own step;
-#   4. bench run --profile paper, shortened (SHORT below), on a capture and an object, every
-#      method and the @paper variants, one seed, one process per run, then the tables.
+#   1. gsplat's CUDA extension built (once per machine, in the background);
+#   2. the Fisher's Triton kernel tested against the torch reference on the GPU;
+#   3. bench latency at the first size (every method's selection time, its ratios to the
+#      full-pool EIG and FisherRF, and the slow @paper variants) while gsplat builds;
+#   4. bench run --profile paper, shortened (SHORT below), on an object and a capture, every
+#      method and the @paper variants, one seed, one process per run, then the tables;
+#   5. alone on the GPU: bench latency at the other sizes, the CUDA tests, and bench render at
+#      100k and 1M Gaussians, 512x512 and 1024x768 (this project's rasterizer and Fisher, the
+#      Fisher's torch reference, gsplat, a mapper training step against gsplat's own step).
 #
 # Needs python3 with a CUDA torch and this package (pip install -e '.[service,cuda]') and a CUDA
 # toolkit for gsplat's build. Everything lands in $OUT (default gpu-out); each step has a time
@@ -60,20 +62,29 @@ fi
 ) &
 BUILD=$!
 
-# 2. selection latency (no gsplat involved): the fast methods at every size, the slow variants
-#    at the first
-first=1
-for n in $LATENCY_SIZES; do
-  methods=$LATENCY_METHODS
-  [ $first = 1 ] && [ -n "$LATENCY_SLOW" ] && methods="$methods,$LATENCY_SLOW"
-  timeout $(( $(left) / 4 )) $AG bench latency --device "$DEVICE" $LATENCY --max-gaussians "$n" \
-    --methods "$methods" --json "$OUT/latency-$n.json" >"$OUT/logs/latency-$n.txt" 2>&1
-  say "bench latency $n: exit $?"
-  first=0
-done
+# 2. the Fisher's Triton kernel against the torch reference on this GPU, first: where it fails,
+#    everything after runs on the pure-torch Fisher (AGILEGS_KERNELS=torch) and says so
+if [ "$DEVICE" != cpu ]; then
+  timeout 240 "$PY" -m pytest -q --noconftest -p no:cacheprovider -m cuda -rA \
+    tests/nbv/test_gpu_kernel.py >"$OUT/logs/tests-triton.txt" 2>&1
+  rc=$?
+  say "Triton Fisher tests: exit $rc ($(tail -1 "$OUT/logs/tests-triton.txt"))"
+  if [ $rc != 0 ]; then export AGILEGS_KERNELS=torch; say "the Fisher runs in pure torch"; fi
+fi
 
-# wait for the build, at most until a third of the time is left
-while kill -0 $BUILD 2>/dev/null && [ "$(left)" -gt $((DEADLINE / 3)) ]; do sleep 2; done
+# 3. selection latency at the first size while gsplat builds (no gsplat involved), with the slow
+#    variants
+first_n=${LATENCY_SIZES%% *}
+latency() {  # n methods limit
+  timeout "$3" $AG bench latency --device "$DEVICE" $LATENCY --max-gaussians "$1" \
+    --methods "$2" --json "$OUT/latency-$1.json" >"$OUT/logs/latency-$1.txt" 2>&1
+  say "bench latency $1: exit $?"
+}
+latency "$first_n" "$LATENCY_METHODS${LATENCY_SLOW:+,$LATENCY_SLOW}" $((DEADLINE / 6))
+
+# wait for the build, at most until LATE seconds
+LATE=${LATE:-$((DEADLINE / 4))}
+while kill -0 $BUILD 2>/dev/null && [ "$(elapsed)" -lt "$LATE" ]; do sleep 2; done
 kill $BUILD 2>/dev/null && say "gsplat build stopped (too slow)"
 RAST=auto
 if grep -q "exit 0" "$OUT/logs/gsplat-build.txt"; then
@@ -84,25 +95,10 @@ else
 fi
 say "$(tail -1 "$OUT/logs/gsplat-build.txt")"
 
-if [ "$DEVICE" != cpu ]; then
-  # the maths' CUDA tests need no server; the server's (a session on the GPU) need the whole
-  # service extra, as a full install has it
-  timeout 150 "$PY" -m pytest -q --noconftest -p no:cacheprovider -m cuda -rA -s \
-    tests/nbv/test_cuda.py tests/nbv/test_se3.py tests/mapper/test_gsplat_render.py \
-    >"$OUT/logs/tests.txt" 2>&1
-  say "CUDA tests: exit $? ($(tail -1 "$OUT/logs/tests.txt"))"
-  timeout 120 "$PY" -m pytest -q -p no:cacheprovider -m cuda -rA tests/sessions/test_device.py \
-    >"$OUT/logs/tests-server.txt" 2>&1
-  say "CUDA server tests: exit $? ($(tail -1 "$OUT/logs/tests-server.txt"))"
-fi
-
-# 3. rasterizers, Fisher, training step
-timeout $(( $(left) / 3 )) $AG bench render --device "$DEVICE" $RENDER --scene "$OBJECT_SPLAT" \
-  --json "$OUT/render.json" >"$OUT/logs/render.txt" 2>&1
-say "bench render: exit $?"
-
-# 4. the protocol: one process per (scene, method), all at once on the one GPU
-RUN_S=$(( $(left) - 40 ))
+# 4. the protocol: one process per (scene, method), all at once on the one GPU; RESERVE seconds
+#    are kept for the timings after it (alone on the GPU)
+RESERVE=${RESERVE:-$((DEADLINE * 2 / 5))}
+RUN_S=$(( $(left) - RESERVE - 20 ))
 say "bench run: $RUN_S s for each run"
 SCENES="$SCENE_OBJECT:$OBJECT_RES $SCENE_CAPTURE:$CAPTURE_RES"
 for scene in $SCENES; do
@@ -121,6 +117,25 @@ for scene in $SCENES; do
     --out "$OUT/run-$name" --report-only >"$OUT/logs/report-$name.txt" 2>&1
   say "bench run $name: exit $?"
 done
+
+# 5. the timings, alone on the GPU: latency at the other sizes, the CUDA tests, bench render
+for n in ${LATENCY_SIZES#"$first_n"}; do
+  latency "$n" "$LATENCY_METHODS" $(( $(left) * 2 / 5 ))
+done
+if [ "$DEVICE" != cpu ]; then
+  # the maths' CUDA tests need no server; the server's (a session on the GPU) need the whole
+  # service extra, as a full install has it
+  timeout 150 "$PY" -m pytest -q --noconftest -p no:cacheprovider -m cuda -rA -s \
+    tests/nbv/test_cuda.py tests/nbv/test_se3.py tests/mapper/test_gsplat_render.py \
+    >"$OUT/logs/tests.txt" 2>&1
+  say "CUDA tests: exit $? ($(tail -1 "$OUT/logs/tests.txt"))"
+  timeout 90 "$PY" -m pytest -q -p no:cacheprovider -m cuda -rA tests/sessions/test_device.py \
+    >"$OUT/logs/tests-server.txt" 2>&1
+  say "CUDA server tests: exit $? ($(tail -1 "$OUT/logs/tests-server.txt"))"
+fi
+timeout $(( $(left) - 5 )) $AG bench render --device "$DEVICE" $RENDER --scene "$OBJECT_SPLAT" \
+  --json "$OUT/render.json" >"$OUT/logs/render.txt" 2>&1
+say "bench render: exit $?"
 
 say "done"
 for f in "$OUT"/logs/latency-*.txt "$OUT/logs/render.txt" "$OUT"/run-*/table.md; do

@@ -3,9 +3,13 @@
 For each Gaussian count and image size, on the same map and camera, rounds of (the median of
 ``--repeats``, each timed between two device synchronisations, after a warm-up round):
 
-- ``fwd``, ``fwd+bwd``, ``fisher``: this project's rasterizer (:func:`render`, forward alone,
-  forward and backward of a weighted sum of the image) and its exact diagonal Fisher
-  (:func:`fisher_diag`, all five blocks), in pure torch on the GPU;
+- ``fwd``, ``fwd+bwd``: this project's rasterizer (:func:`render`, forward alone, forward and
+  backward of a weighted sum of the image), in pure torch on the GPU;
+- ``fisher``: its exact diagonal Fisher (:func:`fisher_diag`, all five blocks) as it runs by
+  default (the moments by the Triton kernel where Triton loads), ``moments`` those moments
+  alone (:func:`screen_second_moments`), and ``fisher torch`` the pure-torch reference
+  (``backend="torch"``; at most two timed rounds: it is slow), with ``fisher_agree`` the
+  largest difference between the two, relative to each block's largest entry;
 - ``gsplat fwd``, ``gsplat fwd+bwd``: gsplat's ``rasterization`` (when it loads);
 - ``gsplat step``: gsplat's forward and backward of the L1 loss against a target image, plus an
   Adam step over the map's fields (the yardstick of a training step);
@@ -31,8 +35,10 @@ from typing import Any
 
 logger = logging.getLogger(__name__)
 
-GPU_KINDS = ("fwd", "fwd_bwd", "fisher", "gsplat_fwd", "gsplat_fwd_bwd", "gsplat_step",
-             "mapper_step")
+GPU_KINDS = ("fwd", "fwd_bwd", "fisher", "moments", "fisher_torch", "gsplat_fwd",
+             "gsplat_fwd_bwd", "gsplat_step", "mapper_step")
+SLOW_ROUNDS = {"fisher_torch": 2}
+"""Kinds timed over fewer rounds than ``--repeats``."""
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -74,7 +80,7 @@ def _functions(gm: Any, cam: Any, with_gsplat: bool
     from agilegs.config.mapper import MapperConfig
     from agilegs.service.mapper.gsplat_render import render_gsplat
     from agilegs.service.mapper.mapper import Mapper
-    from agilegs.service.nbv.information import fisher_diag
+    from agilegs.service.nbv.information import fisher_diag, screen_second_moments
     from agilegs.service.nbv.rasterize import render
 
     gen = torch.Generator(device=gm.means.device).manual_seed(1)
@@ -92,6 +98,8 @@ def _functions(gm: Any, cam: Any, with_gsplat: bool
         "fwd": lambda: render(gm, cam),
         "fwd_bwd": fwd_bwd(render),
         "fisher": lambda: fisher_diag(gm, cam),
+        "moments": lambda: screen_second_moments(gm, cam),
+        "fisher_torch": lambda: fisher_diag(gm, cam, backend="torch"),
     }
     if with_gsplat:
         params = [t.detach().clone().requires_grad_() for t in gm.tensors().values()]
@@ -125,6 +133,8 @@ def _time_gpu(scene: str | None, n: int, width: int, height: int, repeats: int,
     import torch
 
     from agilegs.service.mapper.gsplat_render import gsplat_status, render_gsplat
+    from agilegs.service.nbv.information import fisher_diag
+    from agilegs.service.nbv.kernels.gpu import gpu_moments_apply
     from agilegs.service.nbv.rasterize import render
 
     dev = torch.device(device)
@@ -154,8 +164,10 @@ def _time_gpu(scene: str | None, n: int, width: int, height: int, repeats: int,
         fns[k]()
         sync()
         peak[k] = (allocated(peak=True) - base_mem) / 2**20
-    for _ in range(repeats):
+    for rnd in range(repeats):
         for k in kinds:
+            if rnd >= SLOW_ROUNDS.get(k, repeats):
+                continue
             sync()
             t0 = time.perf_counter()
             fns[k]()
@@ -167,7 +179,12 @@ def _time_gpu(scene: str | None, n: int, width: int, height: int, repeats: int,
         "peak_mb": peak, "map_mb": base_mem / 2**20,
         "gsplat": why is None, "gsplat_unavailable": why,
         "mapper_rasterizer": mapper_rasterizer,
+        "fisher_path": "triton" if gpu_moments_apply(None, gm.means) else "torch",
     }
+    with torch.no_grad():
+        fast, ref = fisher_diag(gm, cam), fisher_diag(gm, cam, backend="torch")
+    row["fisher_agree"] = max(
+        float((fast[f] - ref[f]).abs().max() / ref[f].abs().max().clamp_min(1e-30)) for f in ref)
     if why is None:
         with torch.no_grad():
             a, b = render(gm, cam), render_gsplat(gm, cam)
@@ -215,8 +232,9 @@ def _print(rows: list[dict[str, Any]], args: argparse.Namespace) -> None:
 
     table = Table(title=f"agilegs bench render on {args.device}: median ms of {args.repeats} "
                   "rounds (peak GPU MB above the map)")
-    cols = ["N", "px", "fwd", "fwd+bwd", "fisher", "gsplat fwd", "gsplat f+b",
-            "gsplat step", "mapper step", "mapper / gsplat step", "agree max|mean"]
+    cols = ["N", "px", "fwd", "fwd+bwd", "fisher", "moments", "fisher torch", "agree",
+            "gsplat fwd", "gsplat f+b", "gsplat step", "mapper step", "mapper / gsplat step",
+            "gsplat agree max|mean"]
     for c in cols:
         table.add_column(c, justify="right")
     for r in rows:
@@ -228,7 +246,9 @@ def _print(rows: list[dict[str, Any]], args: argparse.Namespace) -> None:
         agree = r.get("agree")
         table.add_row(
             str(r["gaussians"]), f"{r['width']}x{r['height']}", cell("fwd"), cell("fwd_bwd"),
-            cell("fisher"), cell("gsplat_fwd"), cell("gsplat_fwd_bwd"), cell("gsplat_step"),
+            cell("fisher") + ("" if r["fisher_path"] == "torch" else " " + r["fisher_path"]),
+            cell("moments"), cell("fisher_torch"), f"{r['fisher_agree']:.1e}",
+            cell("gsplat_fwd"), cell("gsplat_fwd_bwd"), cell("gsplat_step"),
             cell("mapper_step") + ("" if r["mapper_rasterizer"] == "gsplat" else " builtin"),
             f"{r['mapper_over_gsplat_step']:.2f}×" if "mapper_over_gsplat_step" in r else "-",
             "-" if agree is None else f"{agree['rgb_max_abs']:.3f}|{agree['rgb_mean_abs']:.1e}")

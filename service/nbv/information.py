@@ -38,6 +38,7 @@ from agilegs.config.selection import FIELD_NAMES
 from agilegs.service.nbv.camera import Camera, Intrinsics
 from agilegs.service.nbv.gaussians import GaussianMap
 from agilegs.service.nbv.kernels.backend import Backend, resolve
+from agilegs.service.nbv.kernels.gpu import gpu_moments_apply, tile_moments
 from agilegs.service.nbv.kernels.ops import kernel_fisher, kernel_jacobians, kernel_moments
 from agilegs.service.nbv.projection import Projected, project_map
 from agilegs.service.nbv.rasterize import (
@@ -105,7 +106,37 @@ def screen_second_moments(
         else torch.as_tensor(background, dtype=dt, device=dev).reshape(3)
     )
     n = gmap.num_gaussians
-    pairs = pairs_of(proj, camera.width, camera.height, tile_size, max_elements)
+    if not graph and gpu_moments_apply(backend, proj.means2d):
+        sums = tile_moments(proj.means2d, proj.conics, proj.opacities, proj.colors, proj.cov2d,
+                            proj.radii, proj.depths, camera.width, camera.height, background=bg,
+                            tile_size=tile_size, residuals=residuals)
+    else:
+        sums = pair_moments(proj, camera.width, camera.height, bg, tile_size=tile_size,
+                            max_elements=max_elements, residuals=residuals)
+    big_phi = sums[:, :15][:, _PHI_OUTER.to(sums.device)].reshape(n, 6, 6)
+    c2 = sums[:, 15:33].reshape(n, 3, 6)
+    mcc = sums[:, 33]
+    return _assemble(big_phi, c2, mcc, proj.conics, proj.opacities, residuals)
+
+
+MONOMIALS: tuple[tuple[int, int], ...] = (
+    (0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2),
+    (3, 0), (2, 1), (1, 2), (0, 3), (4, 0), (3, 1), (2, 2), (1, 3), (0, 4),
+)
+"""The exponents (a, b) of dx^a dy^b for a + b <= 4; the first six are φ's entries."""
+_PHI_OUTER = torch.tensor([
+    MONOMIALS.index((MONOMIALS[i][0] + MONOMIALS[j][0], MONOMIALS[i][1] + MONOMIALS[j][1]))
+    for i in range(6) for j in range(6)])
+"""Entry (i, j) of φφᵀ [36] as an index into :data:`MONOMIALS`."""
+
+def pair_moments(proj: Projected, width: int, height: int, bg: Tensor, *, tile_size: int = 8,
+                 max_elements: int = 1 << 22, residuals: Residuals = "channels") -> Tensor:
+    """The Fisher's per-Gaussian moments [N, 34] by listing the composited pairs (the torch
+    reference; differentiable in whatever the projection carries a graph for): Σ f4·dx^a dy^b
+    over :data:`MONOMIALS`, Σ f2 ⊗ φ channel-major, Σ w² (the layout of
+    ``kernels.common.MOMENTS``)."""
+    n = proj.means2d.shape[0]
+    pairs = pairs_of(proj, width, height, tile_size, max_elements)
     # screen quantities: detached from the Gaussian parameters (their Jacobian is chained
     # separately) but still attached to the camera pose when it requires grad
     col = proj.colors
@@ -131,22 +162,8 @@ def screen_second_moments(
     phi = mono[:, :6]  # (1, dx, dy, dx², dxdy, dy²) [Q, 6]
     per_pair = torch.cat([f4[:, None] * mono, (f2[:, :, None] * phi[:, None, :]).reshape(-1, 18),
                           (w * w)[:, None]], dim=1)  # [Q, 34]
-    sums = per_gaussian_sums(pairs.gauss, per_pair, n)  # [N, 34]
-    big_phi = sums[:, :15][:, _PHI_OUTER.to(sums.device)].reshape(n, 6, 6)
-    c2 = sums[:, 15:33].reshape(n, 3, 6)
-    mcc = sums[:, 33]
-    return _assemble(big_phi, c2, mcc, proj.conics, proj.opacities, residuals)
+    return per_gaussian_sums(pairs.gauss, per_pair, n)  # [N, 34]
 
-
-MONOMIALS: tuple[tuple[int, int], ...] = (
-    (0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2),
-    (3, 0), (2, 1), (1, 2), (0, 3), (4, 0), (3, 1), (2, 2), (1, 3), (0, 4),
-)
-"""The exponents (a, b) of dx^a dy^b for a + b <= 4; the first six are φ's entries."""
-_PHI_OUTER = torch.tensor([
-    MONOMIALS.index((MONOMIALS[i][0] + MONOMIALS[j][0], MONOMIALS[i][1] + MONOMIALS[j][1]))
-    for i in range(6) for j in range(6)])
-"""Entry (i, j) of φφᵀ [36] as an index into :data:`MONOMIALS`."""
 
 Reduction = Literal["auto", "index_add", "segments"]
 
@@ -244,7 +261,7 @@ def fisher_diag(
             tile_size=tile_size,
             near=near,
             max_elements=max_elements,
-            backend="torch",
+            backend=backend,
         )
     jac = projection_jacobians(gmap, camera, want, near=near, create_graph=pose_grad,
                                backend="torch")

@@ -23,8 +23,11 @@ def test_sizes_are_square_or_width_by_height() -> None:
 
 def test_one_row_times_every_kind_that_can_run_and_reports_the_mapper_rasterizer() -> None:
     row = _time_gpu(None, 400, 40, 30, 1, "cpu")
-    assert set(row["ms"]) == {"fwd", "fwd_bwd", "fisher", "mapper_step"}
+    assert set(row["ms"]) == {"fwd", "fwd_bwd", "fisher", "moments", "fisher_torch",
+                              "mapper_step"}
     assert all(v > 0 for v in row["ms"].values())
+    # off CUDA the default Fisher is the compiled CPU kernels', against the torch reference
+    assert row["fisher_path"] == "torch" and row["fisher_agree"] < 1e-4
     assert row["gsplat"] is False and row["mapper_rasterizer"] == "builtin"
     assert (row["width"], row["height"]) == (40, 30)
 

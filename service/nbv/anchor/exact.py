@@ -34,6 +34,7 @@ from ..cancel import checkpoint
 from ..gaussians import GaussianMap
 from ..information import fisher_diag, trace_surrogate
 from ..kernels.backend import Backend, resolve
+from ..kernels.gpu import gpu_moments_apply
 from ..se3 import se3_exp
 from .envelope import PoolEnvelope
 
@@ -89,8 +90,10 @@ class ExactPsi:
         return torch.stack(out)
 
     def compiled(self, poses: Tensor) -> bool:
-        """Whether a value at ``poses`` [B, 4, 4] (no grad) runs on the compiled kernels."""
-        return resolve(self.backend, [*self.gmap.tensors().values(), poses])
+        """Whether a value at ``poses`` [B, 4, 4] (no grad) runs on compiled kernels: the
+        CPU's, or on CUDA the Triton moments (:mod:`~agilegs.service.nbv.kernels.gpu`)."""
+        return (resolve(self.backend, [*self.gmap.tensors().values(), poses])
+                or gpu_moments_apply(self.backend, poses))
 
     def differences(self, poses: Tensor) -> bool:
         """Whether :meth:`twist_gradient` differentiates by differences of values here: a

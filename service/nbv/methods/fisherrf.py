@@ -105,7 +105,7 @@ def fisherrf_hessian(
     with torch.no_grad():
         m = screen_second_moments(g, camera, background=background, tile_size=tile_size,
                                   near=near, max_elements=max_elements, residuals="pixels",
-                                  backend="torch")
+                                  backend=backend)
     jac_fields = tuple(f for f in want if f != "opacity_logits")
     jac = (projection_jacobians(g, camera, jac_fields, near=near, backend="torch")
            if jac_fields else {})

@@ -1,0 +1,131 @@
+"""The Fisher's moments by the Triton kernel (kernels/gpu.py) against the torch pairs: on the
+CPU through Triton's interpreter (in a subprocess: the interpreter is chosen when Triton is
+first imported), on CUDA compiled (skipped without a GPU); the tile binning; which path serves."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+import torch
+from test_kernels import F32, F64, camera, random_map
+
+from agilegs.config.selection import FIELD_NAMES
+from agilegs.service.nbv.information import fisher_diag, pair_moments, screen_second_moments
+from agilegs.service.nbv.kernels.gpu import bin_tiles, gpu_moments_apply, triton_available
+from agilegs.service.nbv.projection import project_map
+from agilegs.service.nbv.rasterize import pairs_of
+
+HERE = Path(__file__).resolve().parent
+
+_COMPARE = textwrap.dedent("""
+    import json, sys, torch
+    sys.path.insert(0, {here!r})
+    from test_kernels import random_map, camera
+    from agilegs.service.nbv.projection import project_map
+    from agilegs.service.nbv.information import pair_moments
+    from agilegs.service.nbv.kernels.gpu import tile_moments
+    out = []
+    for dtype, tile, res, bg in {cases!r}:
+        dt = getattr(torch, dtype)
+        gm = random_map(40, seed=2, deg=2, dtype=dt)
+        cam = camera(w=17, h=13, dtype=dt)
+        b = torch.tensor(bg, dtype=dt)
+        p = project_map(gm, cam)
+        ref = pair_moments(p, cam.width, cam.height, b, tile_size=tile, residuals=res)
+        got = tile_moments(p.means2d, p.conics, p.opacities, p.colors, p.cov2d, p.radii,
+                           p.depths, cam.width, cam.height, background=b, tile_size=tile,
+                           residuals=res)
+        err = float((got.double() - ref.double()).abs().max() / ref.abs().max())
+        cols = [float((got[:, c].double() - ref[:, c].double()).abs().max()
+                      / ref[:, c].abs().max()) for c in (0, 14, 20, 33)]
+        out.append(dict(err=err, cols=cols, dtype=str(got.dtype), nonzero=int((ref[:, 0] > 0).sum())))
+    print(json.dumps(out))
+""")
+
+
+@pytest.mark.skipif(not triton_available(), reason="needs triton (the dev extra installs it)")
+def test_interpreted_kernel_matches_the_pairs() -> None:
+    cases = [("float64", 8, "channels", [0.1, 0.2, 0.3]),
+             ("float32", 5, "pixels", [1.0, 1.0, 1.0])]
+    env = {**os.environ, "TRITON_INTERPRET": "1"}
+    proc = subprocess.run([sys.executable, "-c", _COMPARE.format(here=str(HERE), cases=cases)],
+                          capture_output=True, text=True, env=env, timeout=300, check=False)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    results = json.loads(proc.stdout.strip().splitlines()[-1])
+    (f64, f32) = results
+    assert f64["dtype"] == "torch.float64" and f32["dtype"] == "torch.float32"
+    assert f64["nonzero"] > 5 and f32["nonzero"] > 5
+    assert f64["err"] < 1e-12 and max(f64["cols"]) < 1e-11
+    assert f32["err"] < 5e-6 and max(f32["cols"]) < 5e-5
+
+
+@pytest.mark.parametrize("tile", [8, 5])
+def test_bins_hold_every_composited_pair_front_to_back(tile: int) -> None:
+    gm = random_map(60, seed=1, deg=1, dtype=F64)
+    cam = camera()
+    p = project_map(gm, cam)
+    bins = bin_tiles(p.means2d, p.conics, p.opacities, p.colors, p.cov2d, p.radii, p.depths,
+                     cam.width, cam.height, tile)
+    assert bins.vis.numel() == int((p.radii > 0).sum())
+    depth = p.depths[bins.vis]
+    assert bool((depth[1:] >= depth[:-1]).all())
+    pairs = pairs_of(p, cam.width, cam.height, tile)
+    assert len(pairs) > 50
+    rank = torch.full((gm.num_gaussians,), -1, dtype=torch.long)
+    rank[bins.vis] = torch.arange(bins.vis.numel())
+    lists = {}
+    for t in range(bins.tiles_x * bins.tiles_y):
+        ent = bins.entries[bins.offsets[t]:bins.offsets[t + 1]]
+        assert bool((ent[1:] > ent[:-1]).all())  # front to back, each Gaussian once
+        lists[t] = set(ent.tolist())
+    x = pairs.pix % cam.width
+    y = pairs.pix // cam.width
+    tiles = (y // tile) * bins.tiles_x + x // tile
+    for g, t, px, py in zip(pairs.gauss.tolist(), tiles.tolist(), x.tolist(), y.tolist(),
+                            strict=True):
+        v = int(rank[g])
+        assert v in lists[t]
+        x0, x1, y0, y1 = bins.boxes[v].tolist()
+        assert x0 <= px <= x1 and y0 <= py <= y1
+
+
+def test_the_torch_path_serves_off_cuda() -> None:
+    gm = random_map(30, seed=3, dtype=F32)
+    assert not gpu_moments_apply(None, gm.means)
+    assert not gpu_moments_apply("torch", gm.means)
+    cam = camera(dtype=F32)
+    p = project_map(gm, cam)
+    # the pair route is what the torch backend sums
+    m = screen_second_moments(gm, cam, backend="torch")
+    sums = pair_moments(p, cam.width, cam.height, torch.zeros(3, dtype=F32))
+    torch.testing.assert_close(m[:, 8, 8], sums[:, 33])
+
+
+cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+
+
+@pytest.mark.cuda
+@cuda
+@pytest.mark.parametrize("dtype", [F64, F32])
+@pytest.mark.parametrize("residuals", ["channels", "pixels"])
+def test_compiled_kernel_matches_the_pairs_on_cuda(dtype: torch.dtype, residuals: str) -> None:
+    assert triton_available(), "CUDA builds of torch bring triton"
+    gm = random_map(400, seed=4, deg=2, dtype=dtype).to(device="cuda")
+    cam = camera(w=64, h=48, dtype=dtype).to(device="cuda")
+    bg = torch.tensor([0.1, 0.2, 0.3], dtype=dtype, device="cuda")
+    assert gpu_moments_apply(None, gm.means)
+    fast = screen_second_moments(gm, cam, background=bg, residuals=residuals)
+    ref = screen_second_moments(gm, cam, background=bg, residuals=residuals, backend="torch")
+    err = float((fast - ref).abs().max() / ref.abs().max())
+    assert err < (1e-11 if dtype == F64 else 1e-5), err
+    fd = fisher_diag(gm, cam, background=bg)
+    fr = fisher_diag(gm, cam, background=bg, backend="torch")
+    for f in FIELD_NAMES:
+        e = float((fd[f] - fr[f]).abs().max() / fr[f].abs().max())
+        assert e < (1e-10 if dtype == F64 else 1e-4), (f, e)
