@@ -7,9 +7,10 @@
 #      full-pool EIG and FisherRF, and the slow @paper variants) while gsplat builds;
 #   4. bench run --profile paper, shortened (SHORT below), on an object and a capture, every
 #      method and the @paper variants, one seed, one process per run, then the tables;
-#   5. alone on the GPU: bench latency at the other sizes, the CUDA tests, and bench render at
-#      100k and 1M Gaussians, 512x512 and 1024x768 (this project's rasterizer and Fisher, the
-#      Fisher's torch reference, gsplat, a mapper training step against gsplat's own step).
+#   5. alone on the GPU: bench latency at the other sizes, the other CUDA tests (TESTS), and
+#      bench render at 100k and 1M Gaussians, 512x512 and 1024x768 (this project's rasterizer
+#      and Fisher, the Fisher's torch reference, gsplat, a mapper training step against
+#      gsplat's own step).
 #
 # Needs python3 with a CUDA torch and this package (pip install -e '.[service,cuda]') and a CUDA
 # toolkit for gsplat's build. Everything lands in $OUT (default gpu-out); each step has a time
@@ -37,6 +38,8 @@ SHORT=${SHORT---pool-size 64 --view-budget 20 --interval 200 --steps 2200}
 OBJECT_RES=${OBJECT_RES:-512}
 CAPTURE_RES=${CAPTURE_RES:-240}
 METHODS=${METHODS:-random fisherrf cover full_eig agile agile_plus agile@paper agile_plus@paper}
+TESTS=${TESTS-tests/nbv/test_cuda.py tests/nbv/test_se3.py tests/mapper/test_gsplat_render.py tests/sessions/test_device.py}
+TESTS_S=${TESTS_S:-150}
 mkdir -p "$OUT/logs"
 export PYTHONUNBUFFERED=1
 T0=$(date +%s)
@@ -65,7 +68,7 @@ BUILD=$!
 # 2. the Fisher's Triton kernel against the torch reference on this GPU, first: where it fails,
 #    everything after runs on the pure-torch Fisher (AGILEGS_KERNELS=torch) and says so
 if [ "$DEVICE" != cpu ]; then
-  timeout 240 "$PY" -m pytest -q --noconftest -p no:cacheprovider -m cuda -rA \
+  timeout 150 "$PY" -m pytest -q --noconftest -p no:cacheprovider -m cuda -rA \
     tests/nbv/test_gpu_kernel.py >"$OUT/logs/tests-triton.txt" 2>&1
   rc=$?
   say "Triton Fisher tests: exit $rc ($(tail -1 "$OUT/logs/tests-triton.txt"))"
@@ -80,7 +83,7 @@ latency() {  # n methods limit
     --methods "$2" --json "$OUT/latency-$1.json" >"$OUT/logs/latency-$1.txt" 2>&1
   say "bench latency $1: exit $?"
 }
-latency "$first_n" "$LATENCY_METHODS${LATENCY_SLOW:+,$LATENCY_SLOW}" $((DEADLINE / 6))
+latency "$first_n" "$LATENCY_METHODS${LATENCY_SLOW:+,$LATENCY_SLOW}" $((DEADLINE / 7))
 
 # wait for the build, at most until LATE seconds
 LATE=${LATE:-$((DEADLINE / 4))}
@@ -98,6 +101,7 @@ say "$(tail -1 "$OUT/logs/gsplat-build.txt")"
 # 4. the protocol: one process per (scene, method), all at once on the one GPU; RESERVE seconds
 #    are kept for the timings after it (alone on the GPU)
 RESERVE=${RESERVE:-$((DEADLINE * 2 / 5))}
+[ "$DEVICE" = cpu ] && TESTS=""
 RUN_S=$(( $(left) - RESERVE - 20 ))
 say "bench run: $RUN_S s for each run"
 SCENES="$SCENE_OBJECT:$OBJECT_RES $SCENE_CAPTURE:$CAPTURE_RES"
@@ -123,15 +127,13 @@ for n in ${LATENCY_SIZES#"$first_n"}; do
   latency "$n" "$LATENCY_METHODS" $(( $(left) * 2 / 5 ))
 done
 if [ "$DEVICE" != cpu ]; then
-  # the maths' CUDA tests need no server; the server's (a session on the GPU) need the whole
-  # service extra, as a full install has it
-  timeout 150 "$PY" -m pytest -q --noconftest -p no:cacheprovider -m cuda -rA -s \
-    tests/nbv/test_cuda.py tests/nbv/test_se3.py tests/mapper/test_gsplat_render.py \
-    >"$OUT/logs/tests.txt" 2>&1
-  say "CUDA tests: exit $? ($(tail -1 "$OUT/logs/tests.txt"))"
-  timeout 90 "$PY" -m pytest -q -p no:cacheprovider -m cuda -rA tests/sessions/test_device.py \
-    >"$OUT/logs/tests-server.txt" 2>&1
-  say "CUDA server tests: exit $? ($(tail -1 "$OUT/logs/tests-server.txt"))"
+  # the other CUDA tests (TESTS: the maths', gsplat's; the server's need the whole service
+  # extra, as a full install has it)
+  if [ -n "$TESTS" ]; then
+    timeout "$TESTS_S" "$PY" -m pytest -q -p no:cacheprovider -m cuda -rA $TESTS \
+      >"$OUT/logs/tests.txt" 2>&1
+    say "CUDA tests: exit $? ($(tail -1 "$OUT/logs/tests.txt"))"
+  fi
 fi
 timeout $(( $(left) - 5 )) $AG bench render --device "$DEVICE" $RENDER --scene "$OBJECT_SPLAT" \
   --json "$OUT/render.json" >"$OUT/logs/render.txt" 2>&1
