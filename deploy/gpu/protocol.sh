@@ -38,6 +38,7 @@ SHORT=${SHORT---pool-size 64 --view-budget 20 --interval 200 --steps 2200}
 OBJECT_RES=${OBJECT_RES:-512}
 CAPTURE_RES=${CAPTURE_RES:-240}
 METHODS=${METHODS:-random fisherrf cover full_eig agile agile_plus agile@paper agile_plus@paper}
+SEEDS=${SEEDS:-0}
 TESTS=${TESTS-tests/nbv/test_cuda.py tests/nbv/test_se3.py tests/mapper/test_gsplat_render.py tests/sessions/test_device.py}
 TESTS_S=${TESTS_S:-150}
 mkdir -p "$OUT/logs"
@@ -109,7 +110,7 @@ for scene in $SCENES; do
   path=${scene%%:*}; res=${scene##*:}; name=$(basename "$path")
   for m in $METHODS; do
     OMP_NUM_THREADS=1 timeout "$RUN_S" $AG bench run --scene "$path" --profile "$PROFILE" \
-      $SHORT --resolution "$res" --rasterizer $RAST --seeds 0 --device "$DEVICE" \
+      $SHORT --resolution "$res" --rasterizer $RAST --seeds "$SEEDS" --device "$DEVICE" \
       --methods "$m" --no-plots --out "$OUT/run-$name" >"$OUT/logs/run-$name-$m.txt" 2>&1 &
   done
 done
@@ -117,7 +118,7 @@ wait
 for scene in $SCENES; do
   path=${scene%%:*}; res=${scene##*:}; name=$(basename "$path")
   $AG bench run --scene "$path" --profile "$PROFILE" $SHORT --resolution "$res" \
-    --rasterizer $RAST --seeds 0 --device "$DEVICE" --methods "$(echo $METHODS | tr ' ' ,)" \
+    --rasterizer $RAST --seeds "$SEEDS" --device "$DEVICE" --methods "$(echo $METHODS | tr ' ' ,)" \
     --out "$OUT/run-$name" --report-only >"$OUT/logs/report-$name.txt" 2>&1
   say "bench run $name: exit $?"
 done
