@@ -33,8 +33,8 @@ _COMPARE = textwrap.dedent("""
     out = []
     for dtype, tile, res, bg in {cases!r}:
         dt = getattr(torch, dtype)
-        gm = random_map(40, seed=2, deg=2, dtype=dt)
-        cam = camera(w=17, h=13, dtype=dt)
+        gm = random_map(24, seed=2, deg=2, dtype=dt)
+        cam = camera(w=13, h=11, dtype=dt)
         b = torch.tensor(bg, dtype=dt)
         p = project_map(gm, cam)
         ref = pair_moments(p, cam.width, cam.height, b, tile_size=tile, residuals=res)
