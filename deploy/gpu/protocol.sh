@@ -7,7 +7,8 @@
 #      full-pool EIG and FisherRF, and the slow @paper variants) while gsplat builds;
 #   4. bench run --profile paper, shortened (SHORT below), on an object and a capture, every
 #      method and the @paper variants, one seed, one process per run, then the tables;
-#   5. alone on the GPU: bench latency at the other sizes, the other CUDA tests (TESTS), and
+#   5. alone on the GPU: bench latency at the other sizes (and the largest at LATENCY_WIDE's
+#      1024x768), the other CUDA tests (TESTS), and
 #      bench render at 100k and 1M Gaussians, 512x512 and 1024x768 (this project's rasterizer
 #      and Fisher, the Fisher's torch reference, gsplat, a mapper training step against
 #      gsplat's own step).
@@ -32,6 +33,7 @@ LATENCY_SIZES=${LATENCY_SIZES:-100000 1000000}
 LATENCY=${LATENCY:---width 512 --height 512 --pool 100 --events 2}
 LATENCY_METHODS=${LATENCY_METHODS:-random,fisherrf,cover,full_eig,agile,agile_plus}
 LATENCY_SLOW=${LATENCY_SLOW-agile@paper,agile_plus@paper}
+LATENCY_WIDE=${LATENCY_WIDE---width 1024 --height 768 --pool 100 --events 2}
 RENDER=${RENDER:---gaussians 100000,1000000 --sizes 512,1024x768 --repeats 10}
 PROFILE=${PROFILE:-paper}
 SHORT=${SHORT---pool-size 64 --view-budget 20 --interval 200 --steps 2200}
@@ -79,10 +81,12 @@ fi
 # 3. selection latency at the first size while gsplat builds (no gsplat involved), with the slow
 #    variants
 first_n=${LATENCY_SIZES%% *}
-latency() {  # n methods limit
-  timeout "$3" $AG bench latency --device "$DEVICE" $LATENCY --max-gaussians "$1" \
-    --methods "$2" --json "$OUT/latency-$1.json" >"$OUT/logs/latency-$1.txt" 2>&1
-  say "bench latency $1: exit $?"
+latency() {  # n methods limit [name shape...]
+  local n=$1 methods=$2 limit=$3 name=${4:-$1}
+  shift 4 2>/dev/null || shift 3
+  timeout "$limit" $AG bench latency --device "$DEVICE" ${*:-$LATENCY} --max-gaussians "$n" \
+    --methods "$methods" --json "$OUT/latency-$name.json" >"$OUT/logs/latency-$name.txt" 2>&1
+  say "bench latency $name: exit $?"
 }
 latency "$first_n" "$LATENCY_METHODS${LATENCY_SLOW:+,$LATENCY_SLOW}" $((DEADLINE / 7))
 
@@ -124,9 +128,14 @@ for scene in $SCENES; do
 done
 
 # 5. the timings, alone on the GPU: latency at the other sizes, the CUDA tests, bench render
+last_n=$first_n
 for n in ${LATENCY_SIZES#"$first_n"}; do
   latency "$n" "$LATENCY_METHODS" $(( $(left) * 2 / 5 ))
+  last_n=$n
 done
+if [ -n "$LATENCY_WIDE" ]; then  # the largest size again at the wide image
+  latency "$last_n" "$LATENCY_METHODS" $(( $(left) / 3 )) "$last_n-wide" $LATENCY_WIDE
+fi
 if [ "$DEVICE" != cpu ]; then
   # the other CUDA tests (TESTS: the maths', gsplat's; the server's need the whole service
   # extra, as a full install has it)

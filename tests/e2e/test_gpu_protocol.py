@@ -27,6 +27,7 @@ def test_the_gpu_protocol_script_runs_every_step(tmp_path: Path) -> None:
         "LATENCY": "--width 32 --height 32 --pool 8 --events 1 --acquired 2 --shortlist 4",
         "LATENCY_METHODS": "random,full_eig,agile",
         "LATENCY_SLOW": "",
+        "LATENCY_WIDE": "--width 48 --height 32 --pool 8 --events 1 --acquired 2 --shortlist 4",
         "RENDER": "--gaussians 300 --sizes 32 --repeats 1 --threads 1 --no-baseline",
         "PROFILE": "tiny",
         "SHORT": "",
@@ -39,12 +40,15 @@ def test_the_gpu_protocol_script_runs_every_step(tmp_path: Path) -> None:
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
     steps = (out / "steps.txt").read_text()
-    for step in ("bench latency 400: exit 0", "bench render: exit 0",
+    for step in ("bench latency 400: exit 0", "bench latency 400-wide: exit 0",
+                 "bench render: exit 0",
                  "bench run spot: exit 0", "bench run skull_photos: exit 0"):
         assert step in steps, steps
     assert "training uses the builtin rasterizer" in steps  # no gsplat on a CPU
     lat = json.loads((out / "latency-400.json").read_text())
     assert set(lat["methods"]) == {"random", "full_eig", "agile"}
+    wide = json.loads((out / "latency-400-wide.json").read_text())
+    assert (wide["config"]["width"], wide["config"]["height"]) == (48, 32)
     for name in ("spot", "skull_photos"):
         results = json.loads((out / f"run-{name}" / "results.json").read_text())
         assert not results["invocation"]["missing"], results["invocation"]
