@@ -157,7 +157,8 @@ def test_the_capture_profile_keeps_every_frame_in_order() -> None:
 @pytest.mark.slow
 @pytest.mark.parametrize(("name", "frames", "points"),
                          [("skull_photos", 65, 3133), ("brighton_beach", 18, 3478),
-                          ("tankard", 69, 2500), ("flowerpot", 80, 2500)])
+                          ("tankard", 69, 2500), ("flowerpot", 80, 2500),
+                          ("caliterra", 75, 2500)])
 def test_the_captures_posed_by_structure_from_motion_load(name: str, frames: int,
                                                            points: int) -> None:
     root = Path(__file__).resolve().parents[2] / "service" / "data" / "scenes" / name

@@ -19,7 +19,7 @@ OBJECTS = ("bob", "boot", "fish", "koala", "penguin", "skull", "spot", "stanford
 """The benchmark's splat objects (docs/benchmarks.md); with the capture (plant) and the posed
 scene (floor), its twelve scenes."""
 
-CAPTURES = ("buddha", "skull_photos", "brighton_beach", "tankard", "flowerpot")
+CAPTURES = ("buddha", "skull_photos", "brighton_beach", "tankard", "flowerpot", "caliterra")
 """Real captures (photographs with poses), each with its licence file and README."""
 
 
