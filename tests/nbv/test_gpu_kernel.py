@@ -17,7 +17,12 @@ from test_kernels import F32, F64, camera, random_map
 
 from agilegs.config.selection import FIELD_NAMES
 from agilegs.service.nbv.information import fisher_diag, pair_moments, screen_second_moments
-from agilegs.service.nbv.kernels.gpu import bin_tiles, gpu_moments_apply, triton_available
+from agilegs.service.nbv.kernels.gpu import (
+    bin_tiles,
+    gpu_moments_apply,
+    tile_moments,
+    triton_available,
+)
 from agilegs.service.nbv.projection import project_map
 from agilegs.service.nbv.rasterize import pairs_of
 
@@ -105,6 +110,18 @@ def test_the_torch_path_serves_off_cuda() -> None:
     m = screen_second_moments(gm, cam, backend="torch")
     sums = pair_moments(p, cam.width, cam.height, torch.zeros(3, dtype=F32))
     torch.testing.assert_close(m[:, 8, 8], sums[:, 33])
+
+
+@pytest.mark.skipif(not triton_available(), reason="needs triton (the dev extra installs it)")
+def test_off_cuda_the_kernel_asks_for_the_interpreter() -> None:
+    if os.environ.get("TRITON_INTERPRET") == "1":
+        pytest.skip("this process runs Triton's interpreter")
+    gm = random_map(10, seed=5, dtype=F32)
+    cam = camera(dtype=F32)
+    p = project_map(gm, cam)
+    with pytest.raises(ValueError, match="TRITON_INTERPRET"):
+        tile_moments(p.means2d, p.conics, p.opacities, p.colors, p.cov2d, p.radii, p.depths,
+                     cam.width, cam.height)
 
 
 cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
