@@ -122,25 +122,13 @@ def _segment_cumsum(values: Tensor, first: Tensor) -> Tensor:
 
 
 @torch.no_grad()
-def build_pairs(
-    means2d: Tensor,
-    conics: Tensor,
-    opacities: Tensor,
-    cov2d: Tensor,
-    radii: Tensor,
-    depths: Tensor,
-    width: int,
-    height: int,
-    tile_size: int = 8,
-    max_elements: int = 1 << 22,
-) -> Pairs:
-    """List the pairs that composite (see the module docstring). ``max_elements`` bounds the
-    candidate pairs evaluated at once (memory)."""
-    dev = means2d.device
-    empty = torch.zeros(0, dtype=torch.long, device=dev)
+def pixel_boxes(means2d: Tensor, opacities: Tensor, cov2d: Tensor, radii: Tensor, depths: Tensor,
+                width: int, height: int, tile_size: int = 8
+                ) -> tuple[Tensor, tuple[Tensor, Tensor, Tensor, Tensor]]:
+    """The visible Gaussians (radius > 0) front to back (a stable sort of the depths) [V], and
+    each one's pixel box x0, x1, y0, y1 (inclusive, int64 [V] each; empty: x1 < x0 or y1 < y0):
+    the box of its α ≥ 1/255 ellipse within the tiles its square [m ± r] is binned to."""
     vis = torch.nonzero(radii > 0).flatten()
-    if vis.numel() == 0:
-        return Pairs(empty, empty, empty, width, height)
     vis = vis[torch.argsort(depths.detach()[vis], stable=True)]  # front to back
     m = means2d.detach()[vis]
     r = radii[vis].to(m.dtype)
@@ -164,6 +152,32 @@ def build_pairs(
     x1 = torch.minimum(x_hi, torch.floor(m[:, 0] + hx - 0.5)).long()
     y0 = torch.maximum(y_lo, torch.ceil(m[:, 1] - hy - 0.5)).long()
     y1 = torch.minimum(y_hi, torch.floor(m[:, 1] + hy - 0.5)).long()
+    return vis, (x0, x1, y0, y1)
+
+
+@torch.no_grad()
+def build_pairs(
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    cov2d: Tensor,
+    radii: Tensor,
+    depths: Tensor,
+    width: int,
+    height: int,
+    tile_size: int = 8,
+    max_elements: int = 1 << 22,
+) -> Pairs:
+    """List the pairs that composite (see the module docstring). ``max_elements`` bounds the
+    candidate pairs evaluated at once (memory)."""
+    dev = means2d.device
+    empty = torch.zeros(0, dtype=torch.long, device=dev)
+    vis, (x0, x1, y0, y1) = pixel_boxes(means2d, opacities, cov2d, radii, depths, width,
+                                         height, tile_size)
+    if vis.numel() == 0:
+        return Pairs(empty, empty, empty, width, height)
+    m = means2d.detach()[vis]
+    op = opacities.detach()[vis].to(m.dtype)
     nx = (x1 - x0 + 1).clamp_min(0)
     ny = (y1 - y0 + 1).clamp_min(0)
     counts = nx * ny
@@ -511,5 +525,6 @@ __all__ = [
     "composite_pairs",
     "dcolor_dalpha",
     "pairs_of",
+    "pixel_boxes",
     "render",
 ]

@@ -28,13 +28,11 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from ..rasterize import ALPHA_MAX, ALPHA_MIN, T_MIN, pixel_boxes
 from .backend import default_backend
 
 log = logging.getLogger(__name__)
 
-ALPHA_MIN = 1.0 / 255.0
-ALPHA_MAX = 0.99
-T_MIN = 1e-4
 MOMENTS = 34
 ATTRS = 9
 """Columns of a visible Gaussian's row in the kernel's table: mean x, mean y, conic a, b, c,
@@ -117,25 +115,10 @@ def bin_tiles(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor
     tiles_x = (width + tile - 1) // tile
     tiles_y = (height + tile - 1) // tile
     n_tiles = tiles_x * tiles_y
-    vis = torch.nonzero(radii > 0).flatten()
-    vis = vis[torch.argsort(depths.detach()[vis], stable=True)]
+    vis, (x0, x1, y0, y1) = pixel_boxes(means2d, opacities, cov2d, radii, depths, width,
+                                         height, tile)
     m = means2d.detach()[vis]
-    r = radii[vis].to(dt)
-    tx0 = torch.clamp(torch.floor((m[:, 0] - r) / tile), 0, tiles_x - 1)
-    tx1 = torch.clamp(torch.floor((m[:, 0] + r) / tile), 0, tiles_x - 1)
-    ty0 = torch.clamp(torch.floor((m[:, 1] - r) / tile), 0, tiles_y - 1)
-    ty1 = torch.clamp(torch.floor((m[:, 1] + r) / tile), 0, tiles_y - 1)
-    x_lo, x_hi = tx0 * tile, torch.clamp((tx1 + 1) * tile, max=width) - 1
-    y_lo, y_hi = ty0 * tile, torch.clamp((ty1 + 1) * tile, max=height) - 1
     op = opacities.detach()[vis].to(dt)
-    k = 2.0 * torch.log(torch.clamp(op / ALPHA_MIN, min=1.0))
-    cov = cov2d.detach()[vis].to(dt)
-    hx = torch.sqrt(k * cov[:, 0].clamp_min(0)) * (1 + 1e-6) + 1e-3
-    hy = torch.sqrt(k * cov[:, 2].clamp_min(0)) * (1 + 1e-6) + 1e-3
-    x0 = torch.maximum(x_lo, torch.ceil(m[:, 0] - hx - 0.5)).long()
-    x1 = torch.minimum(x_hi, torch.floor(m[:, 0] + hx - 0.5)).long()
-    y0 = torch.maximum(y_lo, torch.ceil(m[:, 1] - hy - 0.5)).long()
-    y1 = torch.minimum(y_hi, torch.floor(m[:, 1] + hy - 0.5)).long()
     empty = (x1 < x0) | (y1 < y0)
     ntx = torch.where(empty, 0, torch.div(x1, tile, rounding_mode="floor")
                       - torch.div(x0, tile, rounding_mode="floor") + 1)

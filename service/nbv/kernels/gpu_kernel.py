@@ -4,7 +4,19 @@ imports): one program per image tile, one lane per pixel."""
 # mypy: ignore-errors
 # ruff: noqa: N803
 
+import triton
 import triton.language as tl
+
+
+@triton.jit
+def _add_phi(o, f, dx, dy, xx, xy, yy):
+    """Add Σ f·φ over the lanes to o[0:6], φ = (1, dx, dy, dx², dx dy, dy²)."""
+    tl.atomic_add(o, tl.sum(f, axis=0), sem="relaxed")
+    tl.atomic_add(o + 1, tl.sum(f * dx, axis=0), sem="relaxed")
+    tl.atomic_add(o + 2, tl.sum(f * dy, axis=0), sem="relaxed")
+    tl.atomic_add(o + 3, tl.sum(f * xx, axis=0), sem="relaxed")
+    tl.atomic_add(o + 4, tl.sum(f * xy, axis=0), sem="relaxed")
+    tl.atomic_add(o + 5, tl.sum(f * yy, axis=0), sem="relaxed")
 
 
 def moments_kernel(attr_ptr, box_ptr, ent_ptr, off_ptr, const_ptr, out_ptr,  # type: ignore[no-untyped-def]
@@ -111,18 +123,11 @@ def moments_kernel(attr_ptr, box_ptr, ent_ptr, off_ptr, const_ptr, out_ptr,  # t
             xx = dx * dx
             xy = dx * dy
             yy = dy * dy
-            fx = f4 * dx
-            fy = f4 * dy
+            o = out_ptr + v * 34
+            _add_phi(o, f4, dx, dy, xx, xy, yy)  # the monomials of degree <= 2
             fxx = f4 * xx
             fxy = f4 * xy
             fyy = f4 * yy
-            o = out_ptr + v * 34
-            tl.atomic_add(o, tl.sum(f4, axis=0), sem="relaxed")
-            tl.atomic_add(o + 1, tl.sum(fx, axis=0), sem="relaxed")
-            tl.atomic_add(o + 2, tl.sum(fy, axis=0), sem="relaxed")
-            tl.atomic_add(o + 3, tl.sum(fxx, axis=0), sem="relaxed")
-            tl.atomic_add(o + 4, tl.sum(fxy, axis=0), sem="relaxed")
-            tl.atomic_add(o + 5, tl.sum(fyy, axis=0), sem="relaxed")
             tl.atomic_add(o + 6, tl.sum(fxx * dx, axis=0), sem="relaxed")
             tl.atomic_add(o + 7, tl.sum(fxx * dy, axis=0), sem="relaxed")
             tl.atomic_add(o + 8, tl.sum(fxy * dy, axis=0), sem="relaxed")
@@ -132,22 +137,7 @@ def moments_kernel(attr_ptr, box_ptr, ent_ptr, off_ptr, const_ptr, out_ptr,  # t
             tl.atomic_add(o + 12, tl.sum(fxx * yy, axis=0), sem="relaxed")
             tl.atomic_add(o + 13, tl.sum(fxy * yy, axis=0), sem="relaxed")
             tl.atomic_add(o + 14, tl.sum(fyy * yy, axis=0), sem="relaxed")
-            tl.atomic_add(o + 15, tl.sum(f20, axis=0), sem="relaxed")
-            tl.atomic_add(o + 16, tl.sum(f20 * dx, axis=0), sem="relaxed")
-            tl.atomic_add(o + 17, tl.sum(f20 * dy, axis=0), sem="relaxed")
-            tl.atomic_add(o + 18, tl.sum(f20 * xx, axis=0), sem="relaxed")
-            tl.atomic_add(o + 19, tl.sum(f20 * xy, axis=0), sem="relaxed")
-            tl.atomic_add(o + 20, tl.sum(f20 * yy, axis=0), sem="relaxed")
-            tl.atomic_add(o + 21, tl.sum(f21, axis=0), sem="relaxed")
-            tl.atomic_add(o + 22, tl.sum(f21 * dx, axis=0), sem="relaxed")
-            tl.atomic_add(o + 23, tl.sum(f21 * dy, axis=0), sem="relaxed")
-            tl.atomic_add(o + 24, tl.sum(f21 * xx, axis=0), sem="relaxed")
-            tl.atomic_add(o + 25, tl.sum(f21 * xy, axis=0), sem="relaxed")
-            tl.atomic_add(o + 26, tl.sum(f21 * yy, axis=0), sem="relaxed")
-            tl.atomic_add(o + 27, tl.sum(f22, axis=0), sem="relaxed")
-            tl.atomic_add(o + 28, tl.sum(f22 * dx, axis=0), sem="relaxed")
-            tl.atomic_add(o + 29, tl.sum(f22 * dy, axis=0), sem="relaxed")
-            tl.atomic_add(o + 30, tl.sum(f22 * xx, axis=0), sem="relaxed")
-            tl.atomic_add(o + 31, tl.sum(f22 * xy, axis=0), sem="relaxed")
-            tl.atomic_add(o + 32, tl.sum(f22 * yy, axis=0), sem="relaxed")
+            _add_phi(o + 15, f20, dx, dy, xx, xy, yy)
+            _add_phi(o + 21, f21, dx, dy, xx, xy, yy)
+            _add_phi(o + 27, f22, dx, dy, xx, xy, yy)
             tl.atomic_add(o + 33, tl.sum(ww, axis=0), sem="relaxed")
