@@ -9,6 +9,23 @@ import triton.language as tl
 
 
 @triton.jit
+def _pair(attr_ptr, box_ptr, v, pxf, pyf, pxi, pyi, amin):
+    """Visible Gaussian v at the lanes' pixels: dx, dy (pixel centre less its mean), its
+    unclamped α = o·exp(-σ), and whether the pair composites if reached (the pixel in v's box,
+    σ >= 0 and α >= amin)."""
+    a = attr_ptr + v * 9
+    dx = pxf - tl.load(a)
+    dy = pyf - tl.load(a + 1)
+    sigma = 0.5 * (tl.load(a + 2) * dx * dx + tl.load(a + 4) * dy * dy) \
+        + tl.load(a + 3) * dx * dy
+    raw = tl.load(a + 5) * tl.exp(-sigma)
+    b = box_ptr + v * 4
+    inbox = (pxi >= tl.load(b)) & (pxi <= tl.load(b + 1)) & (pyi >= tl.load(b + 2)) \
+        & (pyi <= tl.load(b + 3))
+    return dx, dy, raw, inbox & (sigma >= 0) & (raw >= amin)
+
+
+@triton.jit
 def _add_phi(o, f, dx, dy, xx, xy, yy):
     """Add Σ f·φ over the lanes to o[0:6], φ = (1, dx, dy, dx², dx dy, dy²)."""
     tl.atomic_add(o, tl.sum(f, axis=0), sem="relaxed")
@@ -49,16 +66,8 @@ def moments_kernel(attr_ptr, box_ptr, ent_ptr, off_ptr, const_ptr, out_ptr,  # t
     k = 0
     while (k < length) & (tl.sum(live.to(tl.int32), axis=0) > 0):
         v = tl.load(ent_ptr + start + k)
-        a = attr_ptr + v * 9
-        dx = pxf - tl.load(a)
-        dy = pyf - tl.load(a + 1)
-        sigma = 0.5 * (tl.load(a + 2) * dx * dx + tl.load(a + 4) * dy * dy) \
-            + tl.load(a + 3) * dx * dy
-        raw = tl.load(a + 5) * tl.exp(-sigma)
-        b = box_ptr + v * 4
-        inbox = (pxi >= tl.load(b)) & (pxi <= tl.load(b + 1)) & (pyi >= tl.load(b + 2)) \
-            & (pyi <= tl.load(b + 3))
-        hit = live & inbox & (sigma >= 0) & (raw >= amin)
+        dx, dy, raw, ok = _pair(attr_ptr, box_ptr, v, pxf, pyf, pxi, pyi, amin)
+        hit = live & ok
         al = tl.minimum(raw, amax).to(tl.float64)
         tn = trans * (1.0 - al)
         stop = hit & (tn < t_min)
@@ -75,17 +84,10 @@ def moments_kernel(attr_ptr, box_ptr, ent_ptr, off_ptr, const_ptr, out_ptr,  # t
     for i in range(0, kmax):
         kb = kmax - 1 - i
         v = tl.load(ent_ptr + start + kb)
-        a = attr_ptr + v * 9
-        dx = pxf - tl.load(a)
-        dy = pyf - tl.load(a + 1)
-        sigma = 0.5 * (tl.load(a + 2) * dx * dx + tl.load(a + 4) * dy * dy) \
-            + tl.load(a + 3) * dx * dy
-        raw = tl.load(a + 5) * tl.exp(-sigma)
-        b = box_ptr + v * 4
-        inbox = (pxi >= tl.load(b)) & (pxi <= tl.load(b + 1)) & (pyi >= tl.load(b + 2)) \
-            & (pyi <= tl.load(b + 3))
-        hit = valid & (kb < last) & inbox & (sigma >= 0) & (raw >= amin)
+        dx, dy, raw, ok = _pair(attr_ptr, box_ptr, v, pxf, pyf, pxi, pyi, amin)
+        hit = valid & (kb < last) & ok
         if tl.sum(hit.to(tl.int32), axis=0) > 0:
+            a = attr_ptr + v * 9
             c0 = tl.load(a + 6)
             c1 = tl.load(a + 7)
             c2 = tl.load(a + 8)
