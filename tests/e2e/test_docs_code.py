@@ -147,7 +147,9 @@ HOW: dict[tuple[str, str], How] = {
      "--width 128 --height 128 \\"): BENCH,
     ("docs/benchmarks.md", "for s in boot bob fish koala penguin skull spot stanford_bunny "
      "teapot violin; do"): BENCH,
-    ("docs/benchmarks.md", "for c in skull_photos tankard flowerpot; do"): BENCH,
+    ("docs/benchmarks.md", "for c in skull_photos tankard flowerpot caliterra; do"): BENCH,
+    ("docs/benchmarks.md", "agilegs bench run $(for s in skull_photos tankard flowerpot "
+     "caliterra; do echo --scene $S/$s; \\"): BENCH,
     ("docs/benchmarks.md", "agilegs bench latency --scene $S/plant/plant.splat --max-gaussians "
      "1000000 --width 512 \\"): BENCH,
     ("docs/benchmarks.md", "agilegs bench render --scene $S/plant/plant.splat --sizes 128,256 "
