@@ -150,9 +150,10 @@ def _measured(kind: str, n: int, res: int, pool: int, allocator: str) -> dict[st
     ("fisher", 30_000, 128, 4, "default"),
     ("agile_plus", 30_000, 96, 12, "default"),
     ("cover", 30_000, 96, 4, "default"),
-    ("cover", 30_000, 96, 4, "one-arena"),
-    ("cover", 30_000, 96, 4, "two-threads"),
-    ("agile_plus", 30_000, 96, 12, "eager-trim"),
+    # the allocator's other settings: the heavy lane (`pytest -m heavy`)
+    pytest.param("cover", 30_000, 96, 4, "one-arena", marks=pytest.mark.heavy),
+    pytest.param("cover", 30_000, 96, 4, "two-threads", marks=pytest.mark.heavy),
+    pytest.param("agile_plus", 30_000, 96, 12, "eager-trim", marks=pytest.mark.heavy),
     ("fisher", 30_000, 128, 4, "two-threads"),
 ])
 def test_measured_peaks_stay_under_the_estimate(kind: str, n: int, res: int, pool: int,
