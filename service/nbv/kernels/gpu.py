@@ -34,13 +34,10 @@ from .backend import default_backend
 log = logging.getLogger(__name__)
 
 MOMENTS = 34
-ATTRS = 9
-"""Columns of a visible Gaussian's row in the kernel's table: mean x, mean y, conic a, b, c,
-opacity, colour (3)."""
 
 _triton: Any = None
 _import_error: str | None = None
-_kernels: dict[bool, Any] = {}
+_jitted: Any = None
 
 
 def _load_triton() -> Any:
@@ -71,19 +68,14 @@ def gpu_moments_apply(backend: str | None, like: Tensor) -> bool:
             and like.dtype in (torch.float32, torch.float64) and triton_available())
 
 
-def triton_import_error() -> str | None:
-    """Why Triton does not import (None if it does, or if not yet tried)."""
-    _load_triton()
-    return _import_error
-
-
 @dataclass
 class TileBins:
     """The visible Gaussians binned to tiles, front to back in each tile.
 
     Attributes:
         vis: the visible Gaussians in depth order [V] (indices into the map).
-        attrs: their rows [V, ATTRS] (the map's dtype).
+        attrs: their rows [V, 9] (the map's dtype): mean x, mean y, conic a, b, c, opacity,
+            colour (3).
         boxes: their pixel boxes x0, x1, y0, y1 (inclusive; empty: x0 > x1) [V, 4] int64.
         entries: each tile's list, the compact index into ``vis`` of every entry [M] int64.
         offsets: where tile t's list starts in ``entries`` [n_tiles + 1] int64.
@@ -149,16 +141,15 @@ def bin_tiles(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor
 
 
 def _kernel() -> Any:
-    k = _kernels.get(True)
-    if k is None:
+    global _jitted
+    if _jitted is None:
         triton = _load_triton()
         if triton is None:
             raise RuntimeError(f"triton is unavailable ({_import_error})")
         from .gpu_kernel import moments_kernel  # noqa: PLC0415 (needs triton)
 
-        k = triton.jit(moments_kernel)
-        _kernels[True] = k
-    return k
+        _jitted = triton.jit(moments_kernel)
+    return _jitted
 
 
 def _interpreting() -> bool:
