@@ -129,6 +129,7 @@ _PHI_OUTER = torch.tensor([
     for i in range(6) for j in range(6)])
 """Entry (i, j) of φφᵀ [36] as an index into :data:`MONOMIALS`."""
 
+
 def pair_moments(proj: Projected, width: int, height: int, bg: Tensor, *, tile_size: int = 8,
                  max_elements: int = 1 << 22, residuals: Residuals = "channels") -> Tensor:
     """The Fisher's per-Gaussian moments [N, 34] by listing the composited pairs (the torch
