@@ -79,7 +79,7 @@ _COMPILE = textwrap.dedent("""
         sig = {"attr_ptr": "*" + ft, "box_ptr": "*i64", "ent_ptr": "*i64", "off_ptr": "*i64",
                "const_ptr": "*fp64", "out_ptr": "*" + ft, "width": "i32", "height": "i32",
                "tiles_x": "i32", "TILE": "constexpr", "BLOCK": "constexpr", "PIXELS": "constexpr"}
-        src = ASTSource(fn=triton.jit(moments_kernel), signature=sig,
+        src = ASTSource(fn=moments_kernel, signature=sig,
                         constexprs={"TILE": 8, "BLOCK": 64, "PIXELS": pixels})
         k = triton.compile(src, target=GPUTarget("cuda", 90, 32), options={"num_warps": 1})
         assert len(k.asm["cubin"]) > 1000

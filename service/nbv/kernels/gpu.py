@@ -37,7 +37,6 @@ MOMENTS = 34
 
 _triton: Any = None
 _import_error: str | None = None
-_jitted: Any = None
 
 
 def _load_triton() -> Any:
@@ -141,15 +140,11 @@ def bin_tiles(means2d: Tensor, conics: Tensor, opacities: Tensor, colors: Tensor
 
 
 def _kernel() -> Any:
-    global _jitted
-    if _jitted is None:
-        triton = _load_triton()
-        if triton is None:
-            raise RuntimeError(f"triton is unavailable ({_import_error})")
-        from .gpu_kernel import moments_kernel  # noqa: PLC0415 (needs triton)
+    if _load_triton() is None:
+        raise RuntimeError(f"triton is unavailable ({_import_error})")
+    from .gpu_kernel import moments_kernel  # noqa: PLC0415 (needs triton)
 
-        _jitted = triton.jit(moments_kernel)
-    return _jitted
+    return moments_kernel
 
 
 def _interpreting() -> bool:

@@ -36,11 +36,13 @@ def _add_phi(o, f, dx, dy, xx, xy, yy):
     tl.atomic_add(o + 5, tl.sum(f * yy, axis=0), sem="relaxed")
 
 
+@triton.jit
 def moments_kernel(attr_ptr, box_ptr, ent_ptr, off_ptr, const_ptr, out_ptr,  # type: ignore[no-untyped-def]
                    width, height, tiles_x, TILE: tl.constexpr, BLOCK: tl.constexpr,
                    PIXELS: tl.constexpr):
-    """One tile: lanes are its pixels. See the module docstring; the pair terms are those of
-    ``kernels.walks.fisher_tiles`` (f4, f2 per channel, w², and the monomials of dx, dy)."""
+    """One tile: lanes are its pixels (see :mod:`agilegs.service.nbv.kernels.gpu`); the pair
+    terms are those of ``kernels.walks.fisher_tiles`` (f4, f2 per channel, w², and the
+    monomials of dx, dy)."""
     t = tl.program_id(0)
     start = tl.load(off_ptr + t)
     length = tl.load(off_ptr + t + 1) - start
