@@ -16,45 +16,34 @@ import importlib
 import logging
 import sys
 from collections.abc import Sequence
+from functools import cache
+from importlib.metadata import entry_points
 
 # (command path, module, help)
 COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("serve",), "agilegs.service.serve", "run the NBV server (HTTP and Zenoh)"),
-    (("demo",), "agilegs.service.demo.run", "closed-loop demo on the bundled scene"),
     (("store", "check"), "agilegs.service.store_tool",
      "check a state folder's sessions against their checksums (offline)"),
     (("store", "repair"), "agilegs.service.store_tool",
      "roll damaged sessions of a state folder back to their last intact version (offline)"),
     (("view",), "agilegs.service.viewer.cli",
      "a live browser view of a session, or the replay of a benchmark run (agilegs[viewer])"),
-    (("bench", "render"), "agilegs.service.bench.render_bench", "rasterizer and Fisher timings"),
-    (("bench", "latency"), "agilegs.service.bench.latency", "selection latency of every method"),
-    (("bench", "run"), "agilegs.service.bench.run_cli", "the paper's progressive protocol"),
-    (("bench", "service"), "agilegs.service.bench.service_bench", "transport overhead"),
-    (("bench", "bigmap"), "agilegs.service.bench.bigmap",
-     "a server holding a session of a million Gaussians: memory and time per method"),
-    (("bench", "edge"), "agilegs.service.bench.edge",
-     "slow and idle connections, and large bodies at once: what they cost the server"),
-    (("bench", "value"), "agilegs.service.bench.value",
-     "what each candidate is worth, and which scores predict it"),
-    (("bench", "proxy"), "agilegs.service.bench.proxy_check",
-     "how the anchor's choices follow the exact EIG on trained maps"),
 ]
+"""The server's own commands; more come from the ``agilegs.commands`` entry points."""
 
 GROUPS: dict[str, str] = {
     "store": "check or repair a server's state folder, offline",
-    "bench": "the benchmarks: render, latency, run, service, bigmap, edge, value, proxy",
 }
 """The help of each command that groups subcommands."""
 
-OPTIONS: dict[str, str] = {
-    "agilegs.service.bench.latency": "agilegs.service.bench.options:add_latency_arguments",
-    "agilegs.service.bench.run_cli": "agilegs.service.bench.options:add_run_arguments",
-    "agilegs.service.bench.value": "agilegs.service.bench.options:add_value_arguments",
-    "agilegs.service.bench.proxy_check": "agilegs.service.bench.options:add_proxy_arguments",
-}
+OPTIONS: dict[str, str] = {}
 """``module:function`` that adds the options of a command whose module imports torch (the
 others' ``add_arguments`` is used)."""
+
+ENTRY_POINTS = "agilegs.commands"
+"""The entry-point group of more commands (the lab's: ``agilegs bench ...``, ``agilegs demo``):
+each names a light module with ``COMMANDS`` and, optionally, ``GROUPS`` and ``OPTIONS`` shaped
+as this module's."""
 
 # third-party modules of the `service` extra: a client-only install lacks them
 _SERVER_EXTRAS = {
@@ -67,18 +56,35 @@ _SERVER_EXTRAS = {
     "prometheus_client",
     "plyfile",
     "PIL",
-    "matplotlib",
-    "rich",
-    "skimage",
     "starlette",
 }
 
-_INSTALL = "Install them with: pip install torch==2.13.0 && pip install 'agilegs[service]'\n"
+# third-party modules of the `lab` extra (the benchmark's and the demo's)
+_LAB_EXTRAS = {"matplotlib", "rich", "skimage"}
+
+_INSTALL = "Install them with: pip install torch==2.13.0 && pip install 'agilegs[service,lab]'\n"
+
+
+@cache
+def _tables() -> tuple[list[tuple[tuple[str, ...], str, str]], dict[str, str], dict[str, str]]:
+    """The commands, groups and options: this module's and those of the entry points."""
+    commands, groups, options = list(COMMANDS), dict(GROUPS), dict(OPTIONS)
+    for ep in sorted(entry_points(group=ENTRY_POINTS), key=lambda e: e.name):
+        try:
+            mod = ep.load()
+        except ImportError as exc:  # a broken plugin must not take the server's commands down
+            logging.getLogger(__name__).warning("agilegs: commands of %s not loaded: %s",
+                                                ep.value, exc)
+            continue
+        commands += getattr(mod, "COMMANDS", [])
+        groups.update(getattr(mod, "GROUPS", {}))
+        options.update(getattr(mod, "OPTIONS", {}))
+    return commands, groups, options
 
 
 def options_function(module: str) -> str:
     """Where the options of the command run by ``module`` are defined (``module:function``)."""
-    return OPTIONS.get(module, f"{module}:add_arguments")
+    return _tables()[2].get(module, f"{module}:add_arguments")
 
 
 def _add_options(sub: argparse.ArgumentParser, module: str) -> None:
@@ -104,13 +110,14 @@ def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
                "and docs/ of the repository.")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     top = parser.add_subparsers(dest="command", metavar="COMMAND")
+    commands, group_help, _ = _tables()
     groups: dict[str, argparse._SubParsersAction] = {}
-    for path, module, help_text in COMMANDS:
+    for path, module, help_text in commands:
         if len(path) == 1:
             sub = top.add_parser(path[0], help=help_text, description=help_text)
         else:
             if path[0] not in groups:
-                text = GROUPS.get(path[0], f"{path[0]} subcommands")
+                text = group_help.get(path[0], f"{path[0]} subcommands")
                 g = top.add_parser(path[0], help=text, description=text)
                 groups[path[0]] = g.add_subparsers(dest="subcommand", metavar="SUBCOMMAND")
             sub = groups[path[0]].add_parser(path[1], help=help_text, description=help_text)
@@ -139,7 +146,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         mod = importlib.import_module(args._module)
         return int(mod.run(args) or 0)
     except ModuleNotFoundError as exc:
-        if exc.name and exc.name.split(".")[0] in _SERVER_EXTRAS:
+        top = exc.name.split(".")[0] if exc.name else ""
+        if top in _LAB_EXTRAS:
+            sys.stderr.write(f"agilegs: this command needs the lab extras (missing "
+                             f"{exc.name!r}).\n{_INSTALL}")
+            return 2
+        if top in _SERVER_EXTRAS:
             sys.stderr.write(f"agilegs: this command needs the server extras (missing "
                              f"{exc.name!r}).\n{_INSTALL}")
             return 2

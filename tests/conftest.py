@@ -30,7 +30,7 @@ __all__ = ["ROOT", "SCENES", "SHARED_SCENES", "SMALL_INTRINSICS", "InProcess", "
 
 ROOT = Path(__file__).resolve().parents[1]
 """The repository's root."""
-SCENES = ROOT / "service" / "data" / "scenes"
+SCENES = ROOT / "lab" / "scenes"
 """The benchmark's ground-truth scenes, in the repository (not in the wheel)."""
 SHARED_SCENES = SCENES
 """Another name of :data:`SCENES`."""

@@ -13,7 +13,7 @@
 #      and Fisher, the Fisher's torch reference, gsplat, a mapper training step against
 #      gsplat's own step).
 #
-# Needs python3 with a CUDA torch and this package (pip install -e '.[service,cuda]') and a CUDA
+# Needs python3 with a CUDA torch and this package (pip install -e '.[service,lab,cuda]') and a CUDA
 # toolkit for gsplat's build. Everything lands in $OUT (default gpu-out); each step has a time
 # limit so that one slow step cannot starve the rest (DEADLINE: seconds for the whole script).
 # GSPLAT_SITE (optional): a folder holding gsplat, put on PYTHONPATH only once its extension has
@@ -25,7 +25,7 @@ OUT=${OUT:-gpu-out}
 PY=${PYTHON:-python3}
 DEADLINE=${DEADLINE:-560}
 DEVICE=${DEVICE:-cuda}
-S=service/data/scenes
+S=lab/scenes
 SCENE_OBJECT=${SCENE_OBJECT:-$S/spot}
 OBJECT_SPLAT=${OBJECT_SPLAT:-$SCENE_OBJECT/spot_10k.splat}
 SCENE_CAPTURE=${SCENE_CAPTURE:-$S/skull_photos}

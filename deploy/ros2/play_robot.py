@@ -36,7 +36,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
 
     from agilegs.client.ros2.robot import Ros2Robot
-    from agilegs.service.demo.run import FULL, QUICK, Robot, initial_indices, mapper_options
+    from agilegs.lab.demo.run import FULL, QUICK, Robot, initial_indices, mapper_options
     from agilegs.service.launch import ServerProcess
     from agilegs.service.nbv.candidates import scene_center_radius
 

@@ -3,7 +3,7 @@ one view's H_v, and Hhat of a set of views on a map.
 
 The one place both are computed: a session's acquisitions and map changes
 (:mod:`agilegs.service.sessions.transitions`) and the benchmark's protocol
-(:mod:`agilegs.service.bench.protocol`) go through these functions.
+(:mod:`agilegs.lab.bench.protocol`) go through these functions.
 """
 
 from __future__ import annotations

@@ -15,7 +15,7 @@ import pytest
 import torch
 from PIL import Image
 
-from agilegs.service.data import bundled_scene
+from agilegs.lab.scenes import bundled_scene
 from agilegs.service.data.distortion import (
     Distortion,
     colmap_distortion,
@@ -92,7 +92,7 @@ def test_colmap_models_map_to_opencv() -> None:
 def _spot_render(intr: Intrinsics) -> np.ndarray:
     gt = load_scene(bundled_scene("spot"), max_gaussians=4000)
     center, r98 = scene_center_radius(gt.means)
-    from agilegs.service.bench.scene_model import orbit_cameras
+    from agilegs.lab.bench.scene_model import orbit_cameras
 
     pose = orbit_cameras(center, 2.2 * float(r98), (25.0,), 1, azimuth_offset=0.4)[0]
     with torch.no_grad():

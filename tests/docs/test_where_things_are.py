@@ -10,7 +10,7 @@ from pathlib import Path
 from conftest import ROOT
 
 PACKAGES = {"agilegs.config": "config", "agilegs.schemas": "schemas", "agilegs.client": "client",
-            "agilegs.service": "service"}
+            "agilegs.service": "service", "agilegs.lab": "lab"}
 
 
 def table() -> list[tuple[str, str]]:
@@ -55,7 +55,12 @@ def test_every_folder_and_module_of_the_service_has_its_row() -> None:
             assert f"service/{path.name}/" in named, f"docs/extending.md lacks service/{path.name}/"
         elif path.suffix == ".py" and path.name != "__init__.py":
             assert f"service/{path.name}" in named, f"docs/extending.md lacks service/{path.name}"
-    for top in ("config/", "schemas/", "client/", "deploy/", "tests/"):
+    for path in sorted((ROOT / "lab").iterdir()):
+        if (path / "__init__.py").exists():
+            assert f"lab/{path.name}/" in named, f"docs/extending.md lacks lab/{path.name}/"
+        elif path.suffix == ".py" and path.name != "__init__.py":
+            assert f"lab/{path.name}" in named, f"docs/extending.md lacks lab/{path.name}"
+    for top in ("config/", "schemas/", "client/", "lab/", "deploy/", "tests/"):
         assert top in named
 
 
@@ -66,11 +71,15 @@ def test_the_table_test_sees_a_missing_row() -> None:
 
 
 def test_the_tests_mirror_the_tree() -> None:
-    """A folder of tests/ is a folder of service/ (or client, schemas, config), or one of
-    service (the top-level modules), docs, e2e."""
+    """A folder of tests/ is a folder of service/ (or client, schemas, config, lab), or one of
+    service (the top-level modules), docs, e2e; a folder of tests/lab/ is a folder of lab/."""
     rooms = {p.name for p in (ROOT / "service").iterdir() if (p / "__init__.py").exists()}
-    allowed = rooms | {"client", "schemas", "config", "service", "docs", "e2e"}
+    allowed = rooms | {"client", "schemas", "config", "lab", "service", "docs", "e2e"}
     folders = {p.name for p in (ROOT / "tests").iterdir()
                if p.is_dir() and not re.match(r"^(__pycache__|\.)", p.name)}
     assert folders <= allowed, folders - allowed
+    lab = {p.name for p in (ROOT / "lab").iterdir() if (p / "__init__.py").exists()}
+    inside = {p.name for p in (ROOT / "tests" / "lab").iterdir()
+              if p.is_dir() and not re.match(r"^(__pycache__|\.)", p.name)}
+    assert inside <= lab, inside - lab
     assert {"sessions", "store", "transports", "mapper", "data", "viewer", "nbv"} <= folders

@@ -85,8 +85,8 @@ def test_the_light_options_are_the_commands_own() -> None:
     """A command whose module imports torch defines its options in a light module, and the
     module exposes the same function as ``add_arguments``."""
     from agilegs.config.selection import METHODS
-    from agilegs.service.bench.options import PROFILE_NAMES
-    from agilegs.service.bench.profiles import PROFILES
+    from agilegs.lab.bench.options import PROFILE_NAMES
+    from agilegs.lab.bench.profiles import PROFILES
     from agilegs.service.nbv.methods.base import method_names
 
     for module, where in OPTIONS.items():

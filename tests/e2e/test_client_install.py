@@ -17,8 +17,8 @@ from pathlib import Path
 import pytest
 from conftest import ROOT, ServerProcess
 
-#: what a wheel is built from (README, pyproject and the three packages' folders)
-SOURCES = ("pyproject.toml", "README.md", "config", "schemas", "client", "service")
+#: what a wheel is built from (README, pyproject and the packages' folders)
+SOURCES = ("pyproject.toml", "README.md", "config", "schemas", "client", "service", "lab")
 
 ROBOT = """
 import sys
@@ -87,8 +87,8 @@ def test_the_wheel_installs_the_client_without_torch(tmp_path: Path) -> None:
     for package in ("agilegs/client/", "agilegs/schemas/", "agilegs/service/nbv/"):
         assert any(n.startswith(package) for n in names), package
     scenes = sorted(n for n in names if n.endswith((".splat", ".ply", ".png")))
-    assert scenes == ["agilegs/service/data/scenes/spot/spot_10k.splat",
-                      "agilegs/service/data/scenes/teapot/teapot_10k.splat"], scenes
+    assert scenes == ["agilegs/lab/scenes/spot/spot_10k.splat",
+                      "agilegs/lab/scenes/teapot/teapot_10k.splat"], scenes
     assert wheel.stat().st_size < 2**20  # the benchmark's 9 MB of scenes stay out
     py = _fresh_venv(tmp_path / "robot")
     _run([str(py), "-m", "pip", "install", "-q", f"{wheel}[zenoh]"], timeout=400)

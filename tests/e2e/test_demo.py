@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from agilegs.service.demo.run import EXPECT, QUICK, attribution, initial_indices
+from agilegs.lab.demo.run import EXPECT, QUICK, attribution, initial_indices
 
 
 @pytest.mark.timeout(240)

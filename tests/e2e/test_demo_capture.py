@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agilegs.service.demo.capture_robot import CaptureRobot, is_capture
-from agilegs.service.demo.run import QUICK, Robot, make_robot
+from agilegs.lab.demo.capture_robot import CaptureRobot, is_capture
+from agilegs.lab.demo.run import QUICK, Robot, make_robot
 
-BUDDHA = Path(__file__).resolve().parents[2] / "service" / "data" / "scenes" / "buddha"
+BUDDHA = Path(__file__).resolve().parents[2] / "lab" / "scenes" / "buddha"
 
 
 def test_the_robot_returns_the_frames_photograph(tmp_path: Path) -> None:

@@ -176,7 +176,8 @@ def test_dockerfile_parses_and_builds_cpu_or_cuda_from_arguments() -> None:
     # what it copies exists, and is what the package needs
     copied = [shlex.split(rest)[:-1] for w, rest in ins if w == "COPY"]
     sources = {s for group in copied for s in group}
-    assert sources == {"pyproject.toml", "README.md", "config", "schemas", "client", "service"}
+    assert sources == {"pyproject.toml", "README.md", "config", "schemas", "client", "service",
+                       "lab"}
     assert all((ROOT / s).exists() for s in sources)
     # the CMD's ports and state folder are the ones exposed and kept in a volume
     exposed = {p for w, rest in ins if w == "EXPOSE" for p in rest.split()}

@@ -68,15 +68,15 @@ class How:
     env: tuple[tuple[str, str], ...] = ()  # parse: variables an earlier block of the page set
 
 
-BENCH = How("parse", "hours of CPU (the full tables); the page sets S=service/data/scenes first",
-            env=(("S", "service/data/scenes"),))
+BENCH = How("parse", "hours of CPU (the full tables); the page sets S=lab/scenes first",
+            env=(("S", "lab/scenes"),))
 HOW: dict[tuple[str, str], How] = {
     ("README.md", "python3 -m venv .venv && . .venv/bin/activate && pip install -q "
-     "torch==2.13.0 && pip install -q -e \".[service,dev]\" && agilegs demo"):
+     "torch==2.13.0 && pip install -q -e \".[service,lab,dev]\" && agilegs demo"):
         How("ci", "the set-up is .ci/run's (this suite runs after it); the demo itself runs in "
                   "tests/e2e/test_demo.py"),
     ("README.md", "python3 -m venv .venv && . .venv/bin/activate && pip install -q "
-     "torch==2.13.0 && pip install -q -e \".[service,dev]\" && python -m pytest -q"):
+     "torch==2.13.0 && pip install -q -e \".[service,lab,dev]\" && python -m pytest -q"):
         How("ci", "the suite itself, as .ci/run runs it"),
     ("README.md", "agilegs serve --host 127.0.0.1 --port 8000 --state-dir ./agilegs-state   "
      "# HTTP + Zenoh"): How("server", "the server the README's clients talk to"),
@@ -131,12 +131,12 @@ HOW: dict[tuple[str, str], How] = {
      "(sparse/0 and images/)"):
         How("skip", "needs a video and ffmpeg, COLMAP, instant-ngp and nerfstudio (what they "
                     "write is loaded in tests/data/test_captures.py and "
-                    "tests/bench/test_capture_scenes.py)"),
-    ("docs/your-data.md", "agilegs bench run --scene service/data/scenes/buddha --profile cpu "
+                    "tests/lab/bench/test_capture_scenes.py)"),
+    ("docs/your-data.md", "agilegs bench run --scene lab/scenes/buddha --profile cpu "
      "--methods random,agile_plus --seeds 0 --out out/buddha"):
         How("parse", "minutes of CPU (the demo on this capture: "
                      "tests/e2e/test_demo_capture.py)"),
-    ("docs/benchmarks.md", "S=service/data/scenes"): BENCH,
+    ("docs/benchmarks.md", "S=lab/scenes"): BENCH,
     ("docs/benchmarks.md", "agilegs bench run --scene $S/plant --scene $S/boot --scene "
      "$S/koala --scene $S/floor \\"): BENCH,
     ("docs/benchmarks.md", "agilegs bench run $(for s in plant boot bob fish koala penguin floor "
@@ -161,7 +161,7 @@ HOW: dict[tuple[str, str], How] = {
     ("docs/benchmarks.md", "OMP_NUM_THREADS=1 agilegs bench service --phases deadline --scene "
      "$S/plant/plant.splat \\"):
         How("parse", "a benchmark of minutes (its small run: tests/e2e/test_bench_service.py)",
-            env=(("S", "service/data/scenes"),)),
+            env=(("S", "lab/scenes"),)),
     ("docs/benchmarks.md", "OMP_NUM_THREADS=1 agilegs bench bigmap --json bigmap.json     "
      "# default limits"):
         How("parse", "a million-Gaussian server session, minutes and GiBs (its small run: "
@@ -203,7 +203,7 @@ def test_every_block_is_code_or_data_and_every_exception_is_a_block() -> None:
 
 
 LINKED = [*PAGES, *sorted(str(p.relative_to(ROOT)) for p in (ROOT / "notebook").rglob("*.md")),
-          *sorted(str(p.relative_to(ROOT)) for p in (ROOT / "service" / "data").rglob("*.md"))]
+          *sorted(str(p.relative_to(ROOT)) for p in (ROOT / "lab" / "scenes").rglob("*.md"))]
 
 
 def heading_anchors(text: str) -> set[str]:
@@ -386,7 +386,7 @@ STAND_IN = textwrap.dedent("""\
         from agilegs.service.cli import build_parser
         argv = sys.argv[1:]
         args = build_parser(argv).parse_args(argv)
-        bench = args._module.startswith("agilegs.service.bench.")
+        bench = args._module.startswith("agilegs.lab.bench.")
         scenes = (getattr(args, "scene", None) or []) if bench else []
         for scene in [scenes] if isinstance(scenes, str) else scenes:
             if not Path(scene).exists():

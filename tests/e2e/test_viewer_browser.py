@@ -20,8 +20,8 @@ from conftest import SMALL_INTRINSICS, InProcess, ServerProcess, ring_poses
 from conftest import gaussian_blob as blob
 
 from agilegs.client import Client, ZenohClient
+from agilegs.lab.scenes import bundled_scene
 from agilegs.service.cli import main
-from agilegs.service.data import bundled_scene
 from agilegs.service.launch import free_port
 from agilegs.service.viewer.browser import Browser, canvas_fraction, find_chromium, pixels
 from agilegs.service.viewer.live import SessionViewer

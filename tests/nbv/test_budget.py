@@ -74,8 +74,8 @@ def _measure(q: Any, kind: str, n: int, res: int, pool: int, threads: int = 1) -
 
         torch.set_num_threads(threads)
         from agilegs.config.selection import SelectConfig
-        from agilegs.service.bench.latency import PeakRSS, densified
-        from agilegs.service.data import bundled_scene
+        from agilegs.lab.bench.latency import PeakRSS, densified
+        from agilegs.lab.scenes import bundled_scene
         from agilegs.service.nbv.camera import Camera, Intrinsics
         from agilegs.service.nbv.candidates import capture_pool, scene_center_radius
         from agilegs.service.nbv.gaussians import GaussianMap

@@ -14,7 +14,7 @@ from agilegs.config.selection import (
     ScoringConfig,
     SelectConfig,
 )
-from agilegs.service.bench.stages import ANCHOR_STAGES
+from agilegs.lab.bench.stages import ANCHOR_STAGES
 from agilegs.service.nbv.camera import Camera, Intrinsics
 from agilegs.service.nbv.candidates import capture_pool
 from agilegs.service.nbv.gaussians import GaussianMap

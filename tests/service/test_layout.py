@@ -11,7 +11,7 @@ from pathlib import Path
 from conftest import ROOT
 
 PACKAGES = {"config": "agilegs.config", "schemas": "agilegs.schemas", "client": "agilegs.client",
-            "service": "agilegs.service"}
+            "service": "agilegs.service", "lab": "agilegs.lab"}
 
 
 def _modules() -> dict[str, Path]:
@@ -123,7 +123,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("sessions", ("sessions",)),
     ("transports", ("transports",)),
     ("server", ("server",)),
-    ("commands", ("serve", "cli", "launch", "store_tool", "demo", "bench", "viewer")),
+    ("commands", ("serve", "cli", "launch", "store_tool", "viewer")),
 )
 """The service's layers, bottom up: the folders (or top-level modules) of ``service/`` in each.
 A module imports from its own layer and the layers below only."""
@@ -151,6 +151,20 @@ def test_each_layer_imports_only_from_itself_and_below() -> None:
         above = {d for d in deps if d.startswith("agilegs.service.") and _layer(d) > _layer(name)}
         assert not above, (f"{name} ({LAYERS[_layer(name)][0]}) imports from a layer above: "
                            f"{sorted(above)}")
+
+
+def test_the_server_imports_nothing_of_the_lab() -> None:
+    """The lab measures and demonstrates the server: nothing of ``agilegs.service`` imports it
+    (type-only imports included), and its commands reach the CLI through an entry point."""
+    service = [n for n in MODULES if n.startswith("agilegs.service")]
+    lab = [n for n in MODULES if n.startswith("agilegs.lab")]
+    assert len(service) > 50 and len(lab) > 20
+    for name in service:
+        assert not _reaches(name, ("agilegs.lab",)), (name, _reaches(name, ("agilegs.lab",)))
+    for name in ("agilegs.schemas", "agilegs.client", "agilegs.config"):
+        assert not any(_reaches(n, ("agilegs.lab",)) for n in MODULES if n.startswith(name))
+    text = (ROOT / "service" / "cli.py").read_text()
+    assert "agilegs.lab" not in text
 
 
 def test_no_forbidden_arrow() -> None:
@@ -211,7 +225,7 @@ def test_files_stay_small() -> None:
     # one concept each that needs the length: the incremental 3DGS trainer and the rasterizer
     allowed = {"agilegs.service.mapper.mapper", "agilegs.service.nbv.rasterize"}
     for name, path in MODULES.items():
-        if name.startswith("agilegs.service") and name not in allowed:
+        if name.startswith(("agilegs.service", "agilegs.lab")) and name not in allowed:
             n = len(path.read_text().splitlines())
             assert n <= 580, f"{name}: {n} lines"
 
@@ -347,7 +361,7 @@ def test_one_import_path_per_name() -> None:
     names the one path of :func:`_import_path` (no import through a module that merely
     imported it)."""
     modules = {path.resolve(): name for name, path in MODULES.items()}
-    files = [p for d in ("config", "schemas", "client", "service", "tests", "deploy")
+    files = [p for d in ("config", "schemas", "client", "service", "lab", "tests", "deploy")
              for p in (ROOT / d).rglob("*.py")]
     assert len(files) > len(MODULES)
     bad = []

@@ -290,7 +290,7 @@ WRITES = {  # the file name a write makes -> an operation that makes it
     "upload-": lambda c: c.set_gaussians("a", str(UPLOAD)),
     "creating": lambda c: c.create_session(SMALL_INTRINSICS, id="b", bounds=BOUNDS),
 }
-UPLOAD = Path(__file__).resolve().parents[2] / "service" / "data" / "scenes" / "spot" / "spot_10k.splat"
+UPLOAD = Path(__file__).resolve().parents[2] / "lab" / "scenes" / "spot" / "spot_10k.splat"
 
 
 @pytest.mark.parametrize("match", list(WRITES), ids=[w.strip(".-") for w in WRITES])

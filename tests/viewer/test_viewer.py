@@ -17,8 +17,8 @@ import pytest
 from conftest import SMALL_INTRINSICS, InProcess, gaussian_blob, ring_poses
 
 from agilegs.client import Client
+from agilegs.lab.scenes import bundled_scene
 from agilegs.service.cli import main
-from agilegs.service.data import bundled_scene
 from agilegs.service.launch import free_port
 from agilegs.service.viewer.canvas import ANCHOR, CHOSEN
 from agilegs.service.viewer.live import SessionViewer
