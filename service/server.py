@@ -3,7 +3,8 @@
 :class:`Server` wires one instance together: the sessions (:class:`SessionRegistry
 <agilegs.service.sessions.registry.SessionRegistry>`), the request pipeline
 (:class:`~agilegs.service.transports.gateway.Gateway`), the cluster node that routes operations to
-the instance owning a session (:class:`~agilegs.service.transports.cluster.ClusterNode`), the Zenoh
+the instance owning a session
+(:class:`~agilegs.service.transports.zenoh.cluster.ClusterNode`), the Zenoh
 transport (:class:`~agilegs.service.transports.zenoh.adapter.ZenohAdapter`) with the ROS 2 one on
 its
 session (:class:`~agilegs.service.transports.ros2.adapter.Ros2Adapter`) and the metrics; the HTTP
@@ -21,10 +22,10 @@ from typing import TYPE_CHECKING
 from .sessions.registry import SessionRegistry
 from .settings import Settings
 from .store.state_dir import StateLock, claim_state_dir
-from .transports.cluster import ClusterNode
 from .transports.gateway import Gateway
 from .transports.metrics import Metrics
 from .transports.zenoh.adapter import ZenohAdapter
+from .transports.zenoh.cluster import ClusterNode
 
 if TYPE_CHECKING:
     from .transports.ros2.adapter import Ros2Adapter

@@ -24,8 +24,7 @@ from agilegs.config.selection import (
     SelectConfig,
 )
 from agilegs.config.types import deep_merge, validate_config
-
-from ..nbv.methods.base import method_names
+from agilegs.service.nbv.methods.base import method_names
 
 __all__ = [
     "DISPLAY",

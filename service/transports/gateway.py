@@ -55,7 +55,7 @@ from agilegs.schemas import OPERATIONS, ErrorBody, SelectResponse, codec
 from agilegs.schemas.errors import ErrorCode
 
 from ..errors import ServiceError, insufficient_storage, invalid, is_disk_full
-from ..sessions.registry import QueryParams, SessionRegistry, parse_request
+from ..sessions.registry import SessionRegistry
 from ..settings import Settings
 from .admission import (
     CLIENT_CLOSED,
@@ -67,6 +67,7 @@ from .admission import (
     request_decoded_bytes,
 )
 from .metrics import Metrics
+from .requests import QueryParams, parse_request
 
 __all__ = ["RAW_TYPES", "Forwarded", "Gateway", "Reply", "Request", "Router",
            "request_media_types"]
@@ -171,7 +172,7 @@ class Forwarded:
 
 class Router(Protocol):
     """Where an operation runs in a cluster
-    (:class:`agilegs.service.transports.cluster.ClusterNode`)."""
+    (:class:`agilegs.service.transports.zenoh.cluster.ClusterNode`)."""
 
     def route(self, op: str, session: str | None, req: BaseModel | None, *,
               run_local: Callable[[], BaseModel], instance: str | None, local: bool

@@ -1,4 +1,4 @@
-"""Several ``agilegs serve`` instances joined over Zenoh (service/transports/cluster.py).
+"""Several ``agilegs serve`` instances joined over Zenoh (service/transports/zenoh/cluster.py).
 
 Two real server processes with their own state folders, joined on loopback endpoints with scouting off (B connects to A's
 listener), are driven by one Zenoh client that knows only A's endpoint and by one HTTP client

@@ -431,7 +431,7 @@ def test_the_set_up_is_the_one_ci_runs(block: Block) -> None:
 def test_the_long_fuzzing_config_is_the_heavy_lanes() -> None:
     """docs/benchmarks.md's schemathesis.toml is the one the heavy lane writes."""
     sys.path.insert(0, str(Path(__file__).parent))
-    from test_schemathesis import FULL, stateful_toml
+    from conftest import FULL, stateful_toml
 
     toml = next(b for b in BLOCKS if b.page == "docs/benchmarks.md" and b.lang == "toml")
     assert toml.text == stateful_toml(FULL)

@@ -214,6 +214,15 @@ def test_the_maths_has_no_transport_and_the_transports_no_maths() -> None:
         assert not {d for d in GRAPH[name] if d.startswith("agilegs.service.nbv")}, name
 
 
+def test_the_settings_depend_on_nothing_of_ours_and_no_torch() -> None:
+    """The settings are read by every part (the viewer too, which has no torch): they import
+    nothing of ours (at any depth of their code, type-only imports included) and no torch;
+    what needs the machine or the client is checked by ``agilegs serve``."""
+    name = "agilegs.service.settings"
+    assert not TYPED_GRAPH[name], sorted(TYPED_GRAPH[name])
+    assert not _third_party(MODULES[name]) & {"torch", "numba", "agilegs"}, name
+
+
 def test_the_contract_and_the_client_need_no_torch() -> None:
     for name, path in MODULES.items():
         if name.startswith(("agilegs.schemas", "agilegs.client")):

@@ -82,7 +82,8 @@ def _request_body(op: Operation) -> dict[str, Any] | None:
         extra["parameters"] = [{
             "name": "instance", "in": "query", "required": False,
             "description": "create it on this instance (default: the instance with the fewest "
-                           "sessions, ties by smallest id; see agilegs.service.transports.cluster)",
+                           "sessions, ties by smallest id; see "
+                           "agilegs.service.transports.zenoh.cluster)",
             "schema": {"type": "string", "pattern": INSTANCE_ID_PATTERN},
         }]
     return extra

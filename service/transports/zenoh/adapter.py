@@ -16,7 +16,7 @@ Who may connect and which keys they may use is Zenoh's own business, set up from
 server's settings by :mod:`agilegs.service.transports.zenoh.security` (TLS, usrpwd, access control).
 
 Which keys this instance declares (the ``@service`` and ``@instances/<id>`` queryables, and
-each owned session's queryable and subscribers) is :mod:`agilegs.service.transports.cluster`'s
+each owned session's queryable and subscribers) is :mod:`agilegs.service.transports.zenoh.cluster`'s
 business.
 """
 
@@ -34,8 +34,8 @@ from agilegs.schemas import SelectResponse, codec, keys
 from ...errors import ServiceError
 from ...settings import Settings
 from ..admission import parse_deadline_ms
-from ..cluster import ClusterNode
 from ..gateway import Gateway, Reply, Request
+from .cluster import ClusterNode
 from .security import zenoh_settings
 
 __all__ = ["ZenohAdapter", "content_type", "reply_kind"]

@@ -7,6 +7,8 @@ import math
 
 import pytest
 import torch
+from conftest import TINY_INTR as INTR
+from conftest import tiny_scene
 
 from agilegs.config.selection import FIELD_NAMES, AnchorConfig
 from agilegs.service.nbv.anchor.ascent import ascend, optimize_anchor
@@ -18,29 +20,10 @@ from agilegs.service.nbv.anchor.fitting import (
     typical_fisher_from_views,
 )
 from agilegs.service.nbv.anchor.proxy import ProxyPsi
-from agilegs.service.nbv.camera import Camera, Intrinsics, check_pose, look_at
-from agilegs.service.nbv.candidates import capture_pool
+from agilegs.service.nbv.camera import Camera, check_pose, look_at
 from agilegs.service.nbv.gaussians import GaussianMap
 from agilegs.service.nbv.information import accumulate_information, fisher_diag, init_information
 from agilegs.service.nbv.se3 import se3_exp
-
-INTR = Intrinsics.from_fov(55.0, 32, 32)
-
-
-def tiny_scene(n: int = 250, seed: int = 0, dtype: torch.dtype = torch.float64):
-    """A blob of Gaussians, a 24-camera capture pool and Hhat from 3 of its views."""
-    g = torch.Generator().manual_seed(seed)
-    pts = 0.3 * torch.randn(n, 3, generator=g, dtype=torch.float64)
-    pts[:, 0] *= 1.5  # elongated so that views differ
-    cols = torch.rand(n, 3, generator=g, dtype=torch.float64)
-    gmap = GaussianMap.from_points(pts, cols, scale=0.05, opacity=0.7).to(dtype=dtype)
-    pool = capture_pool([0.0, 0.0, 0.0], 2.0, 24, seed=seed, dtype=dtype)
-    acq = pool[[0, 8, 9]]
-    h = init_information(gmap, 1e-6)
-    with torch.no_grad():
-        for p in acq:
-            h = accumulate_information(h, fisher_diag(gmap, Camera(c2w=p, intrinsics=INTR)))
-    return gmap, pool, acq, h
 
 
 @pytest.fixture(scope="module")

@@ -92,8 +92,8 @@ from agilegs.schemas.keys import (
     parse_instance_key,
 )
 
-from ..errors import ServiceError
-from .gateway import Forwarded
+from ...errors import ServiceError
+from ..gateway import Forwarded
 
 if TYPE_CHECKING:
     from concurrent.futures import Executor
