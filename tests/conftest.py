@@ -26,11 +26,17 @@ from pydantic import BaseModel
 from agilegs.schemas import ObservationIn
 from agilegs.service.launch import ServerProcess as _Launcher
 from agilegs.service.launch import free_port
-from agilegs.service.nbv.camera import Camera, Intrinsics, look_at
+from agilegs.service.nbv import (
+    Camera,
+    GaussianMap,
+    Intrinsics,
+    accumulate_information,
+    fisher_diag,
+    init_information,
+    look_at,
+    render,
+)
 from agilegs.service.nbv.candidates import capture_pool
-from agilegs.service.nbv.gaussians import GaussianMap
-from agilegs.service.nbv.information import accumulate_information, fisher_diag, init_information
-from agilegs.service.nbv.rasterize import render
 from agilegs.service.sessions.registry import SessionRegistry
 from agilegs.service.settings import Settings
 from agilegs.service.transports.requests import parse_request

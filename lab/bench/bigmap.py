@@ -93,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
 
     from agilegs.lab.bench.latency import densified
     from agilegs.service.launch import ServerProcess
-    from agilegs.service.nbv.gaussians import GaussianMap
+    from agilegs.service.nbv import GaussianMap
 
     logging.getLogger("httpx").setLevel(logging.WARNING)
     env = {"AGILEGS_TORCH_THREADS": "1", "AGILEGS_MAPPER": "0"}

@@ -60,10 +60,9 @@ from agilegs.config.mapper import MapperConfig
 from agilegs.config.selection import SelectConfig
 from agilegs.service.mapper.mapper import Mapper
 from agilegs.service.mapper.quality import lpips, lpips_available, psnr, ssim
-from agilegs.service.nbv.information import fisher_diag, init_information
+from agilegs.service.nbv import fisher_diag, init_information, render, select
 from agilegs.service.nbv.methods.base import get_method
-from agilegs.service.nbv.rasterize import render
-from agilegs.service.nbv.selectors import select, state_to
+from agilegs.service.nbv.selectors import state_to
 from agilegs.service.sessions.transitions import (
     Limits,
     acquire,

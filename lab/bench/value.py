@@ -45,9 +45,7 @@ import torch
 from torch import Tensor
 
 from agilegs.config.selection import FIELD_NAMES, SelectConfig
-from agilegs.service.nbv.camera import Camera
-from agilegs.service.nbv.information import fisher_diag
-from agilegs.service.nbv.selectors import select
+from agilegs.service.nbv import Camera, fisher_diag, select
 
 from .options import add_value_arguments as add_arguments
 from .options import protocol_profile

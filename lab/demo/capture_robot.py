@@ -75,7 +75,7 @@ class CaptureRobot:
         from agilegs.lab.bench.posed_scenes import random_init_points
         from agilegs.lab.bench.scene_model import SceneOptions
         from agilegs.service.mapper.points import nearest_neighbour_scales
-        from agilegs.service.nbv.gaussians import GaussianMap
+        from agilegs.service.nbv import GaussianMap
 
         torch = self._torch
         sc = self.scene
@@ -128,8 +128,7 @@ class CaptureRobot:
     def psnr(self, arrays: dict[str, np.ndarray]) -> float:
         """Mean PSNR (dB) of a downloaded map on the capture's held-out photographs."""
         from agilegs.service.mapper.quality import psnr
-        from agilegs.service.nbv.gaussians import GaussianMap
-        from agilegs.service.nbv.rasterize import render
+        from agilegs.service.nbv import GaussianMap, render
 
         torch = self._torch
         gmap = GaussianMap(**{k: torch.from_numpy(v.copy()) for k, v in arrays.items()})

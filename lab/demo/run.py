@@ -172,9 +172,8 @@ class Robot:
         from agilegs.lab.bench.scene_model import orbit_cameras
         from agilegs.lab.bench.scenes import render_references
         from agilegs.lab.scenes import bundled_scene
-        from agilegs.service.nbv.camera import Intrinsics
+        from agilegs.service.nbv import Intrinsics, load_scene
         from agilegs.service.nbv.candidates import capture_pool, scene_center_radius
-        from agilegs.service.nbv.gaussians import load_scene
 
         path = bundled_scene(scene) if scene in ("spot", "teapot") else Path(scene)
         if not path.exists():
@@ -212,9 +211,7 @@ class Robot:
     def psnr(self, arrays: dict[str, np.ndarray]) -> float:
         """Mean PSNR (dB) of a downloaded map on the held-out test views."""
         from agilegs.service.mapper.quality import psnr
-        from agilegs.service.nbv.camera import Camera
-        from agilegs.service.nbv.gaussians import GaussianMap
-        from agilegs.service.nbv.rasterize import render
+        from agilegs.service.nbv import Camera, GaussianMap, render
 
         torch = self._torch
         gmap = GaussianMap(**{k: torch.from_numpy(v.copy()) for k, v in arrays.items()})

@@ -38,7 +38,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from agilegs.service.nbv.camera import Camera, Intrinsics
+from agilegs.service.nbv import Camera, Intrinsics
 
 from .distortion import NO_DISTORTION, Distortion, pinhole_for
 from .images import PathLike, View, image_size, load_capture_image, load_depth, target_size

@@ -28,8 +28,7 @@ from agilegs.schemas.geometry import PoseArrayList
 
 from ..errors import ServiceError, invalid, too_large
 from ..mapper.points import backproject_depth, nearest_neighbour_scales
-from ..nbv.camera import Camera, Intrinsics
-from ..nbv.gaussians import GaussianMap
+from ..nbv import Camera, GaussianMap, Intrinsics
 from ..store.records import SessionRecord, ViewRecord
 
 __all__ = [

@@ -25,10 +25,11 @@ from agilegs.schemas.config import patch_dict
 from agilegs.schemas.errors import ErrorCode
 
 from ..errors import ServiceError, conflict, invalid, too_large, validation_error
+from ..nbv import Selection
 from ..nbv.budget import KINDS, Estimate, SpeedCalibration, estimate
 from ..nbv.errors import InputError
 from ..nbv.kernels.backend import default_backend, kernels_available
-from ..nbv.selectors import Selection, select_validated, state_to
+from ..nbv.selectors import select_validated, state_to
 from ..store.records import SessionRecord, ViewRecord
 from .convert import finite_float, pose_out, poses_array, view_out
 from .transitions import (

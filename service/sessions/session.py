@@ -36,8 +36,8 @@ from agilegs import schemas as m
 from agilegs.schemas import Intrinsics as WireIntrinsics
 
 from ..errors import not_found, session_damaged
+from ..nbv import GaussianMap
 from ..nbv.cancel import checkpoint
-from ..nbv.gaussians import GaussianMap
 from ..settings import Settings
 from ..store.integrity import DamagedFile, FileProblem
 from ..store.records import SessionRecord, ViewRecord

@@ -181,7 +181,7 @@ def _fix_gaussians(g: dict[str, Any]) -> None:
     import tempfile
     from pathlib import Path
 
-    from agilegs.service.nbv.gaussians import GaussianMap
+    from agilegs.service.nbv import GaussianMap
 
     gmap = GaussianMap(**_decoded(_gaussian_arrays(n)))
     with tempfile.TemporaryDirectory() as tmp:

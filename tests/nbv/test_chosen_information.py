@@ -7,18 +7,21 @@ import pytest
 import torch
 
 from agilegs.config.selection import FIELD_NAMES, SelectConfig
-from agilegs.service.nbv.camera import Camera, Intrinsics
-from agilegs.service.nbv.candidates import capture_pool
-from agilegs.service.nbv.gaussians import GaussianMap
-from agilegs.service.nbv.information import (
+from agilegs.service.nbv import (
+    Camera,
+    GaussianMap,
+    Intrinsics,
     accumulate_information,
     eig_scores,
     fisher_diag,
+    information_of_views,
     init_information,
+    select,
+    view_information,
 )
+from agilegs.service.nbv.candidates import capture_pool
 from agilegs.service.nbv.methods.common import argmax_first, eig_scores_keeping_best
-from agilegs.service.nbv.selectors import select, select_validated
-from agilegs.service.nbv.upkeep import information_of_views, view_information
+from agilegs.service.nbv.selectors import select_validated
 
 INTR = Intrinsics.from_fov(55.0, 24, 24)
 

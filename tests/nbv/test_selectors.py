@@ -15,19 +15,21 @@ from agilegs.config.selection import (
     SelectConfig,
 )
 from agilegs.lab.bench.stages import ANCHOR_STAGES
-from agilegs.service.nbv.camera import Camera, Intrinsics
-from agilegs.service.nbv.candidates import capture_pool
-from agilegs.service.nbv.gaussians import GaussianMap
-from agilegs.service.nbv.information import (
+from agilegs.service.nbv import (
+    METHODS,
+    Camera,
+    GaussianMap,
+    Intrinsics,
     accumulate_information,
     eig_scores,
     expected_information_gain,
     fisher_diag,
     init_information,
+    select,
 )
+from agilegs.service.nbv.candidates import capture_pool
 from agilegs.service.nbv.methods.base import STAGES
 from agilegs.service.nbv.se3 import pose_distance
-from agilegs.service.nbv.selectors import METHODS, select
 
 INTR = Intrinsics.from_fov(55.0, 32, 32)
 
@@ -218,7 +220,7 @@ def test_embodied_mode_never_picks_outside_the_k_nearest(world, method: str) -> 
 
 
 def test_embodied_metrics_differ_where_orientation_matters() -> None:
-    from agilegs.service.nbv.camera import look_at
+    from agilegs.service.nbv import look_at
     from agilegs.service.nbv.selectors import eligible_candidates
 
     z = torch.zeros(3)
@@ -423,7 +425,7 @@ def test_the_anchor_gets_hhat_s_lambda_and_background(world, monkeypatch) -> Non
            config=SelectConfig(anchor=AnchorConfig(model="fitted")))
     assert seen["observation_rates"] == 1e-6
     # the exact psi renders on the background the config gives
-    from agilegs.service.nbv.information import trace_surrogate
+    from agilegs.service.nbv import trace_surrogate
 
     bg = (0.9, 0.8, 0.7)
     cfg = SelectConfig(fisher_background=bg, anchor=AnchorConfig(

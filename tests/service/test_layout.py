@@ -275,7 +275,7 @@ def test_environment_variables_are_read_by_the_settings_only() -> None:
 
 # The public faces: a package whose ``__init__`` gathers the names its users import (the wire
 # contract, the client SDK and its ROS 2 part). Every other module defines what it exports.
-FACES = ("agilegs.schemas", "agilegs.client", "agilegs.client.ros2")
+FACES = ("agilegs.schemas", "agilegs.client", "agilegs.client.ros2", "agilegs.service.nbv")
 TREES = {name: ast.parse(path.read_text()) for name, path in MODULES.items()}
 
 

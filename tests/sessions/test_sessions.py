@@ -12,9 +12,14 @@ from conftest import SMALL_INTRINSICS, call, ring_poses
 
 from agilegs.schemas import NDArray, ObservationIn, codec
 from agilegs.service.errors import ServiceError
-from agilegs.service.nbv.camera import Camera, Intrinsics
-from agilegs.service.nbv.gaussians import GaussianMap
-from agilegs.service.nbv.information import accumulate_information, fisher_diag, init_information
+from agilegs.service.nbv import (
+    Camera,
+    GaussianMap,
+    Intrinsics,
+    accumulate_information,
+    fisher_diag,
+    init_information,
+)
 from agilegs.service.sessions.registry import SessionRegistry
 from agilegs.service.settings import Settings
 

@@ -21,10 +21,14 @@ from inprocess import serve_in_process
 from agilegs.schemas import NDArray, ObservationIn
 from agilegs.service.errors import ServiceError
 from agilegs.service.mapper.topology import remap_per_gaussian
-from agilegs.service.nbv.camera import Camera
-from agilegs.service.nbv.gaussians import GaussianMap
-from agilegs.service.nbv.information import accumulate_information, fisher_diag, init_information
-from agilegs.service.nbv.rasterize import render
+from agilegs.service.nbv import (
+    Camera,
+    GaussianMap,
+    accumulate_information,
+    fisher_diag,
+    init_information,
+    render,
+)
 from agilegs.service.sessions.registry import SessionRegistry
 from agilegs.service.sessions.trainer import SessionTrainer, compose_src
 

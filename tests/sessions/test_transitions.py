@@ -17,9 +17,14 @@ from conftest import SMALL_INTRINSICS, call, ring_poses
 from agilegs import schemas as m
 from agilegs.schemas import ObservationIn
 from agilegs.service.errors import ServiceError
-from agilegs.service.nbv.camera import Camera, Intrinsics
-from agilegs.service.nbv.gaussians import GaussianMap
-from agilegs.service.nbv.information import accumulate_information, fisher_diag, init_information
+from agilegs.service.nbv import (
+    Camera,
+    GaussianMap,
+    Intrinsics,
+    accumulate_information,
+    fisher_diag,
+    init_information,
+)
 from agilegs.service.sessions import transitions as tr
 from agilegs.service.sessions.convert import parse_frame
 from agilegs.service.sessions.registry import SessionRegistry

@@ -25,9 +25,7 @@ from agilegs.lab.bench.variants import Variant, build_variants, display_name
 from agilegs.lab.scenes import bundled_scene
 from agilegs.service.cli import main
 from agilegs.service.data.colmap import rotmat_to_qvec
-from agilegs.service.nbv.camera import Camera, Intrinsics
-from agilegs.service.nbv.gaussians import load_scene
-from agilegs.service.nbv.rasterize import render
+from agilegs.service.nbv import Camera, Intrinsics, load_scene, render
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 RUN_KEYS = {

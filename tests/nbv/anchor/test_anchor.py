@@ -11,6 +11,16 @@ from conftest import TINY_INTR as INTR
 from conftest import tiny_scene
 
 from agilegs.config.selection import FIELD_NAMES, AnchorConfig
+from agilegs.service.nbv import (
+    Camera,
+    GaussianMap,
+    accumulate_information,
+    check_pose,
+    fisher_diag,
+    init_information,
+    look_at,
+    se3_exp,
+)
 from agilegs.service.nbv.anchor.ascent import ascend, optimize_anchor
 from agilegs.service.nbv.anchor.envelope import PoolEnvelope
 from agilegs.service.nbv.anchor.fitting import (
@@ -20,10 +30,6 @@ from agilegs.service.nbv.anchor.fitting import (
     typical_fisher_from_views,
 )
 from agilegs.service.nbv.anchor.proxy import ProxyPsi
-from agilegs.service.nbv.camera import Camera, check_pose, look_at
-from agilegs.service.nbv.gaussians import GaussianMap
-from agilegs.service.nbv.information import accumulate_information, fisher_diag, init_information
-from agilegs.service.nbv.se3 import se3_exp
 
 
 @pytest.fixture(scope="module")
@@ -262,8 +268,8 @@ def test_typical_fisher_and_rates_use_the_given_lambda(scene) -> None:
 
 
 def test_exact_psi_renders_on_the_given_background(scene) -> None:
+    from agilegs.service.nbv import trace_surrogate
     from agilegs.service.nbv.anchor.exact import exact_psi_fn
-    from agilegs.service.nbv.information import trace_surrogate
 
     gmap, pool, _, h = scene
     bg = torch.tensor([0.2, 0.9, 0.4], dtype=torch.float64)
@@ -296,7 +302,7 @@ def test_exact_psi_ascent_is_monotone() -> None:
     trace = res.psi_trace
     assert all(b >= a for a, b in zip(trace, trace[1:]))
     # the reported psi is the exact trace surrogate at the anchor
-    from agilegs.service.nbv.information import trace_surrogate
+    from agilegs.service.nbv import trace_surrogate
 
     small = INTR.scaled(24, 24)
     with torch.no_grad():
@@ -385,7 +391,7 @@ def test_log_form_proxy_and_its_importance_sampling(scene) -> None:
 @pytest.mark.parametrize("model", ["fitted", "directional"])
 def test_fitted_model_ranks_the_pool_like_the_exact_eig(model: str) -> None:
     """Views of the side no acquired view saw score high under the proxy and the exact EIG."""
-    from agilegs.service.nbv.information import eig_scores
+    from agilegs.service.nbv import eig_scores
 
     gmap, pool, _, _ = tiny_scene(n=300, seed=1)
     acq = pool[[0, 1, 2]]  # neighbours in capture order: one side of the blob

@@ -10,13 +10,18 @@ import pytest
 import torch
 
 from agilegs.config.selection import AnchorConfig, SelectConfig
+from agilegs.service.nbv import (
+    Camera,
+    GaussianMap,
+    Intrinsics,
+    accumulate_information,
+    fisher_diag,
+    init_information,
+    select,
+)
 from agilegs.service.nbv.anchor.ascent import optimize_anchor
 from agilegs.service.nbv.anchor.envelope import PoolEnvelope
-from agilegs.service.nbv.camera import Camera, Intrinsics
 from agilegs.service.nbv.candidates import capture_pool
-from agilegs.service.nbv.gaussians import GaussianMap
-from agilegs.service.nbv.information import accumulate_information, fisher_diag, init_information
-from agilegs.service.nbv.selectors import select
 from agilegs.service.sessions.convert import storable_state
 
 INTR = Intrinsics.from_fov(55.0, 32, 32)

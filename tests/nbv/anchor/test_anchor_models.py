@@ -9,15 +9,21 @@ import torch
 from torch import Tensor
 
 from agilegs.config.selection import FIELD_NAMES, AnchorConfig
+from agilegs.service.nbv import (
+    Camera,
+    GaussianMap,
+    Intrinsics,
+    accumulate_information,
+    fisher_diag,
+    init_information,
+    look_at,
+)
 from agilegs.service.nbv.anchor.ascent import optimize_anchor
 from agilegs.service.nbv.anchor.fitting import directional_rates, slot_kinds
 from agilegs.service.nbv.anchor.proxy import DIRECTION_KINDS, ProxyPsi, direction_factors
 from agilegs.service.nbv.anchor.unexplored import unexplored_space
 from agilegs.service.nbv.anchor.visibility import OpacityMaps
-from agilegs.service.nbv.camera import Camera, Intrinsics, look_at
 from agilegs.service.nbv.candidates import capture_pool, scene_center_radius
-from agilegs.service.nbv.gaussians import GaussianMap
-from agilegs.service.nbv.information import accumulate_information, fisher_diag, init_information
 
 INTR = Intrinsics.from_fov(55.0, 32, 32)
 F64 = torch.float64
@@ -281,8 +287,8 @@ def test_distinct_best_keeps_the_best_and_spreads_the_rest() -> None:
 
 def test_several_anchors_come_from_distinct_modes_and_span_the_shortlist() -> None:
     from agilegs.config.selection import SelectConfig
+    from agilegs.service.nbv import select
     from agilegs.service.nbv.se3 import pose_distance
-    from agilegs.service.nbv.selectors import select
 
     gmap = _blob(300)
     lam = 1e-3

@@ -16,7 +16,8 @@ import torch
 from conftest import ROOT, camera, random_map
 
 from agilegs.config.selection import FIELD_NAMES
-from agilegs.service.nbv.information import fisher_diag, pair_moments, screen_second_moments
+from agilegs.service.nbv import fisher_diag
+from agilegs.service.nbv.information import pair_moments, screen_second_moments
 from agilegs.service.nbv.kernels.gpu import (
     bin_tiles,
     gpu_moments_apply,

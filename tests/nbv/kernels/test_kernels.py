@@ -12,15 +12,10 @@ import torch
 from conftest import camera, random_map
 
 from agilegs.config.selection import FIELD_NAMES
-from agilegs.service.nbv.gaussians import GaussianMap
-from agilegs.service.nbv.information import (
-    fisher_diag,
-    projection_jacobians,
-    screen_second_moments,
-)
+from agilegs.service.nbv import GaussianMap, fisher_diag, render
+from agilegs.service.nbv.information import projection_jacobians, screen_second_moments
 from agilegs.service.nbv.kernels import backend
 from agilegs.service.nbv.methods.fisherrf import fisherrf_hessian
-from agilegs.service.nbv.rasterize import render
 
 F64 = torch.float64
 F32 = torch.float32

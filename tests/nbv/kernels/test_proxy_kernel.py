@@ -10,19 +10,24 @@ import pytest
 import torch
 
 from agilegs.config.selection import FIELD_NAMES, AnchorConfig
-from agilegs.service.nbv import cancel
+from agilegs.service.nbv import (
+    Camera,
+    GaussianMap,
+    Intrinsics,
+    accumulate_information,
+    cancel,
+    fisher_diag,
+    init_information,
+    se3_exp,
+)
 from agilegs.service.nbv.anchor.ascent import _exp_at_zero, ascend, optimize_anchor
 from agilegs.service.nbv.anchor.envelope import PoolEnvelope
 from agilegs.service.nbv.anchor.fitting import directional_rates, lower_median
 from agilegs.service.nbv.anchor.line_search import CompiledLineSearch
 from agilegs.service.nbv.anchor.proxy import ProxyPsi, direction_factors
 from agilegs.service.nbv.anchor.visibility import OpacityMaps
-from agilegs.service.nbv.camera import Camera, Intrinsics
 from agilegs.service.nbv.candidates import capture_pool, scene_center_radius
-from agilegs.service.nbv.gaussians import GaussianMap
-from agilegs.service.nbv.information import accumulate_information, fisher_diag, init_information
 from agilegs.service.nbv.kernels import backend
-from agilegs.service.nbv.se3 import se3_exp
 
 pytestmark = pytest.mark.skipif(not backend.kernels_available(), reason="numba unavailable")
 
