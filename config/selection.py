@@ -58,9 +58,11 @@ __all__ = [
     "preset_config",
 ]
 
-Method = Literal["random", "fisherrf", "cover", "full_eig", "agile", "agile_plus"]
+Method = Literal["random", "spread", "fisherrf", "cover", "full_eig", "agile", "agile_plus"]
 """The selection methods (the maths' registry holds one implementation per name): the
-baselines Random, FisherRF and COVER as their authors' code computes them, ``full_eig`` (the
+baselines Random, spread (farthest-point sampling over the pool: the candidate farthest from
+every acquired view, position and rotation; it needs no map), FisherRF and COVER as their
+authors' code computes them, ``full_eig`` (the
 exact diagonal EIG of every eligible candidate: the ceiling AGILE-GS+ approximates), and
 AGILE-GS / AGILE-GS+."""
 METHODS: tuple[str, ...] = get_args(Method)

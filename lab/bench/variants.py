@@ -40,6 +40,7 @@ Group = Literal["main", "shortlist", "budget", "variant"]
 
 DISPLAY = {
     "random": "Random",
+    "spread": "Spread (farthest point)",
     "fisherrf": "FisherRF",
     "cover": "COVER",
     "full_eig": "Full-pool EIG (ceiling)",

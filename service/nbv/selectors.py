@@ -124,10 +124,11 @@ def _validate(
     current_pose: Tensor | None,
     config: SelectConfig,
     fields: tuple[str, ...],
+    uses_map: bool = True,
 ) -> None:
     if not isinstance(gmap, GaussianMap):
         raise TypeError(f"gmap must be a GaussianMap, got {type(gmap).__name__}")
-    if gmap.num_gaussians == 0:
+    if gmap.num_gaussians == 0 and uses_map:
         raise InputError("gmap", "gmap has no Gaussians")
     if not isinstance(intrinsics, Intrinsics):
         raise TypeError(f"intrinsics must be an Intrinsics, got {type(intrinsics).__name__}")
@@ -251,11 +252,11 @@ def select(
             NaN poses, non-orthonormal rotations, h_acc not matching the map, embodied_k < 1.
     """
     t_start = time.perf_counter()
-    get_method(method)
+    impl = get_method(method)
     config = validate_config(SelectConfig, config if config is not None else SelectConfig())
     fields = tuple(config.fields) if config.fields is not None else FIELD_NAMES
     _validate(gmap, h_acc, candidates, intrinsics, acquired, current, current_pose, config,
-              fields)
+              fields, getattr(impl, "uses_map", True))
     if lam is not None and not (isinstance(lam, int | float) and math.isfinite(lam) and lam > 0):
         raise InputError("lam", f"lam must be a positive finite number, got {lam!r}")
     return _select(method, gmap, h_acc, candidates, intrinsics, config, acquired, current,
@@ -307,7 +308,9 @@ def _select(
     event = int(state.get("event", 0))
     dt = gmap.dtype
     pool = candidates.detach().to(dt)
-    aim, _ = scene_center_radius(gmap.means)
+    # a method that reads no map (spread) may select before the map has a Gaussian
+    aim = (scene_center_radius(gmap.means)[0] if gmap.num_gaussians
+           else pool[:, :3, 3].mean(0))
     radius = pool_radius(pool, aim)
     sc = config.scoring
     rot_weight = sc.rot_weight if sc.rot_weight is not None else radius

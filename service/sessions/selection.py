@@ -29,6 +29,7 @@ from ..nbv import Selection
 from ..nbv.budget import KINDS, Estimate, SpeedCalibration, estimate
 from ..nbv.errors import InputError
 from ..nbv.kernels.backend import default_backend, kernels_available
+from ..nbv.methods.base import get_method
 from ..nbv.selectors import select_validated, state_to
 from ..store.records import SessionRecord, ViewRecord
 from .convert import finite_float, pose_out, poses_array, view_out
@@ -193,8 +194,9 @@ def select_step(rec: SessionRecord, req: m.SelectRequest, limits: Limits, *,
                       f"must be <= {limits.max_shortlist} (max_shortlist)")
     if len(rec.pool_ids) == 0:
         raise conflict("pool", "the candidate pool is empty: set it first", ErrorCode.EMPTY_POOL)
-    if len(rec.gmap) == 0:
-        raise conflict("gaussians", "the session has no Gaussians yet", ErrorCode.MAP_EMPTY)
+    if len(rec.gmap) == 0 and getattr(get_method(method), "uses_map", True):
+        raise conflict("gaussians", f"the session has no Gaussians yet ({method} needs a map; "
+                       "spread does not)", ErrorCode.MAP_EMPTY)
     check_render_widths(patch_dict(req.config), "body.config", limits.max_image_pixels)
     config = resolve_config(d, req, {
         "shortlist_size": size,

@@ -154,6 +154,14 @@ def test_empty_pool_and_empty_map_are_conflicts(core: SessionRegistry) -> None:
     assert (exc.value.status, exc.value.code) == (409, "map_empty")
 
 
+def test_spread_selects_and_commits_without_a_map(core: SessionRegistry) -> None:
+    create(core, "empty", init_gaussians=0)
+    first = call(core, "select", "empty", {"method": "spread", "commit": True})
+    second = call(core, "select", "empty", {"method": "spread"})
+    assert first.committed is not None and second.chosen.id != first.chosen.id
+    assert second.chosen.id in second.eligible and first.chosen.id not in second.eligible
+
+
 def test_select_without_commit_changes_nothing_and_repeats(core: SessionRegistry) -> None:
     before = snapshot(core)
     a = call(core, "select", "s", {"method": "agile", "shortlist_size": 4})

@@ -132,6 +132,8 @@ class SelectionMethod(Protocol):
     name: str
     uses_information: bool
     """Whether it reads Hhat (the benchmark gives the others lambda I only)."""
+    # A method may also say ``uses_map = False`` (read with ``getattr``, default True): it
+    # reads none of the map's Gaussians, so it selects on a map with none (spread).
 
     def __call__(self, ctx: SelectionContext) -> MethodResult: ...
 
