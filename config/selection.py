@@ -44,6 +44,7 @@ __all__ = [
     "FISHERRF_FIELDS",
     "METHODS",
     "MIXED_ZBUFFER",
+    "OBJECTIVES",
     "POINT_ZBUFFER",
     "PRESETS",
     "SHORTLISTS",
@@ -52,6 +53,7 @@ __all__ = [
     "FisherRFConfig",
     "FisherRFField",
     "Method",
+    "Objective",
     "ScoringConfig",
     "SelectConfig",
     "ShortlistStrategy",
@@ -70,6 +72,10 @@ ShortlistStrategy = Literal["leverage", "knearest", "topnorm", "online"]
 """Shortlist strategies of ``agile`` / ``agile_plus``: the paper's ridge leverage and the
 ablations."""
 SHORTLISTS: tuple[str, ...] = get_args(ShortlistStrategy)
+Objective = Literal["eig", "target"]
+"""What the exact scoring maximises: the paper's expected information gain, or the worth of a
+view on the target views' renders."""
+OBJECTIVES: tuple[str, ...] = get_args(Objective)
 FieldName = Literal["means", "log_scales", "quats", "opacity_logits", "sh"]
 """The parameter blocks of a Gaussian map."""
 FIELD_NAMES: tuple[str, ...] = get_args(FieldName)
@@ -315,6 +321,17 @@ class SelectConfig:
         default=0, description="seeds every random choice")
     fields: Blocks | None = Field(
         default=None, description="parameter blocks entering phi and psi (None: all five)")
+    objective: Objective = Field(
+        default="eig",
+        description="what full_eig and agile_plus's rerank maximise: 'eig' (the paper's "
+        "expected information gain sum log(1 + H_v / Hhat) over every parameter) or 'target' "
+        "(the fall of the target views' predicted render variance, sum T H_v / (Hhat (Hhat + "
+        "H_v)) with T the targets' summed Fisher: the request's target poses, else the pool)")
+    target_views: Annotated[int, Strict(), Field(ge=1, le=256),
+                            BeforeValidator(integral)] = Field(
+        default=8,
+        description="objective 'target': the targets' Fisher T is summed over this many of "
+        "them, a farthest-point subsample (one Fisher pass each, once per selection)")
     anchor: AnchorConfig = Field(default_factory=AnchorConfig)
     scoring: ScoringConfig = Field(default_factory=ScoringConfig)
     cover_bins: Dim = Field(default=128, description="COVER's direction bins per Gaussian")

@@ -227,6 +227,7 @@ def select(
     current_pose: Tensor | None = None,
     state: dict[str, Any] | None = None,
     lam: float | None = None,
+    targets: Tensor | None = None,
 ) -> Selection:
     """Choose the next view among ``candidates`` with ``method``.
 
@@ -246,6 +247,8 @@ def select(
             the anchor's proxy separates the views' information from it. None: estimated
             as each parameter slot's minimum over Gaussians (exact only when some Gaussian
             is seen by no acquired view).
+        targets: the target views [T, 4, 4] of ``config.objective = "target"`` (None: the
+            pool); ignored by the ``eig`` objective.
 
     Raises:
         ValueError: naming the argument, for an unknown method, an empty pool, a budget < 1,
@@ -259,8 +262,13 @@ def select(
               fields, getattr(impl, "uses_map", True))
     if lam is not None and not (isinstance(lam, int | float) and math.isfinite(lam) and lam > 0):
         raise InputError("lam", f"lam must be a positive finite number, got {lam!r}")
+    if targets is not None:
+        if not isinstance(targets, Tensor) or targets.ndim != 3 or targets.shape[1:] != (4, 4) \
+                or targets.shape[0] == 0:
+            raise InputError("targets", "targets must be a tensor of poses [T, 4, 4], T >= 1")
+        check_pose(targets, "targets")
     return _select(method, gmap, h_acc, candidates, intrinsics, config, acquired, current,
-                   current_pose, state, lam, t_start)
+                   current_pose, state, lam, t_start, targets)
 
 
 def select_validated(
@@ -276,6 +284,7 @@ def select_validated(
     current_pose: Tensor | None = None,
     state: dict[str, Any] | None = None,
     lam: float | None = None,
+    targets: Tensor | None = None,
 ) -> Selection:
     """:func:`select` on inputs its caller validated already: ``config`` a validated
     :class:`SelectConfig`, and everything :func:`select` checks (a non-empty map, Hhat
@@ -285,7 +294,7 @@ def select_validated(
     through here. Raises :class:`~agilegs.service.nbv.errors.InputError` only when no
     candidate is eligible."""
     return _select(method, gmap, h_acc, candidates, intrinsics, config, acquired, current,
-                   current_pose, state, lam, time.perf_counter())
+                   current_pose, state, lam, time.perf_counter(), targets)
 
 
 def _select(
@@ -301,6 +310,7 @@ def _select(
     state: dict[str, Any] | None,
     lam: float | None,
     t_start: float,
+    targets: Tensor | None = None,
 ) -> Selection:
     impl = get_method(method)
     fields = tuple(config.fields) if config.fields is not None else FIELD_NAMES
@@ -334,6 +344,7 @@ def _select(
         gmap=gmap, h_acc=h_acc, pool=pool, intrinsics=intrinsics, config=config, fields=fields,
         eligible=eligible, acquired=acquired, state=state, event=event, aim=aim, radius=radius,
         rot_weight=rot_weight, background=bg, lam=lam,
+        targets=None if targets is None else targets.detach().to(device=pool.device, dtype=dt),
     )
     res = impl(ctx)
     lat = {k: 0.0 for k in STAGES}

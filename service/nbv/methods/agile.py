@@ -34,7 +34,8 @@ from ..information import fisher_diag
 from ..leverage import greedy_ridge_leverage_gains, online_ridge_leverage, topnorm_shortlist
 from ..se3 import pose_distance
 from .base import MethodResult, SelectionContext, register, timed
-from .common import argmax_first, eig_scores_keeping_best
+from .common import argmax_first
+from .objective import objective_scores_keeping_best
 
 
 def _anchor(ctx: SelectionContext, lat: dict[str, float], out: dict[str, Any]) -> Tensor:
@@ -308,9 +309,7 @@ class AgileMethod:
             probes = draw_probes(ctx, picked, n_probes)
             with timed(lat, "rerank"):
                 sl = torch.as_tensor(picked + probes, dtype=torch.long)
-                phi, chosen = eig_scores_keeping_best(
-                    ctx.gmap, ctx.h_acc, ctx.pool[sl], ctx.intrinsics,
-                    fields=ctx.fields, background=ctx.background)
+                phi, chosen = objective_scores_keeping_best(ctx, ctx.pool[sl], lat, "rerank")
             out["details"]["shortlist_scores"] = scores
             if probes:
                 _judge_model(ctx, phi, len(picked), len(probes), out)
