@@ -207,6 +207,13 @@ def select_step(rec: SessionRecord, req: m.SelectRequest, limits: Limits, *,
     })
     est = check_cost(rec, method, config, limits)
     dt = rec.gmap.dtype
+    targets = None
+    if req.targets is not None:
+        if config.objective != "target":
+            raise invalid("body.targets", "targets are the views of interest of "
+                          "config.objective 'target'; this select's objective is "
+                          f"{config.objective!r}")
+        targets = torch.from_numpy(poses_array(req.targets)).to(dt)
     current = None
     current_pose = None
     if req.current_id is not None:
@@ -233,6 +240,7 @@ def select_step(rec: SessionRecord, req: m.SelectRequest, limits: Limits, *,
             acquired=None if acquired is None else acquired.to(dev), current=current,
             current_pose=None if current_pose is None else current_pose.to(dev),
             state=state_to(dev, rec.warm_state), lam=float(rec.information_config["lambda"]),
+            targets=None if targets is None else targets.to(dev),
         )
     except InputError as exc:
         raise invalid(_ARGUMENT_FIELDS.get(exc.argument, "body"), str(exc)) from None
