@@ -19,10 +19,13 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
      "what each candidate is worth, and which scores predict it"),
     (("bench", "proxy"), "agilegs.lab.bench.proxy_check",
      "how the anchor's choices follow the exact EIG on trained maps"),
+    (("bench", "coverage"), "agilegs.lab.bench.coverage_report",
+     "where a bench run's picks went, the test views' coverage, and their EIG's mass"),
 ]
 
 GROUPS: dict[str, str] = {
-    "bench": "the benchmarks: render, latency, run, service, bigmap, edge, value, proxy",
+    "bench": "the benchmarks: render, latency, run, service, bigmap, edge, value, proxy, "
+             "coverage",
 }
 """The help of each command that groups subcommands."""
 
