@@ -327,6 +327,12 @@ class SelectConfig:
         "expected information gain sum log(1 + H_v / Hhat) over every parameter) or 'target' "
         "(the fall of the target views' predicted render variance, sum T H_v / (Hhat (Hhat + "
         "H_v)) with T the targets' summed Fisher: the request's target poses, else the pool)")
+    spread_filter: UnitFloat = Field(
+        default=0.0,
+        description="full_eig scores only the eligible candidates whose distance to the "
+        "nearest acquired view (spread's SE(3) distance) is at least this fraction of the "
+        "farthest candidate's: spread broken by the objective (0: every eligible candidate, "
+        "1: spread's own pick)")
     target_views: Annotated[int, Strict(), Field(ge=1, le=256),
                             BeforeValidator(integral)] = Field(
         default=8,

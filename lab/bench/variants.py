@@ -140,6 +140,12 @@ OPTIONS: dict[str, tuple[str, Callable[[SelectConfig], SelectConfig]]] = {
                  lambda c: dataclasses.replace(c, objective="target", target_views=16)),
     "target4": ("the target objective with T from 4 farthest-point pool views",
                 lambda c: dataclasses.replace(c, objective="target", target_views=4)),
+    "spread50": ("full_eig scores only the candidates at least half as far from the acquired "
+                 "views as the farthest one (spread broken by the objective)",
+                 lambda c: dataclasses.replace(c, spread_filter=0.5)),
+    "spread75": ("full_eig scores only the candidates at least 75% as far from the acquired "
+                 "views as the farthest one",
+                 lambda c: dataclasses.replace(c, spread_filter=0.75)),
 }
 """Variant options: name -> (what it changes, the change)."""
 

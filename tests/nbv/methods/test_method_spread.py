@@ -137,3 +137,28 @@ def test_spread_works_in_float32() -> None:
     sel = select("spread", gmap, h, poses[1:], INTR, acquired=poses[:1])
     assert 0 <= sel.index < 29
     assert sel.scores[sel.index] == max(sel.scores.values())
+
+
+def test_full_eig_broken_by_spread_scores_only_the_far_candidates() -> None:
+    from agilegs.service.nbv import accumulate_information, eig_scores, fisher_diag
+    from agilegs.service.nbv.camera import Camera
+
+    gmap, poses = world(d=20)
+    intr = Intrinsics.from_fov(55.0, 16, 16)
+    acquired, pool = poses[[0, 10]], poses[[i for i in range(20) if i not in (0, 10)]]
+    h = init_information(gmap, 1e-3)
+    for p in acquired:
+        h = accumulate_information(h, fisher_diag(gmap, Camera(c2w=p, intrinsics=intr)))
+    cfg = SelectConfig(spread_filter=0.5, scoring=ScoringConfig(rot_weight=2.0))
+    sel = select("full_eig", gmap, h, pool, intr, acquired=acquired, config=cfg)
+    dist = [min(brute_distance(p, a, 2.0) for a in acquired) for p in pool]
+    kept = [i for i, d in enumerate(dist) if d >= 0.5 * max(dist) - 1e-9]
+    assert sorted(sel.scores) == kept and sel.details["spread_kept"] == len(kept)
+    phi = eig_scores(gmap, h, pool[kept], intr)
+    assert sel.index == kept[int(torch.argmax(phi))]
+    assert 0 <= sel.latency_ms["scoring.spread"] <= sel.latency_ms["scoring"]
+    # at 1, spread's own pick; at 0, every candidate
+    one = select("full_eig", gmap, h, pool, intr, acquired=acquired,
+                 config=SelectConfig(spread_filter=1.0, scoring=ScoringConfig(rot_weight=2.0)))
+    assert one.index == brute_pick(pool, list(range(len(pool))), acquired, 2.0)
+    assert len(select("full_eig", gmap, h, pool, intr, acquired=acquired).scores) == len(pool)
