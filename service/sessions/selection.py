@@ -98,7 +98,8 @@ def resolve_config(defaults: dict[str, Any], req: m.SelectRequest, top: dict[str
 def select_estimate(rec: SessionRecord, method: str, config: SelectConfig) -> Estimate:
     """The up-front estimate (:func:`agilegs.service.nbv.budget.estimate`) of a select of
     ``method`` on ``rec``: its Gaussians, its pool (the ``embodied_k`` nearest in embodied
-    mode), its views, the session's image size (COVER: ``cover_resolution``)."""
+    mode), its views, the session's image size (COVER: ``cover_resolution``); with the
+    ``target`` objective, plus ``target_views`` Fisher passes."""
     g = rec.gmap
     intr = rec.intrinsics
     w, h = int(intr["width"]), int(intr["height"])
@@ -108,10 +109,16 @@ def select_estimate(rec: SessionRecord, method: str, config: SelectConfig) -> Es
     if config.embodied_k is not None:
         pool = min(pool, config.embodied_k)
     kernels = default_backend() in ("auto", "numba") and kernels_available()
-    return estimate(method, len(g), w * h, pool=pool,  # type: ignore[arg-type]
-                    shortlist=config.shortlist_size, acquired=len(rec.views),
-                    sh_coeffs=int(g.sh.shape[1]), dtype_bytes=g.means.element_size(),
-                    backend="numba" if kernels else "torch", threads=torch.get_num_threads())
+    sizes: dict[str, Any] = dict(
+        sh_coeffs=int(g.sh.shape[1]), dtype_bytes=g.means.element_size(),
+        backend="numba" if kernels else "torch", threads=torch.get_num_threads())
+    est = estimate(method, len(g), w * h, pool=pool,  # type: ignore[arg-type]
+                   shortlist=config.shortlist_size, acquired=len(rec.views), **sizes)
+    if config.objective == "target" and method in ("full_eig", "agile_plus"):
+        # the targets' Fisher T: one pass per target view, once per selection
+        one = estimate("fisher", len(g), w * h, **sizes)
+        est = dataclasses.replace(est, seconds=est.seconds + config.target_views * one.seconds)
+    return est
 
 
 def check_cost(rec: SessionRecord, method: str, config: SelectConfig, limits: Limits,

@@ -360,3 +360,17 @@ def test_raw_images_round_trip_through_storage(core: SessionRegistry) -> None:
     o = ObservationIn.from_numpy(POOL[0], image=img)
     out = call(core, "add_observations", "s", {"observations": [o.model_dump()]})
     np.testing.assert_array_equal(core.sessions["s"].view_image(out.views[0].id), img)
+
+
+def test_the_target_objective_adds_its_fisher_passes_to_the_estimate(core: SessionRegistry
+                                                                      ) -> None:
+    from agilegs.config.selection import SelectConfig
+    from agilegs.service.sessions.selection import select_estimate
+
+    rec = core.sessions["s"].record
+    base = select_estimate(rec, "full_eig", SelectConfig())
+    more = select_estimate(rec, "full_eig", SelectConfig(objective="target", target_views=8))
+    most = select_estimate(rec, "full_eig", SelectConfig(objective="target", target_views=16))
+    assert base.seconds < more.seconds < most.seconds
+    assert select_estimate(rec, "agile", SelectConfig(objective="target")).seconds == \
+        select_estimate(rec, "agile", SelectConfig()).seconds
