@@ -309,6 +309,11 @@ class SelectConfig:
         "where a probe beats every model candidate doubles the probes of the next event (at "
         "most half of N), one where the model wins halves them (at least this number); 0: "
         "none, every slot the model's (the paper)")
+    probe_draw: Literal["uniform", "spread"] = Field(
+        default="uniform",
+        description="how agile_plus draws its probes among the eligible candidates outside "
+        "the model's shortlist: 'uniform' (seeded by the event) or 'spread' (their "
+        "farthest-point order from the acquired views: the first probe is spread's pick there)")
     embodied_k: Annotated[int, Strict(), Field(ge=1, le=100_000),
                           BeforeValidator(integral)] | None = Field(
         default=None, description="only the K candidates nearest the current view are "

@@ -140,6 +140,9 @@ OPTIONS: dict[str, tuple[str, Callable[[SelectConfig], SelectConfig]]] = {
                  lambda c: dataclasses.replace(c, objective="target", target_views=16)),
     "target4": ("the target objective with T from 4 farthest-point pool views",
                 lambda c: dataclasses.replace(c, objective="target", target_views=4)),
+    "spread_probes": ("AGILE-GS+ draws its probes in their farthest-point order from the "
+                      "acquired views (the first is spread's pick) instead of uniformly",
+                      lambda c: dataclasses.replace(c, probe_draw="spread")),
     "spread50": ("full_eig scores only the candidates at least half as far from the acquired "
                  "views as the farthest one (spread broken by the objective)",
                  lambda c: dataclasses.replace(c, spread_filter=0.5)),

@@ -33,6 +33,7 @@ from ..coverage import coverage_matrix, jl_projection, support_samples
 from ..information import fisher_diag
 from ..leverage import greedy_ridge_leverage_gains, online_ridge_leverage, topnorm_shortlist
 from ..se3 import pose_distance
+from ..spread import farthest_point_order
 from .base import MethodResult, SelectionContext, register, timed
 from .common import argmax_first
 from .objective import objective_scores_keeping_best
@@ -263,11 +264,16 @@ def probe_count(ctx: SelectionContext, n_short: int) -> int:
 
 
 def draw_probes(ctx: SelectionContext, picked: list[int], n: int) -> list[int]:
-    """``n`` eligible candidates outside ``picked``, drawn uniformly (seeded by the event)."""
+    """``n`` eligible candidates outside ``picked``, drawn uniformly (seeded by the event), or
+    with ``config.probe_draw = "spread"`` in their farthest-point order from the acquired
+    views."""
     if n <= 0:
         return []
     taken = set(picked)
     rest = [v for v in ctx.eligible if v not in taken]
+    if ctx.config.probe_draw == "spread":
+        far = farthest_point_order(ctx.pool[rest], ctx.acquired, ctx.rot_weight, n)
+        return [rest[i] for i in far]
     order = torch.randperm(len(rest), generator=ctx.generator(6))[:n].tolist()
     return [rest[i] for i in order]
 

@@ -162,3 +162,22 @@ def test_full_eig_broken_by_spread_scores_only_the_far_candidates() -> None:
                  config=SelectConfig(spread_filter=1.0, scoring=ScoringConfig(rot_weight=2.0)))
     assert one.index == brute_pick(pool, list(range(len(pool))), acquired, 2.0)
     assert len(select("full_eig", gmap, h, pool, intr, acquired=acquired).scores) == len(pool)
+
+
+def test_agile_plus_draws_its_probe_where_spread_would_pick() -> None:
+    from agilegs.service.nbv import accumulate_information, fisher_diag
+    from agilegs.service.nbv.camera import Camera
+
+    gmap, poses = world(d=20)
+    intr = Intrinsics.from_fov(55.0, 16, 16)
+    acquired, pool = poses[[0, 10]], poses[[i for i in range(20) if i not in (0, 10)]]
+    h = init_information(gmap, 1e-3)
+    for p in acquired:
+        h = accumulate_information(h, fisher_diag(gmap, Camera(c2w=p, intrinsics=intr)))
+    cfg = SelectConfig(shortlist_size=4, probes=1, probe_draw="spread",
+                       scoring=ScoringConfig(rot_weight=2.0))
+    sel = select("agile_plus", gmap, h, pool, intr, acquired=acquired, config=cfg, lam=1e-3)
+    model, probe = sel.shortlist[:-1], sel.shortlist[-1]
+    rest = [i for i in range(len(pool)) if i not in model]
+    assert probe == brute_pick(pool, rest, acquired, 2.0)
+    assert sel.details["probes"] == 1 and sel.index in sel.shortlist
