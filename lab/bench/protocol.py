@@ -61,7 +61,7 @@ from agilegs.config.selection import SelectConfig
 from agilegs.service.mapper.mapper import Mapper
 from agilegs.service.mapper.quality import lpips, lpips_available, psnr, ssim
 from agilegs.service.nbv import Camera, fisher_diag, init_information, render, select
-from agilegs.service.nbv.candidates import pool_radius
+from agilegs.service.nbv.candidates import pool_radius, scene_center_radius
 from agilegs.service.nbv.methods.base import get_method
 from agilegs.service.nbv.selectors import state_to
 from agilegs.service.nbv.targets import target_gain, target_information, target_subsample
@@ -422,7 +422,7 @@ class _ProgressiveRun:
                                  background=bg)
         out = eig_mass_of(gmap, h_acc, h_view, pose, self.candidates_all,
                           self.scene.intrinsics, self.profile.lam)
-        radius = pool_radius(cands, cands[:, :3, 3].mean(0))
+        radius = pool_radius(cands, scene_center_radius(gmap.means)[0])  # select's rot_weight
         picks = target_subsample(cands, radius, self.config.target_views)
         fields = tuple(h_acc)
         t_info = target_information(gmap, cands[picks], self.scene.intrinsics, fields=fields,
