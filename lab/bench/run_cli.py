@@ -37,10 +37,11 @@ from torch import Tensor
 from agilegs.client.ros2 import BagTopics
 
 from . import plots, report
+from .estimate import estimate_seconds
 from .options import add_run_arguments as add_arguments
 from .options import flag_values, int_list, protocol_profile, str_list
 from .profiles import Profile
-from .protocol import estimate_seconds, fingerprint, run_progressive
+from .protocol import fingerprint, run_progressive
 from .scene_model import BenchScene
 from .scenes import load_bench_scene
 from .variants import Variant, build_variants

@@ -140,8 +140,7 @@ def test_spread_works_in_float32() -> None:
 
 
 def test_full_eig_broken_by_spread_scores_only_the_far_candidates() -> None:
-    from agilegs.service.nbv import accumulate_information, eig_scores, fisher_diag
-    from agilegs.service.nbv.camera import Camera
+    from agilegs.service.nbv import Camera, accumulate_information, eig_scores, fisher_diag
 
     gmap, poses = world(d=20)
     intr = Intrinsics.from_fov(55.0, 16, 16)
@@ -165,8 +164,7 @@ def test_full_eig_broken_by_spread_scores_only_the_far_candidates() -> None:
 
 
 def test_agile_plus_draws_its_probe_where_spread_would_pick() -> None:
-    from agilegs.service.nbv import accumulate_information, fisher_diag
-    from agilegs.service.nbv.camera import Camera
+    from agilegs.service.nbv import Camera, accumulate_information, fisher_diag
 
     gmap, poses = world(d=20)
     intr = Intrinsics.from_fov(55.0, 16, 16)
