@@ -22,6 +22,7 @@ on the seed only: it is fixed across events.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Mapping
@@ -218,26 +219,15 @@ def eligible_candidates(
 # ----------------------------------------------------------------------------- select
 @dataclass(frozen=True)
 class SelectInputs:
-    """What one selection selects on (the arguments of :func:`select` but the warm state).
+    """What one selection selects on: :func:`select`'s arguments of the same names but the
+    warm state (``config`` not None).
 
-    Built by :meth:`checked` (what :func:`select` does), which validates every field; built
-    directly, the fields are taken as valid: ``config`` a validated :class:`SelectConfig`
-    and everything :meth:`checked` checks (a non-empty map, Hhat positive and of the map's
-    shapes, a non-empty pool of proper poses, ``current`` an index into it, a current view in
-    embodied mode, ``lam`` > 0), as the service does once per setting (a pool when it
-    arrives, Hhat as it is kept up).
-
-    Attributes:
-        method: a registered method name (``METHODS``).
-        gmap: the current map.
-        h_acc: accumulated information Hhat per field, including lambda (the map's shapes).
-        candidates: the pool, camera-to-world poses [D, 4, 4] (OpenCV axes).
-        intrinsics: shared by every candidate.
-        config: the settings.
-        acquired: poses of the views acquired so far [A, 4, 4], or None.
-        current: index of the current view in ``candidates`` (embodied mode), or None.
-        current_pose: the current pose [4, 4] when it is not in the pool, or None.
-        lam: the lambda included in ``h_acc``, or None (estimated).
+    :meth:`checked` validates every field (what :func:`select` does); without it the fields
+    are taken as valid: ``config`` a validated :class:`SelectConfig` and everything
+    :meth:`checked` checks (a non-empty map, Hhat positive and of the map's shapes, a
+    non-empty pool of proper poses, ``current`` an index into it, a current view in embodied
+    mode, ``lam`` > 0), as the service does once per setting (a pool when it arrives, Hhat as
+    it is kept up).
     """
 
     method: str
@@ -256,33 +246,19 @@ class SelectInputs:
         """The parameter blocks selected on (``config.fields``, else all)."""
         return tuple(self.config.fields) if self.config.fields is not None else FIELD_NAMES
 
-    @classmethod
-    def checked(
-        cls,
-        method: str,
-        gmap: GaussianMap,
-        h_acc: Mapping[str, Tensor],
-        candidates: Tensor,
-        intrinsics: Intrinsics,
-        *,
-        config: SelectConfig | None = None,
-        acquired: Tensor | None = None,
-        current: int | None = None,
-        current_pose: Tensor | None = None,
-        lam: float | None = None,
-    ) -> SelectInputs:
-        """The inputs, validated (the checks and errors of :func:`select`; ``config`` None:
-        the defaults)."""
-        get_method(method)
-        config = validate_config(SelectConfig, config if config is not None else SelectConfig())
+    def checked(self) -> SelectInputs:
+        """These inputs validated (:func:`select`'s checks and errors), ``config`` as its
+        validated copy."""
+        get_method(self.method)
+        config = validate_config(SelectConfig, self.config)
         fields = tuple(config.fields) if config.fields is not None else FIELD_NAMES
-        _validate(gmap, h_acc, candidates, intrinsics, acquired, current, current_pose, config,
-                  fields)
+        _validate(self.gmap, self.h_acc, self.candidates, self.intrinsics, self.acquired,
+                  self.current, self.current_pose, config, fields)
+        lam = self.lam
         if lam is not None and not (isinstance(lam, int | float) and math.isfinite(lam)
                                     and lam > 0):
             raise InputError("lam", f"lam must be a positive finite number, got {lam!r}")
-        return cls(method, gmap, h_acc, candidates, intrinsics, config, acquired, current,
-                   current_pose, lam)
+        return dataclasses.replace(self, config=config)
 
 
 def select(
@@ -323,10 +299,10 @@ def select(
             NaN poses, non-orthonormal rotations, h_acc not matching the map, embodied_k < 1.
     """
     started = time.perf_counter()
-    inputs = SelectInputs.checked(method, gmap, h_acc, candidates, intrinsics, config=config,
-                                  acquired=acquired, current=current,
-                                  current_pose=current_pose, lam=lam)
-    return select_from(inputs, state=state, started=started)
+    inputs = SelectInputs(method, gmap, h_acc, candidates, intrinsics,
+                          config if config is not None else SelectConfig(), acquired, current,
+                          current_pose, lam)
+    return select_from(inputs.checked(), state=state, started=started)
 
 
 def select_validated(*args: Any, state: dict[str, Any] | None = None, **kwargs: Any
