@@ -402,12 +402,12 @@ def test_paper_preset() -> None:
 
 def test_the_anchor_gets_hhat_s_lambda_and_background(world, monkeypatch) -> None:
     """``select`` hands the anchor the lambda inside Hhat and the Fisher background."""
-    from agilegs.service.nbv.anchor import ascent
+    from agilegs.service.nbv.anchor import assembly
 
     seen: dict[str, object] = {}
 
     def spying(name: str):
-        real = getattr(ascent, name)
+        real = getattr(assembly, name)
 
         def spy(*args, **kwargs):
             seen[name] = kwargs.get("lam")
@@ -415,7 +415,7 @@ def test_the_anchor_gets_hhat_s_lambda_and_background(world, monkeypatch) -> Non
         return spy
 
     for name in ("observation_rates", "directional_rates"):
-        monkeypatch.setattr(ascent, name, spying(name))
+        monkeypatch.setattr(assembly, name, spying(name))
     gmap, h, pool, acq, _ = world
     select("agile", gmap, h, pool, INTR, acquired=acq, lam=1e-6)
     assert seen == {"directional_rates": 1e-6}
