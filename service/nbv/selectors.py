@@ -217,7 +217,7 @@ def eligible_candidates(
 
 
 # ----------------------------------------------------------------------------- select
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class SelectInputs:
     """What one selection selects on: :func:`select`'s arguments of the same names but the
     warm state (``config`` not None).
