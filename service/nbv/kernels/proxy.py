@@ -277,11 +277,12 @@ def _transmittance(cum: np.ndarray, iu: float, iv: float, idp: float, g: int, nb
 
 @_inline
 def _direction_factors(m0: float, m1: float, m2: float, t0: float, t1: float, t2: float,
-                       axes: np.ndarray, s: int, f7: np.ndarray
-                       ) -> tuple[float, float, float, float, float]:
-    """The sample's seven direction factors into ``f7`` [7] (1, 1 - d_k² per world axis,
-    1 - (d · a_j)² per local axis of ``axes``), d the unit ray from the centre t to the
-    sample's mean; returns d (3), the ray's length and that length clamped at 1e-12."""
+                       axes: np.ndarray, s: int
+                       ) -> tuple[float, float, float, float, float, float, float, float,
+                                  float, float, float]:
+    """The unit ray d (3) from the centre t to the sample's mean, the ray's length and that
+    length clamped at 1e-12, and the sample's direction factors but the first (which is 1):
+    1 - d_k² per world axis (3), 1 - (d · a_j)² per local axis a_j of ``axes`` (3)."""
     v0 = m0 - t0
     v1 = m1 - t1
     v2 = m2 - t2
@@ -290,14 +291,11 @@ def _direction_factors(m0: float, m1: float, m2: float, t0: float, t1: float, t2
     d0 = v0 / nrm
     d1 = v1 / nrm
     d2 = v2 / nrm
-    f7[0] = 1.0
-    f7[1] = 1.0 - d0 * d0
-    f7[2] = 1.0 - d1 * d1
-    f7[3] = 1.0 - d2 * d2
-    for j in range(3):
-        cj = d0 * axes[s, j] + d1 * axes[s, 3 + j] + d2 * axes[s, 6 + j]
-        f7[4 + j] = 1.0 - cj * cj
-    return d0, d1, d2, length, nrm
+    c0 = d0 * axes[s, 0] + d1 * axes[s, 3] + d2 * axes[s, 6]
+    c1 = d0 * axes[s, 1] + d1 * axes[s, 4] + d2 * axes[s, 7]
+    c2 = d0 * axes[s, 2] + d1 * axes[s, 5] + d2 * axes[s, 8]
+    return (d0, d1, d2, length, nrm, 1.0 - d0 * d0, 1.0 - d1 * d1, 1.0 - d2 * d2,
+            1.0 - c0 * c0, 1.0 - c1 * c1, 1.0 - c2 * c2)
 
 
 @_inline
@@ -320,44 +318,23 @@ def _slots_log(term: float, f7: np.ndarray, kinds: np.ndarray, rate: np.ndarray,
 
 
 @_inline
-def _slots_log_grad(term: float, f7: np.ndarray, kinds: np.ndarray, rate: np.ndarray, s: int,
-                    nq: int, gf7: np.ndarray) -> tuple[float, float]:
-    """Σ_q log(1 + term f_q r_q) over sample ``s``'s slots as the reference computes it (one
-    chain), its derivative in ``term``, and its derivative in each direction factor into
-    ``gf7`` [7]."""
-    for k in range(7):
-        gf7[k] = 0.0
-    acc = 0.0
-    gterm = 0.0
-    for q in range(nq):
-        kq = kinds[q]
-        r = rate[s, q]
-        xq = term * f7[kq] * r
-        acc = acc + xq + acc * xq
-        den = 1.0 / (1.0 + xq)
-        gterm += f7[kq] * r * den
-        gf7[kq] += term * r * den
-    return math.log1p(acc), gterm
-
-
-@_inline
-def _ray_grad(d0: float, d1: float, d2: float, gf7: np.ndarray, axes: np.ndarray, s: int,
-              w: float, length: float, nrm: float) -> tuple[float, float, float]:
+def _ray_grad(dd: np.ndarray, gf7: np.ndarray, axes: np.ndarray, s: int, w: float,
+              length: float, nrm: float) -> tuple[float, float, float]:
     """The direction factors' gradient ``gf7`` (times the weight ``w``) carried to the unit
-    ray d, then to the ray's end at the sample (minus the centre's gradient)."""
-    gd0 = -2.0 * d0 * gf7[1] * w
-    gd1 = -2.0 * d1 * gf7[2] * w
-    gd2 = -2.0 * d2 * gf7[3] * w
+    ray ``dd``, then to the ray's end at the sample (minus the centre's gradient)."""
+    gd0 = -2.0 * dd[0] * gf7[1] * w
+    gd1 = -2.0 * dd[1] * gf7[2] * w
+    gd2 = -2.0 * dd[2] * gf7[3] * w
     for j in range(3):
         a0, a1, a2 = axes[s, j], axes[s, 3 + j], axes[s, 6 + j]
-        cj = d0 * a0 + d1 * a1 + d2 * a2
+        cj = dd[0] * a0 + dd[1] * a1 + dd[2] * a2
         k2 = -2.0 * cj * gf7[4 + j] * w
         gd0 += k2 * a0
         gd1 += k2 * a1
         gd2 += k2 * a2
     if length > 1e-12:
-        dot = gd0 * d0 + gd1 * d1 + gd2 * d2
-        return (gd0 - dot * d0) / nrm, (gd1 - dot * d1) / nrm, (gd2 - dot * d2) / nrm
+        dot = gd0 * dd[0] + gd1 * dd[1] + gd2 * dd[2]
+        return (gd0 - dot * dd[0]) / nrm, (gd1 - dot * dd[1]) / nrm, (gd2 - dot * dd[2]) / nrm
     return gd0 / nrm, gd1 / nrm, gd2 / nrm
 
 
@@ -385,12 +362,13 @@ def proxy_psi(cams: np.ndarray, intr: np.ndarray, means: np.ndarray, sigma6: np.
     cum = np.zeros((nb + 1, g, g))
     dz = 2.0 * vis_prm[3] / nb
     nq = rate.shape[1]
-    f7 = np.empty(7)
+    f7 = np.ones(7)  # the direction factors (the first is 1)
     gf7 = np.empty(7)
     # (the pairs need exp(-width / edge) well inside the range of floats)
     reduce_only = not want_grad and not per_sample and wd / edge < 600.0 and ht / edge < 600.0
     c_wd = math.exp(-wd / edge) if reduce_only else 0.0
     c_ht = math.exp(-ht / edge) if reduce_only else 0.0
+    dd = np.empty(3)
     for b in range(b0, b1):
         cam = cams[b]
         z0 = 0.0
@@ -443,9 +421,15 @@ def proxy_psi(cams: np.ndarray, intr: np.ndarray, means: np.ndarray, sigma6: np.
             if per_sample:
                 terms_out[b, s] = term
                 if accumulate:
-                    _direction_factors(m0, m1, m2, t0, t1, t2, axes, s, f7)
-                    for k in range(7):
-                        acc_out[s, k] += term * f7[k]
+                    _, _, _, _, _, f1, f2, f3, f4, f5, f6 = _direction_factors(
+                        m0, m1, m2, t0, t1, t2, axes, s)
+                    acc_out[s, 0] += term
+                    acc_out[s, 1] += term * f1
+                    acc_out[s, 2] += term * f2
+                    acc_out[s, 3] += term * f3
+                    acc_out[s, 4] += term * f4
+                    acc_out[s, 5] += term * f5
+                    acc_out[s, 6] += term * f6
                 continue
             # the model's log form and its derivative in the term (and direction factors)
             w = weight[s]
@@ -457,15 +441,29 @@ def proxy_psi(cams: np.ndarray, intr: np.ndarray, means: np.ndarray, sigma6: np.
                 total += w * math.log1p(term * r)
                 gterm = w * r / (1.0 + term * r)
             else:
-                d0, d1, d2, length, nrm = _direction_factors(m0, m1, m2, t0, t1, t2, axes, s,
-                                                              f7)
+                (dd[0], dd[1], dd[2], length, nrm, f7[1], f7[2], f7[3], f7[4], f7[5],
+                 f7[6]) = _direction_factors(m0, m1, m2, t0, t1, t2, axes, s)
                 if not want_grad:
                     total += w * _slots_log(term, f7, kinds, rate, s, nq)
                     continue
-                value, gterm = _slots_log_grad(term, f7, kinds, rate, s, nq, gf7)
-                total += w * value
+                # the reference's one chain, with the derivatives in the term and in each
+                # direction factor
+                for k in range(7):
+                    gf7[k] = 0.0
+                acc = 0.0
+                gterm = 0.0
+                for q in range(nq):
+                    kq = kinds[q]
+                    tf = term * f7[kq]
+                    r = rate[s, q]
+                    xq = tf * r
+                    acc = acc + xq + acc * xq
+                    den = 1.0 / (1.0 + xq)
+                    gterm += f7[kq] * r * den
+                    gf7[kq] += term * r * den
+                total += w * math.log1p(acc)
                 gterm *= w
-                r0, r1, r2 = _ray_grad(d0, d1, d2, gf7, axes, s, w, length, nrm)
+                r0, r1, r2 = _ray_grad(dd, gf7, axes, s, w, length, nrm)
                 gt0 -= r0
                 gt1 -= r1
                 gt2 -= r2
