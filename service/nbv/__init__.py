@@ -8,8 +8,7 @@ Public surface (imported lazily, so ``import agilegs.service.nbv`` stays cheap):
   ``expected_information_gain``, ``trace_surrogate``; Hhat of a set of views
   ``information_of_views`` and one view's ``view_information``.
 - Poses: ``se3_exp``, ``se3_log``, ``hat``, ``vee``.
-- Selection: ``select`` -> ``Selection`` (``select_from`` a ``SelectInputs`` for inputs
-  validated already),
+- Selection: ``select`` -> ``Selection`` (``select_validated`` for inputs validated already),
   ``SelectConfig`` (with ``AnchorConfig``,
   ``ScoringConfig``), ``eig_scores``, ``greedy_ridge_leverage``; the methods are registered
   by name in :mod:`agilegs.service.nbv.methods`.
@@ -46,8 +45,6 @@ _EXPORTS: dict[str, str] = {
     "greedy_ridge_leverage": "leverage",
     "select": "selectors",
     "select_validated": "selectors",
-    "select_from": "selectors",
-    "SelectInputs": "selectors",
     "Selection": "selectors",
     "SelectConfig": "selectors",
     "AnchorConfig": "selectors",

@@ -1,5 +1,5 @@
 """What a selection hands on to the acquisition: the chosen view's Fisher, kept from scoring,
-equals a fresh pass; ``select_from`` (and ``select_validated``) select as ``select`` does; Hhat of a set of views."""
+equals a fresh pass; ``select_validated`` selects as ``select`` does; Hhat of a set of views."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from agilegs.service.nbv.information import (
     init_information,
 )
 from agilegs.service.nbv.methods.common import argmax_first, eig_scores_keeping_best
-from agilegs.service.nbv.selectors import SelectInputs, select, select_from, select_validated
+from agilegs.service.nbv.selectors import select, select_validated
 from agilegs.service.nbv.upkeep import information_of_views, view_information
 
 INTR = Intrinsics.from_fov(55.0, 24, 24)
@@ -85,20 +85,16 @@ def test_methods_that_do_not_score_by_eig_hand_on_nothing(method) -> None:
 
 
 @pytest.mark.parametrize("method", ["random", "agile_plus", "full_eig"])
-def test_select_from_inputs_selects_as_select(method) -> None:
+def test_select_validated_selects_as_select(method) -> None:
     gmap, h, pool, acq = world()
     cfg = SelectConfig(shortlist_size=4, seed=5)
     state = {"event": 2}
     a = select(method, gmap, h, pool, INTR, config=cfg, acquired=acq, state=state, lam=1e-6)
-    inputs = SelectInputs(method, gmap, h, pool, INTR, cfg, acquired=acq, lam=1e-6)
-    b = select_from(inputs, state=state)
-    c = select_validated(method, gmap, h, pool, INTR, config=cfg, acquired=acq, state=state,
+    b = select_validated(method, gmap, h, pool, INTR, config=cfg, acquired=acq, state=state,
                          lam=1e-6)
-    for other in (b, c):
-        assert (a.index, a.shortlist, a.scores, a.eligible) == (
-            other.index, other.shortlist, other.scores, other.eligible)
-        assert a.state.keys() == other.state.keys()
-        assert a.state["event"] == other.state["event"] == 3
+    assert (a.index, a.shortlist, a.scores, a.eligible) == (b.index, b.shortlist, b.scores,
+                                                            b.eligible)
+    assert a.state.keys() == b.state.keys() and a.state["event"] == b.state["event"] == 3
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])

@@ -477,3 +477,20 @@ def test_the_anchor_reports_under_the_wire_s_names(world) -> None:
     assert details["anchor_carried"] is d.carried is False
     assert details["psi_evaluations"] == res.evaluations
     assert stages["anchor.ascent.values"] == d.ascent.value_s * 1e3
+
+
+@pytest.mark.parametrize("method", ["random", "agile_plus"])
+def test_select_from_inputs_selects_as_select(world, method) -> None:
+    """A caller that validated its inputs builds a SelectInputs and selects through
+    select_from: the selection of select on the same inputs."""
+    from agilegs.service.nbv.selectors import SelectInputs, select_from
+
+    gmap, h, pool, acq, _ = world
+    cfg = SelectConfig(shortlist_size=4, seed=5)
+    state = {"event": 2}
+    a = select(method, gmap, h, pool, INTR, config=cfg, acquired=acq, state=state, lam=1e-6)
+    b = select_from(SelectInputs(method, gmap, h, pool, INTR, cfg, acquired=acq, lam=1e-6),
+                    state=state)
+    assert (a.index, a.shortlist, a.scores, a.eligible, a.details.keys()) == (
+        b.index, b.shortlist, b.scores, b.eligible, b.details.keys())
+    assert a.state.keys() == b.state.keys() and a.state["event"] == b.state["event"] == 3
