@@ -78,7 +78,7 @@ from agilegs.service.nbv import (
 from agilegs.service.nbv.candidates import capture_pool, scene_center_radius
 from agilegs.service.nbv.methods.base import get_method, method_names
 from agilegs.service.nbv.rotations import quat_to_rotmat
-from agilegs.service.nbv.selectors import select_validated
+from agilegs.service.nbv.selectors import SelectInputs, select_from
 
 from .options import add_latency_arguments, use_threads
 from .stages import ANCHOR_STAGES
@@ -422,7 +422,7 @@ def time_events(setup: Setup, names: list[str], events: int, shortlist: int) -> 
     states: dict[str, dict[str, Any] | None] = {n: None for n in names}
     variants = {n: parse_variant(n, shortlist) for n in names}
     # every entry's settings validated once, as the service does: each event selects through
-    # select_validated on the map, Hhat and pool set up (and checked) here
+    # select_from on the map, Hhat and pool set up (and checked) here
     configs = {n: validate_config(SelectConfig, variants[n].config(setup.base)) for n in names}
     order = sorted(names, key=lambda n: n != REFERENCE)  # the yardstick first, when timed
     for event in range(events):
@@ -432,9 +432,8 @@ def time_events(setup: Setup, names: list[str], events: int, shortlist: int) -> 
         for name in order:
             cpu0 = time.process_time()
             with PeakRSS() as mem:
-                sel = select_validated(variants[name].method, gmap, h_acc, pool, intr,
-                                       config=configs[name], acquired=acquired,
-                                       state=states[name])
+                sel = select_from(SelectInputs(variants[name].method, gmap, h_acc, pool, intr,
+                                               configs[name], acquired), state=states[name])
             cpu_ms = (time.process_time() - cpu0) * 1e3
             states[name] = sel.state
             if name == REFERENCE:

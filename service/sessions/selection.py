@@ -30,7 +30,7 @@ from ..nbv.budget import KINDS, Estimate, SpeedCalibration, estimate
 from ..nbv.errors import InputError
 from ..nbv.kernels.backend import default_backend, kernels_available
 from ..nbv.methods.base import get_method
-from ..nbv.selectors import select_validated, state_to
+from ..nbv.selectors import SelectInputs, select_from, state_to
 from ..store.records import SessionRecord, ViewRecord
 from .convert import finite_float, pose_out, poses_array, view_out
 from .transitions import (
@@ -240,15 +240,16 @@ def select_step(rec: SessionRecord, req: m.SelectRequest, limits: Limits, *,
     if dev.type != "cpu":
         gmap, h_acc = gmap.to(device=dev), state_to(dev, h_acc)
     try:
-        sel = select_validated(
+        inputs = SelectInputs(
             method, gmap, h_acc,
             torch.from_numpy(rec.pool_poses).to(device=dev, dtype=dt),
             intrinsics_of(rec), config=config,
             acquired=None if acquired is None else acquired.to(dev), current=current,
             current_pose=None if current_pose is None else current_pose.to(dev),
-            state=state_to(dev, rec.warm_state), lam=float(rec.information_config["lambda"]),
+            lam=float(rec.information_config["lambda"]),
             targets=None if targets is None else targets.to(dev),
         )
+        sel = select_from(inputs, state=state_to(dev, rec.warm_state))
     except InputError as exc:
         raise invalid(_ARGUMENT_FIELDS.get(exc.argument, "body"), str(exc)) from None
     if dev.type != "cpu":  # the record keeps host tensors

@@ -80,8 +80,7 @@ HOW: dict[tuple[str, str], How] = {
         How("ci", "the suite itself, as .ci/run runs it"),
     ("README.md", "agilegs serve --host 127.0.0.1 --port 8000 --state-dir ./agilegs-state   "
      "# HTTP + Zenoh"): How("server", "the server the README's clients talk to"),
-    ("README.md", "from dataclasses import asdict"): How("server"),
-    ("docs/your-data.md", "import json"): How("server"),
+    ("README.md", "import json"): How("server"),
     ("README.md", "curl -s -w '\\n' -X POST http://127.0.0.1:8000/v1/sessions -H "
      "'content-type: application/json' -d '{"): How("server"),
     ("docs/viewer.md", "from agilegs.client import Client"): How("server"),

@@ -166,7 +166,7 @@ def test_starts_are_the_best_pool_candidates_under_the_proxy(scene, anchors: int
         r = pool_radius(pool)
         best = distinct_best(pool, res.pool_psi, 3, cfg.mode_separation * r, r).tolist()
         assert len(best) == 3 and best != torch.topk(res.pool_psi, 3).indices.tolist()
-    assert res.extra["start_indices"] == best
+    assert res.diagnostics.start_indices == best
     assert res.psi == pytest.approx(float(res.pool_psi.max()), rel=1e-9)
 
 
@@ -405,7 +405,7 @@ def test_fitted_model_ranks_the_pool_like_the_exact_eig(model: str) -> None:
         gmap, h, pool, INTR, config=AnchorConfig(iterations=0, model=model, unexplored=False),
         acquired=acq, generator=gen
     )
-    assert fitted.extra["model"] == model
+    assert fitted.diagnostics.model.model == model
     assert fitted.pool_psi is not None
 
     def ranks(x: torch.Tensor) -> torch.Tensor:
@@ -418,7 +418,7 @@ def test_fitted_model_ranks_the_pool_like_the_exact_eig(model: str) -> None:
     typical = optimize_anchor(
         gmap, h, pool, INTR, config=AnchorConfig(iterations=0), generator=gen
     )
-    assert typical.extra["model"] == "typical"
+    assert typical.diagnostics.model.model == "typical"
 
 
 def test_occluder_cover_closes_gaps_between_occluder_points() -> None:

@@ -136,7 +136,7 @@ def test_the_directional_anchor_looks_across_the_acquired_views() -> None:
                           generator=torch.Generator().manual_seed(0))
     assert res.pool_psi is not None
     assert float(res.pool_psi[1]) > 1.2 * float(res.pool_psi[0])
-    assert res.extra["model"] == "directional"
+    assert res.diagnostics.model.model == "directional"
 
 
 def _half_shell(n: int = 400) -> GaussianMap:
@@ -257,7 +257,7 @@ def test_the_unexplored_term_draws_the_anchor_to_the_unseen_side() -> None:
                               generator=torch.Generator().manual_seed(0))
         assert res.pool_psi is not None
         gains[flag] = float(res.pool_psi[behind].mean() / res.pool_psi[~behind].mean())
-        assert ("unexplored_points" in res.extra) == flag
+        assert (res.diagnostics.model.unexplored_points is not None) == flag
     assert gains[True] > gains[False]
 
 

@@ -177,11 +177,11 @@ def test_the_ascent_decides_alike_with_either_path() -> None:
         finally:
             backend.set_default_backend(None)
     t, k = results["torch"], results["numba"]
-    assert t.extra["start_indices"] == k.extra["start_indices"]
+    assert t.diagnostics.start_indices == k.diagnostics.start_indices
     assert t.evaluations == k.evaluations
     torch.testing.assert_close(k.c2w, t.c2w, rtol=0, atol=1e-9)
     assert k.psi == pytest.approx(t.psi, rel=1e-10)
-    assert set(k.extra["timings_s"]) == {"visibility", "rates", "unexplored", "starts",
+    assert set(k.diagnostics.timings_s) == {"visibility", "rates", "unexplored", "starts",
                                          "ascent"}
 
 
