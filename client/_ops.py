@@ -146,6 +146,12 @@ class SyncOperations:
         the service's mapper last published, or the one last set."""
         return self._send(rq.call("get_gaussians", session))  # type: ignore[no-any-return]
 
+    def save_gaussians(self, session: str, path: str | Path) -> Path:
+        """Write the session's current Gaussians to ``path``: an Inria 3DGS ``.ply`` (the
+        float32 parameters as they are; SuperSplat, gsplat, nerfstudio read it) or an
+        antimatter15 ``.splat`` (quantised), by its suffix; returns ``path``."""
+        return rq.write_file(path, self._send(rq.gaussians_file(session, path)))
+
     def get_decisions(self, session: str, *, after: int = 0, wait: float = 0.0,
                       limit: int = 100) -> d.DecisionsOut:
         """The session's decisions with a sequence number above ``after``, oldest first;
@@ -255,6 +261,9 @@ class AsyncOperations:
 
     async def get_gaussians(self, session: str) -> m.GaussiansOut:
         return await self._send(rq.call("get_gaussians", session))  # type: ignore[no-any-return]
+
+    async def save_gaussians(self, session: str, path: str | Path) -> Path:
+        return rq.write_file(path, await self._send(rq.gaussians_file(session, path)))
 
     async def get_decisions(self, session: str, *, after: int = 0, wait: float = 0.0,
                             limit: int = 100) -> d.DecisionsOut:

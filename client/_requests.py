@@ -23,6 +23,7 @@ from agilegs.schemas import (
     Operation,
     Pose,
 )
+from agilegs.schemas.codec import GAUSSIAN_FILE_TYPES
 from agilegs.schemas.geometry import trusted_poses
 from agilegs.schemas.views import InitialFrame
 
@@ -62,6 +63,7 @@ class Call:
     session: str | None = None
     body: BaseModel | None = None
     params: dict[str, str] | None = None  # query parameters (HTTP) / selector (Zenoh)
+    file: str | None = None  # answered as this file (get_gaussians: ply / splat), as bytes
 
 
 def call(name: str, session: str | None = None, body: BaseModel | None = None) -> Call:
@@ -102,6 +104,24 @@ def to_gaussians(g: m.GaussiansIn | str | Path | Mapping[str, Any]) -> m.Gaussia
         return m.GaussiansIn(format=fmt, data=path.read_bytes())  # type: ignore[arg-type]
     arrays = {k: NDArray.from_numpy(np.asarray(v, dtype=np.float32)) for k, v in g.items()}
     return m.GaussiansIn(format="arrays", arrays=m.GaussianArrays(**arrays))
+
+
+@checked
+def gaussians_file(session: str, path: str | Path) -> Call:
+    """``get_gaussians`` answered as the file ``path``'s suffix names (.ply / .splat)."""
+    fmt = Path(path).suffix.lower().lstrip(".")
+    if fmt not in GAUSSIAN_FILE_TYPES:
+        raise ValueError(f"{path}: the file name must end in .ply (Inria 3DGS) or .splat")
+    return Call(OPERATIONS["get_gaussians"], session, None, file=fmt)
+
+
+def write_file(path: str | Path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` through a temporary name (a reader never sees half of it)."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.part")
+    tmp.write_bytes(data)
+    tmp.replace(path)
+    return path
 
 
 @checked

@@ -134,10 +134,12 @@ class ZenohClient(SyncOperations):
 
             raise ValidationError(422, "invalid", str(exc), "session") from None
 
-    def _send(self, call: Call, parameters: str | None = None) -> BaseModel:
+    def _send(self, call: Call, parameters: str | None = None) -> BaseModel | bytes:
         if parameters is None:
             # the server gives up on the work once this client stops waiting for it
             params = {**(call.params or {}), "deadline_ms": f"{self.timeout * 1e3:.0f}"}
+            if call.file is not None:
+                params["format"] = call.file
             parameters = ";".join(f"{k}={v}" for k, v in params.items())
         key = self._key(call)
         payload = codec.dump(call.body, codec.MSGPACK) if call.body is not None else None
@@ -147,6 +149,11 @@ class ZenohClient(SyncOperations):
                                           timeout=self.timeout)
         except Exception as exc:
             raise TransportError(f"{call.op.name}: zenoh query on {key} failed: {exc}") from exc
+        if ans is not None and ans.ok and call.file is not None:
+            if ans.encoding.split(";", 1)[0] != codec.GAUSSIAN_FILE_TYPES[call.file]:
+                raise ProtocolError(f"{call.op.name}: asked for a .{call.file} file, the reply "
+                                    f"is encoded {ans.encoding!r}")
+            return ans.payload
         if ans is not None and ans.ok:
             try:
                 return call.op.response.model_validate(ans.load())

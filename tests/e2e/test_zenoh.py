@@ -247,3 +247,22 @@ def test_zenoh_refusals_match_http_and_change_nothing(server_factory: object) ->
         z.close()
         http.close()
         c.close()
+
+
+def test_zenoh_saves_the_map_as_http_does(server: ServerProcess, zc: ZenohClient,
+                                          tmp_path) -> None:
+    from agilegs.client.zenoh_rpc import first_answer
+    from agilegs.schemas import keys
+
+    with Client(server.url) as c:
+        sid = _session(c)
+        for suffix in ("ply", "splat"):
+            c.save_gaussians(sid, tmp_path / f"http.{suffix}")
+            zc.save_gaussians(sid, tmp_path / f"zenoh.{suffix}")
+            assert (tmp_path / f"zenoh.{suffix}").read_bytes() == (
+                tmp_path / f"http.{suffix}").read_bytes()
+    assert (tmp_path / "zenoh.ply").read_bytes().startswith(b"ply\n")
+    ans, _ = first_answer(zc._session, keys.session_key(sid, "get_gaussians"),
+                          parameters="format=obj", timeout=30)
+    assert ans is not None and not ans.ok
+    assert ErrorBody.model_validate(ans.load()).error.field == "query.format"
