@@ -94,6 +94,14 @@ class SyncOperations:
     def list_views(self, session: str) -> m.ViewsOut:
         return self._send(rq.call("list_views", session))  # type: ignore[no-any-return]
 
+    def get_frames(self, session: str, view_id: int | None = None, *, depth: bool = True
+                   ) -> m.FramesOut:
+        """Acquired views with their images (``frame.image.to_numpy()``: RGB [H, W, 3]; png
+        and jpeg files as they came) and depth maps (``frame.depth.to_numpy()``: [H, W]
+        float32, 0 where missing): the view ``view_id``, or every view."""
+        return self._send(rq.get_frames(  # type: ignore[no-any-return]
+            session, view_id, depth=depth))
+
     def commit(self, session: str, candidate_id: int | None = None, *,
                pose: PoseLike | None = None, keep_in_pool: bool = False) -> m.View:
         """Acquire a candidate (by id) or a pose as a view; updates Ĥ."""
@@ -216,6 +224,11 @@ class AsyncOperations:
 
     async def list_views(self, session: str) -> m.ViewsOut:
         return await self._send(rq.call("list_views", session))  # type: ignore[no-any-return]
+
+    async def get_frames(self, session: str, view_id: int | None = None, *, depth: bool = True
+                         ) -> m.FramesOut:
+        return await self._send(rq.get_frames(  # type: ignore[no-any-return]
+            session, view_id, depth=depth))
 
     async def commit(self, session: str, candidate_id: int | None = None, *,
                      pose: PoseLike | None = None, keep_in_pool: bool = False) -> m.View:

@@ -227,6 +227,11 @@ def add_observations(session: str, observations: m.ObservationIn | Mapping[str, 
 
 
 @checked
+def get_frames(session: str, view_id: int | None = None, *, depth: bool = True) -> Call:
+    return call("get_frames", session, m.FramesRequest(view_id=view_id, depth=depth))
+
+
+@checked
 def get_decisions(session: str, *, after: int = 0, wait: float = 0.0, limit: int = 100) -> Call:
     return call("get_decisions", session, DecisionsRequest(after=after, wait=wait, limit=limit))
 

@@ -68,6 +68,7 @@ SESSION_OPS: tuple[str, ...] = (
     "set_gaussians",
     "add_observations",
     "list_views",
+    "get_frames",
     "commit",
     "set_pool",
     "extend_pool",
