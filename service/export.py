@@ -20,9 +20,11 @@ state folder (``--state-dir DIR``).
   coefficient; no tracks); the original 3DGS ``train.py -s OUT`` and nerfstudio's
   ``colmap`` data parser read it.
 
-Both formats by default. Numbers are written with every digit (``repr``), so poses read back
-equal the session's to float64 rounding. Exit status 0 on success, 2 when the session cannot be
-read (one line on stderr says why).
+With ``OUT`` a file ending in ``.ply`` or ``.splat``, the map alone is written there: the
+Inria 3DGS ``.ply`` (float32, equal to the map) or the antimatter15 ``.splat``, as
+``get_gaussians`` answers it. Both dataset formats by default. Numbers are written with every
+digit (``repr``), so poses read back equal the session's to float64 rounding. Exit status 0 on
+success, 2 when the session cannot be read (one line on stderr says why).
 """
 
 from __future__ import annotations
@@ -184,9 +186,10 @@ def from_server(server: str | Client, session: str, *, token: str | None = None
         return c.get_frames(session), c.get_gaussians(session)
 
 
-def from_state(state_dir: str | Path, session: str) -> tuple[FramesOut, GaussiansOut]:
-    """The same, read offline from a server's state folder (it changes nothing there);
-    ValueError when the session is missing or damaged."""
+def from_state(state_dir: str | Path, session: str, *, frames: bool = True
+               ) -> tuple[FramesOut, GaussiansOut]:
+    """The same, read offline from a server's state folder (it changes nothing there; no
+    frames with ``frames`` false); ValueError when the session is missing or damaged."""
     from agilegs.schemas import FramesRequest
 
     from .sessions.session import Session, SessionEnv
@@ -206,12 +209,14 @@ def from_state(state_dir: str | Path, session: str) -> tuple[FramesOut, Gaussian
     env = SessionEnv(settings=Settings(state_dir=root, mapper=False), store=store,
                      tmp_dir=root / "tmp")
     s = Session(got, env)
-    return s.get_frames(FramesRequest()), s.get_gaussians()
+    read = s.get_frames(FramesRequest()) if frames else FramesOut(frames=[], version=got.version)
+    return read, s.get_gaussians()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("session", metavar="SESSION", help="the session's id")
-    parser.add_argument("out", metavar="OUT", help="the folder to write the dataset to")
+    parser.add_argument("out", metavar="OUT", help="the folder to write the dataset to, or a "
+                        "file ending in .ply (Inria 3DGS) or .splat for the map alone")
     where = parser.add_mutually_exclusive_group(required=True)
     where.add_argument("--server", metavar="URL", help="a running server, e.g. "
                                                        "http://127.0.0.1:8000")
@@ -223,7 +228,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    fmt = Path(args.out).suffix.lower().lstrip(".")
     try:
+        if fmt in ("ply", "splat"):
+            return _save_map(args, Path(args.out), fmt)
         if args.server:
             frames, gaussians = from_server(args.server, args.session, token=args.token)
         else:
@@ -237,4 +245,25 @@ def run(args: argparse.Namespace) -> int:
                      f"({' and '.join(done.formats)}; {done.points} points)"
                      + (f"; {done.skipped} views without an image left out" if done.skipped
                         else "") + "\n")
+    return 0
+
+
+def _save_map(args: argparse.Namespace, out: Path, fmt: str) -> int:
+    """The session's map as the file ``out`` (.ply or .splat)."""
+    if args.server:
+        with Client(args.server, token=args.token, timeout=600) as c:
+            c.save_gaussians(args.session, out)
+        count = None
+    else:
+        from .errors import ServiceError
+        from .sessions.convert import gaussians_file
+
+        gaussians = from_state(args.state_dir, args.session, frames=False)[1]
+        try:
+            out.write_bytes(gaussians_file(gaussians, fmt))
+        except ServiceError as exc:
+            raise ValueError(exc.message) from None
+        count = gaussians.count
+    sys.stdout.write(f"agilegs export: the map of {args.session} to {out}"
+                     + (f" ({count} Gaussians)" if count is not None else "") + "\n")
     return 0

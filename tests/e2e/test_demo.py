@@ -54,6 +54,34 @@ def test_quick_demo_runs_the_closed_loop(tmp_path: Path) -> None:
     assert [float(r.split("|")[-2]) for r in rows] == [round(d, 2) + 0.0 for d in deltas]
     assert f"last event Δ {deltas[-1]:+.2f} dB" in table and table.splitlines()[-1] in proc.stdout
     assert "AGILE-GS+: mean selection" in table and "Random: mean selection" in table
+    _exports_the_session(out, proc.stdout)
+
+
+def _exports_the_session(out: Path, stdout: str) -> None:
+    """The demo's AGILE-GS+ session, left in its state folder, leaves as a 3DGS .ply and as
+    a dataset by the commands the demo prints."""
+    from plyfile import PlyData
+
+    from agilegs.service.cli import main
+    from agilegs.service.data.colmap import load_colmap
+    from agilegs.service.data.transforms import load_transforms
+    from agilegs.service.nbv.gaussians import GaussianMap
+
+    state = out / "state"
+    assert f"agilegs export demo-agile-plus {out / 'map.ply'} --state-dir {state}" in stdout
+    assert main(["export", "demo-agile-plus", str(out / "map.ply"), "--state-dir",
+                 str(state)]) == 0
+    names = [p.name for p in PlyData.read(str(out / "map.ply"))["vertex"].properties]
+    assert names[:9] == ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+    assert names[-8:] == ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1",
+                          "rot_2", "rot_3"]
+    assert len(GaussianMap.load(out / "map.ply")) > 0
+    assert main(["export", "demo-agile-plus", str(out / "dataset"), "--state-dir",
+                 str(state)]) == 0
+    views = load_transforms(out / "dataset" / "transforms.json").views
+    assert len(views) == QUICK.initial_views + QUICK.events
+    assert len(load_colmap(out / "dataset" / "sparse" / "0", out / "dataset" / "images")[0]
+               ) == len(views)
 
 
 def test_attribution_and_initial_views() -> None:

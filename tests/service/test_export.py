@@ -167,3 +167,20 @@ def test_export_refuses_a_missing_session_in_one_line(tmp_path: Path, capsys) ->
     assert main(["export", "nope", str(tmp_path / "out"), "--state-dir", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "no session 'nope'" in err
+
+
+def test_export_to_a_ply_file_writes_the_map(api: InProcess, acquired, tmp_path: Path,
+                                             capsys) -> None:
+    from agilegs.service.nbv.gaussians import GaussianMap
+
+    sid = acquired[0]
+    state = Path(api.server.settings.state_dir)
+    assert main(["export", sid, str(tmp_path / "off.ply"), "--state-dir", str(state)]) == 0
+    assert "300 Gaussians" in capsys.readouterr().out
+    with api.client() as c:
+        c.save_gaussians(sid, tmp_path / "on.ply")
+        arrays = c.get_gaussians(sid).to_numpy()
+    assert (tmp_path / "off.ply").read_bytes() == (tmp_path / "on.ply").read_bytes()
+    back = GaussianMap.load(tmp_path / "off.ply")
+    for name, t in back.items():
+        np.testing.assert_array_equal(t.numpy(), arrays[name])
