@@ -8,7 +8,8 @@ the scene (default: the bundled Spot subsampled to ``--max-gaussians``) with a p
 ``--pool`` candidates, commits three of them, then makes ``--selections`` selections of
 ``--method`` with commit, timing each at the client (the round trip) and reading the core's
 ``latency_ms.total``. Reported per variant: the seconds until ready, the first and the tenth
-(the last) selection's round trip and their ratio.
+(the last) selection's round trip and their ratio, and the first against the median of the
+others (a steadier reference on a shared machine).
 
 ``--fresh-cache`` gives the servers an empty numba cache folder (``NUMBA_CACHE_DIR``): a
 fresh machine, where the kernels are compiled rather than loaded from the cache.
@@ -19,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import statistics
 import sys
 import tempfile
 import time
@@ -83,16 +85,20 @@ def _one(name: str, warmup: str, args: argparse.Namespace, root: Path,
         ready_s = server.wait_ready(timeout=1800.0) + (time.perf_counter() - t0)
         with Client(server.url, timeout=1800.0) as c:
             _session(c, args, "firstcall")
-            rounds, cores = [], []
+            rounds, cores, stages = [], [], []
             for _ in range(args.selections):
                 t = time.perf_counter()
                 d = c.select("firstcall", method=args.method, commit=True)
                 rounds.append((time.perf_counter() - t) * 1e3)
                 cores.append(float(d.latency_ms.get("total", float("nan"))))
+                stages.append(dict(d.latency_ms))
     finally:
         server.stop()
+    rest = statistics.median(rounds[1:])
     return {"variant": name, "ready_s": ready_s, "round_trip_ms": rounds, "core_ms": cores,
-            "first_ms": rounds[0], "last_ms": rounds[-1], "ratio": rounds[0] / rounds[-1]}
+            "latency_ms": stages, "first_ms": rounds[0], "last_ms": rounds[-1],
+            "ratio": rounds[0] / rounds[-1], "rest_median_ms": rest,
+            "ratio_median": rounds[0] / rest}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -122,11 +128,12 @@ def run(args: argparse.Namespace) -> int:
     lines = [f"{args.method}, {args.max_gaussians} Gaussians, pool {args.pool}, "
              f"{args.size}x{args.size}, {'empty' if args.fresh_cache else 'existing'} numba "
              "cache", "",
-             f"| server | ready (s) | 1st selection (ms) | {n}th (ms) | 1st / {n}th |",
-             "|---|---:|---:|---:|---:|"]
+             f"| server | ready (s) | 1st selection (ms) | {n}th (ms) | 1st / {n}th | median of "
+             f"2nd-{n}th (ms) | 1st / median |", "|---|---:|---:|---:|---:|---:|---:|"]
     for r in results:
         lines.append(f"| {r['variant']} | {r['ready_s']:.1f} | {r['first_ms']:.0f} | "
-                     f"{r['last_ms']:.0f} | {r['ratio']:.2f} |")
+                     f"{r['last_ms']:.0f} | {r['ratio']:.2f} | {r['rest_median_ms']:.0f} | "
+                     f"{r['ratio_median']:.2f} |")
     sys.stdout.write("\n".join(lines) + "\n")
     if args.json:
         Path(args.json).write_text(json.dumps({"args": {k: v for k, v in vars(args).items()

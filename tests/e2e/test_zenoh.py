@@ -137,6 +137,18 @@ def test_no_server_is_a_transport_error() -> None:
         ZenohClient([f"tcp/127.0.0.1:{free_port()}"], wait=0.5)
 
 
+def test_no_peer_is_told_within_the_timeout_with_what_is_likely_wrong() -> None:
+    from conftest import free_port
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    t0 = time.monotonic()
+    with pytest.raises(TransportError) as exc:
+        ZenohClient([endpoint], timeout=1.5)  # wait (10 s by default) stays within timeout
+    assert time.monotonic() - t0 < 3.0
+    msg = str(exc.value)
+    assert f"no Zenoh peer reached at {endpoint}" in msg and "credentials" in msg
+
+
 def test_zenoh_queries_need_the_token(server_factory: object) -> None:
     from agilegs.client import AuthenticationError
 
