@@ -57,8 +57,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _session(client: Any, args: argparse.Namespace, sid: str) -> None:
     import numpy as np
 
+    from agilegs.service.nbv import load_scene
     from agilegs.service.nbv.candidates import capture_pool, scene_center_radius
-    from agilegs.service.nbv.gaussians import load_scene
 
     g = load_scene(args.scene, max_gaussians=args.max_gaussians, seed=0)
     center, r98 = scene_center_radius(g.means)

@@ -22,7 +22,7 @@ from .camera import Camera, Intrinsics
 from .candidates import capture_pool
 from .gaussians import GaussianMap
 from .information import accumulate_information, fisher_diag, init_information
-from .methods import method_names
+from .methods.base import method_names
 from .rasterize import render
 from .selectors import select
 

@@ -65,7 +65,7 @@ def _exports_the_session(out: Path, stdout: str) -> None:
     from agilegs.service.cli import main
     from agilegs.service.data.colmap import load_colmap
     from agilegs.service.data.transforms import load_transforms
-    from agilegs.service.nbv.gaussians import GaussianMap
+    from agilegs.service.nbv import GaussianMap
 
     state = out / "state"
     assert f"agilegs export demo-agile-plus {out / 'map.ply'} --state-dir {state}" in stdout

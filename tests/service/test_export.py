@@ -171,7 +171,7 @@ def test_export_refuses_a_missing_session_in_one_line(tmp_path: Path, capsys) ->
 
 def test_export_to_a_ply_file_writes_the_map(api: InProcess, acquired, tmp_path: Path,
                                              capsys) -> None:
-    from agilegs.service.nbv.gaussians import GaussianMap
+    from agilegs.service.nbv import GaussianMap
 
     sid = acquired[0]
     state = Path(api.server.settings.state_dir)

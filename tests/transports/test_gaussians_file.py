@@ -16,7 +16,7 @@ from conftest import SMALL_INTRINSICS, InProcess
 
 from agilegs.client import AsyncClient, ValidationError
 from agilegs.schemas import codec
-from agilegs.service.nbv.gaussians import GaussianMap
+from agilegs.service.nbv import GaussianMap
 
 BOUNDS = {"min": [-0.5] * 3, "max": [0.5] * 3}
 INRIA = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
