@@ -145,7 +145,8 @@ def attribution(scene: str) -> str:
     from agilegs.lab.scenes import bundled_scene
 
     if scene not in ("spot", "teapot"):
-        return f"Scene {scene}: not bundled; see its source for its licence."
+        return _repository_scene(scene) or (f"Scene {scene}: not bundled; see its source "
+                                             "for its licence.")
     file = bundled_scene(scene)
     text = (file.parent.parent / "README.md").read_text(encoding="utf-8")
     row = next((ln for ln in text.splitlines() if f"`{file.name}`" in ln), "")
@@ -158,6 +159,27 @@ def attribution(scene: str) -> str:
     if len(cells) >= 6:
         return f"Scene: {cells[5]} ({cells[4]}). {credit}".strip()
     return f"Scene: {file.name}. {credit}".strip()
+
+
+def _repository_scene(scene: str) -> str | None:
+    """The attribution of a scene of ``lab/scenes`` given as a path (its row of the folder's
+    README: source and licence), or None for a path elsewhere."""
+    import agilegs.lab.scenes as scenes
+
+    root = Path(scenes.__file__).parent.resolve()
+    try:
+        name = Path(scene).resolve().relative_to(root).parts[0]
+    except (ValueError, IndexError):
+        return None
+    text = (root / "README.md").read_text(encoding="utf-8")
+    row = next((ln for ln in text.splitlines() if ln.startswith(f"| `{name}` |")), None)
+    cells = [c.strip() for c in (row or "").strip().strip("|").split("|")]
+    if len(cells) < 6:
+        return None
+    import re
+
+    credit = re.sub(r"\[[^\]]+\]\(([^)]+)\)", r"lab/scenes/\1", cells[5])  # changes made
+    return f"Scene {name} (in this repository, lab/scenes/{name}): {credit}. Licence {cells[4]}."
 
 
 # ============================================================================ the robot
@@ -226,20 +248,26 @@ class Robot:
 def make_robot(scene: str, size: DemoSize, seed: int, work_dir: Path) -> tuple[Any, DemoSize]:
     """The robot for ``--scene`` and the demo's size fitted to it: a splat scene's rendering
     :class:`Robot`, or a :class:`~agilegs.lab.demo.capture_robot.CaptureRobot` that replays a
-    posed capture, whose pool and test views are the capture's (the events capped by the
-    pool; its starting map is written to ``work_dir``)."""
+    posed capture, whose pool and test views are the capture's (the events capped at half the
+    frames left after the initial views, so that the methods have a choice to make; its
+    starting map is written to ``work_dir``). An empty folder is refused naming every layout
+    a scene may have."""
     from agilegs.lab.demo.capture_robot import CaptureRobot, is_capture, load_capture
 
     if not is_capture(scene):
+        if Path(scene).is_dir():  # no capture: a splat file, or the error naming every layout
+            from agilegs.lab.bench.scenes import detect_scene_kind
+
+            detect_scene_kind(scene)
         return Robot(scene, size, seed), size
-    sc = load_capture(scene, size.width, size.test_count, seed)
+    sc = load_capture(scene, size.width, size.test_count, seed, size.init_gaussians)
     if sc.pool_size < size.initial_views + 1:
         raise ValueError(f"--scene: the capture's pool ({sc.pool_size} frames) is smaller than "
                          f"{size.initial_views} initial views and one event")
     robot = CaptureRobot(sc, work_dir, size.init_gaussians, seed)
     fitted = replace(size, pool_size=sc.pool_size, test_count=int(sc.test_poses.shape[0]),
                      width=sc.intrinsics.width,
-                     events=min(size.events, sc.pool_size - size.initial_views))
+                     events=min(size.events, max(1, (sc.pool_size - size.initial_views) // 2)))
     return robot, fitted
 
 
@@ -342,7 +370,8 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     console.print(f"[bold]agilegs demo[/bold]: scene {args.scene} ({robot.summary}), "
-                  f"{size.width}x{size.width} images, pool {size.pool_size}, "
+                  f"{robot.intrinsics.width}x{robot.intrinsics.height} images, "
+                  f"pool {size.pool_size}, "
                   f"{size.test_count} test views, {size.initial_views} initial views, "
                   f"{size.events} events, {size.steps_per_view} mapper steps per view",
                   soft_wrap=True)
@@ -356,6 +385,9 @@ def run(args: argparse.Namespace) -> int:
         server.start(timeout=120.0)
         console.print(f"server: {server.url} (pid {server.proc.pid if server.proc else '?'}"
                       f", log {out / 'server.log'})", soft_wrap=True)
+        ready = server.wait_ready(timeout=1800.0)  # its kernels compiled before the first event
+        console.print(f"server ready in {ready:.1f} s more (its kernels compiled, or loaded "
+                      "from numba's cache)", soft_wrap=True)
         results = closed_loop(server.url, robot, size, int(args.seed), console,
                               view=args if args.view else None)
     except Exception as exc:

@@ -88,5 +88,28 @@ def test_attribution_and_initial_views() -> None:
     assert "Keenan Crane" in attribution("spot") and "CC0" in attribution("spot")
     assert "Newell" in attribution("teapot")
     assert "not bundled" in attribution("/some/scene.splat")
+    buddha = attribution(str(Path(__file__).resolve().parents[2] / "lab" / "scenes" / "buddha"))
+    assert "CC-BY-4.0" in buddha and "Gasparini" in buddha and "not bundled" not in buddha
     assert initial_indices(60, 3) == [10, 30, 50]
     assert initial_indices(5, 5) == [0, 1, 2, 3, 4]
+
+
+def test_the_report_says_when_both_methods_took_the_same_views() -> None:
+    from rich.console import Console
+
+    from agilegs.lab.demo.report import summary
+
+    def method(chosen: list[int], first: float) -> dict:
+        events = [{"chosen": c, "latency_ms": {"total": first if i == 0 else 100.0}}
+                  for i, c in enumerate(chosen)]
+        return {"events": events, "curve": [{"views": 3 + i, "psnr": 20.0 + i}
+                                            for i in range(len(chosen) + 1)]}
+
+    quiet = Console(file=open(os.devnull, "w"))  # noqa: SIM115
+    same = summary(quiet, {"methods": {"agile_plus": method([4, 7], 3000.0),
+                                       "random": method([7, 4], 100.0)}})
+    assert "Both methods acquired the same 2 views" in same
+    assert "AGILE-GS+: mean selection 100.0 ms over event 2; the first 3000.0 ms" in same
+    apart = summary(quiet, {"methods": {"agile_plus": method([4, 7], 100.0),
+                                        "random": method([5, 4], 100.0)}})
+    assert "same" not in apart
