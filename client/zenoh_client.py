@@ -4,9 +4,9 @@ Needs ``eclipse-zenoh`` (``pip install 'agilegs[zenoh]'``). Every operation is a
 ``agilegs/<session>/<op>`` (or ``agilegs/@service/<op>``) with a msgpack payload; besides, a
 robot can publish frames and pools and follow every decision (see :mod:`agilegs.schemas.keys`).
 
-With several server instances (see :mod:`agilegs.service.transports.zenoh.cluster`), a client that reaches
-one of them or their router reaches every session: Zenoh routes each query to the instance
-that owns the session. A query that no instance answers raises
+With several server instances (see :mod:`agilegs.service.transports.zenoh.cluster`), a
+client that reaches one of them or their router reaches every session: Zenoh routes each query
+to the instance that owns the session. A query that no instance answers raises
 :class:`~agilegs.client.errors.SessionUnavailableError` while some instance is alive, and
 :class:`~agilegs.client.errors.TransportError` when none is.
 """
