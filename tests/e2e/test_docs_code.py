@@ -155,6 +155,10 @@ HOW: dict[tuple[str, str], How] = {
      "1000000 --width 512 \\"): BENCH,
     ("docs/benchmarks.md", "agilegs bench render --scene $S/plant/plant.splat --sizes 128,256 "
      "--gaussians 20000,100000 \\"): BENCH,
+    ("docs/benchmarks.md", "agilegs bench firstcall --fresh-cache     # an empty numba cache: "
+     "a fresh machine"):
+        How("parse", "minutes of compiling on a fresh cache (the command runs in "
+                     "tests/e2e/test_bench_firstcall.py)"),
     ("docs/benchmarks.md", "agilegs bench service --pool 300"):
         How("parse", "a benchmark of minutes (its small run: tests/e2e/test_bench_service.py)"),
     ("docs/benchmarks.md", "OMP_NUM_THREADS=1 agilegs bench service --phases neighbour"):
