@@ -171,3 +171,18 @@ def test_the_openapi_document_lists_the_files(api: InProcess) -> None:
         "content"]
     assert {"application/x-ply", "application/x-splat"} <= set(content)
     assert content["application/x-ply"]["schema"]["format"] == "binary"
+
+
+def test_a_map_without_gaussians_has_no_file_409(api: InProcess) -> None:
+    from agilegs.schemas import ObservationIn
+
+    sid = f"f-{uuid.uuid4().hex[:8]}"
+    image = np.zeros((32, 32, 3), dtype=np.uint8)
+    with api.client() as c:  # RGB frames only: no Gaussians yet
+        c.create_session(SMALL_INTRINSICS, id=sid,
+                         frames=[ObservationIn.from_numpy(np.eye(4), image=image)])
+        assert c.get_gaussians(sid).count == 0
+    with api.http() as h:
+        r = h.get(f"/v1/sessions/{sid}/gaussians", headers={"accept": "application/x-ply"})
+    assert r.status_code == 409 and r.json()["error"]["field"] == "gaussians"
+    assert "no Gaussians yet" in r.json()["error"]["message"]
