@@ -232,8 +232,8 @@ class Session:
             if v.image_file is not None:
                 data = self._read_frame_file(v.image_file)
                 image = (m.ImageData.from_numpy(np.load(io.BytesIO(data), allow_pickle=False))
-                         if v.image_encoding == "raw" else
-                         m.ImageData(encoding=v.image_encoding or "png", data=data))
+                         if v.image_encoding == "raw" else m.ImageData(
+                             encoding="jpeg" if v.image_encoding == "jpeg" else "png", data=data))
             if req.depth and v.depth_file is not None:
                 depth = m.NDArray.from_numpy(np.load(io.BytesIO(
                     self._read_frame_file(v.depth_file)), allow_pickle=False).astype("<f4"))
