@@ -119,8 +119,11 @@ def write_file(path: str | Path, data: bytes) -> Path:
     """Write ``data`` to ``path`` through a temporary name (a reader never sees half of it)."""
     path = Path(path)
     tmp = path.with_name(f".{path.name}.part")
-    tmp.write_bytes(data)
-    tmp.replace(path)
+    try:
+        tmp.write_bytes(data)
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)
     return path
 
 

@@ -68,7 +68,7 @@ class Server:
         self.warm_seconds: float | None = None
 
     def warming(self) -> str | None:
-        """Why the server is not ready yet for its warm-up, or None."""
+        """The reason ``/readyz`` gives while the warm-up runs, or None."""
         if self.warm == "compiling":
             return "compiling the selection kernels (warm-up: AGILEGS_WARMUP)"
         return None
