@@ -184,3 +184,12 @@ def test_export_to_a_ply_file_writes_the_map(api: InProcess, acquired, tmp_path:
     back = GaussianMap.load(tmp_path / "off.ply")
     for name, t in back.items():
         np.testing.assert_array_equal(t.numpy(), arrays[name])
+
+
+def test_export_from_no_server_is_one_line(tmp_path: Path, capsys) -> None:
+    from conftest import free_port
+
+    url = f"http://127.0.0.1:{free_port()}"
+    assert main(["export", "s", str(tmp_path / "out"), "--server", url]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("agilegs export: ")
