@@ -10,8 +10,8 @@ nerfstudio (ns-process-data) dialects.
 - ``transform_matrix`` is camera-to-world in OpenGL axes (x right, y up, z backward); it is
   converted to the project's OpenCV axes (x right, y down, z forward) by flipping the camera's
   y and z axes (negating columns 1 and 2 of the rotation).
-- Frames whose image file is missing are skipped, with one warning that counts them
-  (colmap2nerf users delete blurred frames).
+- Frames whose image file, or named depth file, is missing are skipped, with one warning that
+  counts them (colmap2nerf users delete blurred frames).
 - ``mask_path`` (nerfstudio; 0 = not the scene) and an image's alpha channel make
   ``View.alpha``; the image is composited on ``background`` by it.
 - ``depth_file_path``: a depth map per frame; ``ply_file_path``: the capture's
@@ -190,7 +190,8 @@ def load_transforms(
     Raises:
         ValueError: malformed JSON, missing keys, a non-4x4 or non-rigid transform, an
             unsupported camera model (naming the file and frame index).
-        FileNotFoundError: no frame has its image; a named mask, depth or ply file is missing.
+        FileNotFoundError: no frame has its image (and depth); a named mask or ply file is
+            missing.
     """
     p = Path(path)
     try:
@@ -239,8 +240,9 @@ def load_transforms(
         c2w = opengl_to_opencv_c2w(torch.from_numpy(m)).float()
         dist = _distortion(get, where)
         img_path = _find_frame_image(base, str(fr["file_path"]))
-        if img_path is None:
-            skipped.append(str(fr["file_path"]))
+        dpath = base / str(fr["depth_file_path"]) if fr.get("depth_file_path") else None
+        if img_path is None or (dpath is not None and not dpath.is_file()):
+            skipped.append(str(fr["file_path"]) if img_path is None else str(dpath))
             continue
         w, h = get("w"), get("h")
         if w is None or h is None:
@@ -284,10 +286,7 @@ def load_transforms(
             image, alpha = load_capture_image(img_path, raw, dist, (tw, th),
                                               background=background, mask_path=mask_path)
         depth = None
-        if fr.get("depth_file_path"):
-            dpath = base / str(fr["depth_file_path"])
-            if not dpath.is_file():
-                raise FileNotFoundError(f"{where}: depth file {dpath} not found")
+        if dpath is not None:
             if not dist.is_identity:
                 raise ValueError(f"{where}: depth maps of a distorted camera are not supported "
                                  "(undistort the capture first)")
@@ -296,11 +295,12 @@ def load_transforms(
         views.append(View(name=name, camera=cam, image=image, depth=depth, alpha=alpha))
         split.append(split_names.get(_norm_name(name)) if split_names else None)
     if skipped and not quiet:
-        log.warning("%s: %d of %d frames have no image and were skipped (first: %s)", p,
-                    len(skipped), len(meta["frames"]), skipped[0])
+        log.warning("%s: %d of %d frames have no image (or no depth file, where they name one) "
+                    "and were skipped (first missing: %s)", p, len(skipped), len(meta["frames"]),
+                    skipped[0])
     if not views and skipped:
-        raise FileNotFoundError(f"{p}: none of the {len(skipped)} frames has its image "
-                                f"(first: {skipped[0]!r}, under {base})")
+        raise FileNotFoundError(f"{p}: none of the {len(skipped)} frames has its image (and "
+                                f"depth) (first missing: {skipped[0]!r}, under {base})")
     points = colors = None
     if meta.get("ply_file_path"):
         ply = base / str(meta["ply_file_path"])

@@ -123,7 +123,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("sessions", ("sessions",)),
     ("transports", ("transports",)),
     ("server", ("server",)),
-    ("commands", ("serve", "cli", "launch", "store_tool", "viewer")),
+    ("commands", ("serve", "cli", "launch", "store_tool", "export", "viewer")),
 )
 """The service's layers, bottom up: the folders (or top-level modules) of ``service/`` in each.
 A module imports from its own layer and the layers below only."""
