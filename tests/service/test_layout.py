@@ -239,6 +239,32 @@ def test_files_stay_small() -> None:
             assert n <= 580, f"{name}: {n} lines"
 
 
+def _long_functions(tree: ast.Module, limit: int) -> list[tuple[str, int, bool]]:
+    """(name, lines, compiled) of each function of over ``limit`` lines; ``compiled``: a
+    kernel (a decorator of the module's numba or Triton ``jit``)."""
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+            n = node.end_lineno - node.lineno + 1 if node.end_lineno else 0
+            if n > limit:
+                compiled = any("jit" in ast.unparse(d) for d in node.decorator_list)
+                out.append((node.name, n, compiled))
+    return out
+
+
+def test_no_function_is_longer_than_a_screenful_but_the_kernels_walks() -> None:
+    """A function over 120 lines is a compiled kernel's walk (numba or Triton: the loops over
+    tiles, pixels and samples that cannot call back into Python), in ``nbv/kernels``."""
+    assert _long_functions(ast.parse("def f():\n" + "    x = 1\n" * 130), 120) == [
+        ("f", 131, False)]
+    bad = []
+    for name, tree in TREES.items():
+        for fn, n, compiled in _long_functions(tree, 120):
+            if not (compiled and name.startswith("agilegs.service.nbv.kernels.")):
+                bad.append(f"{name}.{fn}: {n} lines")
+    assert not bad, bad
+
+
 def test_the_viewer_is_a_client_of_the_service() -> None:
     # it reaches the server through the client SDK only: no torch, no server code (its
     # environment variable, the token, through the settings)
