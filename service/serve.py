@@ -118,6 +118,10 @@ def http_bind_error(exc: OSError, host: str, port: int) -> str:
 def zenoh_start_error(exc: BaseException, settings: Any) -> str | None:
     """One line saying why Zenoh could not start (the endpoint, the cause, the flag to
     change), or None when ``exc`` is not Zenoh's."""
+    from .transports.zenoh.security import UsersFileError
+
+    if isinstance(exc, UsersFileError):
+        return str(exc)
     if type(exc).__module__.split(".")[0] != "zenoh":
         return None
     text = str(exc)

@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import gc
 import logging
+import threading
+import time
 from typing import TYPE_CHECKING
 
 from .sessions.registry import SessionRegistry
@@ -62,6 +64,29 @@ class Server:
         self.zenoh: ZenohAdapter | None = None
         self.ros2: Ros2Adapter | None = None
         self.state_lock: StateLock | None = None
+        self.warm: str | None = None  # "compiling", "done", "failed" (None: no warm-up)
+        self.warm_seconds: float | None = None
+
+    def warming(self) -> str | None:
+        """The reason ``/readyz`` gives while the warm-up runs, or None."""
+        if self.warm == "compiling":
+            return "compiling the selection kernels (warm-up: AGILEGS_WARMUP)"
+        return None
+
+    def _warm_up(self) -> None:
+        """Compile the kernels (:func:`~agilegs.service.nbv.warmup.warm_up`); a failure is
+        logged and leaves the server ready (its first calls compile them instead)."""
+        t0 = time.perf_counter()
+        try:
+            from .nbv.warmup import warm_up
+
+            warm_up()
+            self.warm = "done"
+        except Exception:
+            log.exception("warm-up failed: the first selection compiles the kernels instead")
+            self.warm = "failed"
+        self.warm_seconds = time.perf_counter() - t0
+        log.info("warm-up: kernels ready in %.1f s", self.warm_seconds)
 
     def claim_state(self) -> None:
         """Claim the state folder (created if missing); a one-line
@@ -73,8 +98,11 @@ class Server:
 
     def start(self) -> None:
         """Claim the state folder, load the sessions (the mapper starts with them) and join
-        Zenoh when it is on."""
+        Zenoh when it is on; the warm-up starts in the background (``warmup``)."""
         self.claim_state()
+        if self.settings.warmup and self.warm is None:
+            self.warm = "compiling"
+            threading.Thread(target=self._warm_up, name="agilegs-warmup", daemon=True).start()
         self.registry.load()
         if self.settings.zenoh:
             self.zenoh = ZenohAdapter(self.gateway, self.cluster, self.settings)

@@ -282,6 +282,9 @@ class Settings(Credentials):
         default=0, ge=0, description="torch intra-op threads (0: default)")
     fsync: Annotated[bool, Flag("execution")] = Field(
         default=True, description="fsync files and folders before acknowledging")
+    warmup: Annotated[bool, Flag("execution")] = Field(
+        default=True, description="compile (or load from numba's cache) the kernels of every "
+        "method at start, in the background; /readyz answers 503 until done")
     # the mapper (see agilegs.service.sessions.trainer)
     mapper: Annotated[bool, Flag("mapper")] = Field(
         default=True, description="train sessions' maps from their images")

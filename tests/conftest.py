@@ -66,12 +66,13 @@ def call(registry: SessionRegistry, op: str, session: str | None, payload: Any) 
 
 class ServerProcess(_Launcher):
     """The launcher with the tests' defaults: one torch thread, the mapper off unless a test
-    asks for it (these tests check exact state)."""
+    asks for it (these tests check exact state), no warm-up (the suite compiles the kernels
+    once)."""
 
     def __init__(self, state_dir: Path, *, env: dict[str, str] | None = None,
                  **kwargs: Any) -> None:
         super().__init__(state_dir, env={"AGILEGS_TORCH_THREADS": "1", "AGILEGS_MAPPER": "0",
-                                         **(env or {})}, **kwargs)
+                                         "AGILEGS_WARMUP": "0", **(env or {})}, **kwargs)
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:

@@ -141,11 +141,19 @@ def run(args: argparse.Namespace) -> int:
     console = Console(stderr=True)
     t_start = time.perf_counter()
     plan = parse(args)
+    warmup_s = None
+    if not args.report_only:  # the kernels' compile, apart from every selection's latency
+        from agilegs.service.nbv.warmup import warm_up
+
+        warmup_s = warm_up()["total"]
+        console.print(f"kernels compiled (or loaded from numba's cache) in {warmup_s:.1f} s, "
+                      "before any timed selection")
     estimates = {} if args.report_only else estimate(plan, console)
     if args.estimate_only:
         return 0
     outcome = run_jobs(plan, console, report_only=args.report_only)
-    results = summarise(plan, outcome, estimates, args, wall_s=time.perf_counter() - t_start)
+    results = summarise(plan, outcome, estimates, args, wall_s=time.perf_counter() - t_start,
+                        warmup_s=warmup_s)
     write(plan, results, plots_too=not args.no_plots)
     console.print(f"{len(outcome.executed)} runs done, {len(outcome.skipped)} skipped"
                   + (f", {len(outcome.missing)} missing" if outcome.missing else "")
@@ -249,8 +257,10 @@ def run_jobs(plan: RunPlan, console: Console, *, report_only: bool) -> RunOutcom
 
 
 def summarise(plan: RunPlan, outcome: RunOutcome, estimates: dict[str, dict[str, float]],
-              args: argparse.Namespace, *, wall_s: float) -> dict[str, Any]:
-    """``results.json``'s content: the records, the scenes, the settings, the machine."""
+              args: argparse.Namespace, *, wall_s: float, warmup_s: float | None = None
+              ) -> dict[str, Any]:
+    """``results.json``'s content: the records, the scenes, the settings, the machine (and
+    the seconds the kernels' warm-up took, apart from the selections')."""
     return report.build_results(
         records={(j.scene, j.variant, j.seed): r for j, r in outcome.records.items()},
         scenes={n: report.scene_summary(sc) for n, sc in plan.scenes.items()},
@@ -261,6 +271,7 @@ def summarise(plan: RunPlan, outcome: RunOutcome, estimates: dict[str, dict[str,
                   "eig_mass": plan.eig_mass,
                   "shortlist_method": args.shortlist_method,
                   "threads": torch.get_num_threads(), "estimate_s": estimates,
+                  "kernel_warmup_s": warmup_s,
                   "args": {k: v for k, v in vars(args).items() if not k.startswith("_")}},
         environment=environment(),
         invocation={"executed": [asdict(j) for j in outcome.executed],

@@ -141,12 +141,14 @@ class CaptureRobot:
         return float(sum(vals) / len(vals))
 
 
-def load_capture(scene: str, width: int, test_count: int, seed: int) -> BenchScene:
+def load_capture(scene: str, width: int, test_count: int, seed: int,
+                 init_points: int = 5000) -> BenchScene:
     """The capture at ``scene`` as the demo sees it: images ``width`` pixels wide, every pool
-    frame kept in capture order, at most ``test_count`` test frames."""
+    frame kept in capture order, at most ``test_count`` test frames, ``init_points`` random
+    points where the capture has none of its own."""
     from agilegs.lab.bench.scene_model import SceneOptions
     from agilegs.lab.bench.scenes import load_bench_scene
 
     opts = SceneOptions(width=width, height=width, pool_size=100_000, test_count=test_count,
-                        seed=seed)
+                        seed=seed, random_init_points=init_points)
     return load_bench_scene(scene, opts)

@@ -398,6 +398,7 @@ HANDLERS: dict[str, Handler] = {
     "get_gaussians": _on_session(lambda s, req: s.get_gaussians()),
     "add_observations": _on_session(Session.add_observations),
     "list_views": _on_session(lambda s, req: s.list_views()),
+    "get_frames": _on_session(lambda s, req: s.get_frames(req)),
     "commit": _on_session(Session.commit),
     "set_pool": _on_session(Session.set_pool),
     "extend_pool": _on_session(Session.extend_pool),

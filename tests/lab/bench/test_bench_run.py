@@ -48,6 +48,7 @@ def test_tiny_run_writes_outputs_and_rerun_skips(tmp_path: Path) -> None:
     assert main(argv) == 0
 
     res = json.loads((out / "results.json").read_text())
+    assert res["settings"]["kernel_warmup_s"] > 0  # the compile, apart from the selections
     prof = PROFILES["tiny"]
     scene = res["scenes"]["spot_10k"]
     assert scene["pool"] == prof.scene.pool_size and scene["kind"] == "splat"
