@@ -138,12 +138,15 @@ class SyncOperations:
         current_pose: PoseLike | None = None,
         pool: PoolLike | None = None,
         commit: bool = False,
+        targets: np.ndarray | Sequence[PoseLike] | None = None,
     ) -> m.SelectResponse:
-        """Choose the next view (unset arguments take the session's defaults)."""
+        """Choose the next view (unset arguments take the session's defaults); ``targets``:
+        the views of interest [T, 4, 4] of ``config={"objective": "target"}``."""
         return self._send(rq.select(  # type: ignore[no-any-return]
             session, method=method, shortlist_size=shortlist_size, shortlist=shortlist,
             embodied_k=embodied_k, seed=seed, fields=fields, config=config,
-            current_id=current_id, current_pose=current_pose, pool=pool, commit=commit))
+            current_id=current_id, current_pose=current_pose, pool=pool, commit=commit,
+            targets=targets))
 
     def get_information(self, session: str) -> m.InformationOut:
         """Ĥ per parameter block (``.arrays()`` gives numpy arrays)."""
@@ -263,11 +266,13 @@ class AsyncOperations:
         current_pose: PoseLike | None = None,
         pool: PoolLike | None = None,
         commit: bool = False,
+        targets: np.ndarray | Sequence[PoseLike] | None = None,
     ) -> m.SelectResponse:
         return await self._send(rq.select(  # type: ignore[no-any-return]
             session, method=method, shortlist_size=shortlist_size, shortlist=shortlist,
             embodied_k=embodied_k, seed=seed, fields=fields, config=config,
-            current_id=current_id, current_pose=current_pose, pool=pool, commit=commit))
+            current_id=current_id, current_pose=current_pose, pool=pool, commit=commit,
+            targets=targets))
 
     async def get_information(self, session: str) -> m.InformationOut:
         return await self._send(rq.call("get_information", session))  # type: ignore[no-any-return]

@@ -24,6 +24,7 @@ from agilegs.schemas import (
     Pose,
 )
 from agilegs.schemas.codec import GAUSSIAN_FILE_TYPES
+from agilegs.schemas.config import SelectConfigPatch
 from agilegs.schemas.geometry import trusted_poses
 from agilegs.schemas.views import InitialFrame
 
@@ -192,6 +193,7 @@ def select(
     current_pose: PoseLike | None = None,
     pool: m.PoolIn | np.ndarray | Sequence[PoseLike] | None = None,
     commit: bool = False,
+    targets: np.ndarray | Sequence[PoseLike] | None = None,
 ) -> Call:
     body = m.SelectRequest.model_construct(
         method=method,
@@ -200,10 +202,11 @@ def select(
         embodied_k=embodied_k,
         seed=seed,
         fields=list(fields) if fields is not None else None,
-        config=dict(config) if config is not None else None,
+        config=SelectConfigPatch.model_validate(dict(config)) if config is not None else None,
         current_id=current_id,
         current_pose=to_pose(current_pose) if current_pose is not None else None,
         pool=to_pool(pool, None) if pool is not None else None,
+        targets=to_pool(targets, None).poses if targets is not None else None,
         commit=commit,
     )
     return call("select", session, body)

@@ -21,11 +21,13 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
      "how the anchor's choices follow the exact EIG on trained maps"),
     (("bench", "firstcall"), "agilegs.lab.bench.firstcall",
      "a fresh server's first selection against its tenth (the kernels' compile)"),
+    (("bench", "coverage"), "agilegs.lab.bench.coverage_report",
+     "where a bench run's picks went, the test views' coverage, and their EIG's mass"),
 ]
 
 GROUPS: dict[str, str] = {
     "bench": "the benchmarks: render, latency, run, service, bigmap, edge, value, proxy, "
-             "firstcall",
+             "firstcall, coverage",
 }
 """The help of each command that groups subcommands."""
 

@@ -29,7 +29,7 @@ __all__ = ["add_arguments", "run"]
 log = logging.getLogger(__name__)
 
 PLANT = Path(__file__).resolve().parents[1] / "scenes" / "plant" / "plant.splat"
-METHODS = ("random", "cover", "fisherrf", "full_eig", "agile", "agile_plus")
+METHODS = ("random", "spread", "cover", "fisherrf", "full_eig", "agile", "agile_plus")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -37,10 +37,11 @@ from torch import Tensor
 from agilegs.client.ros2 import BagTopics
 
 from . import plots, report
+from .estimate import estimate_seconds
 from .options import add_run_arguments as add_arguments
 from .options import flag_values, int_list, protocol_profile, str_list
 from .profiles import Profile
-from .protocol import estimate_seconds, fingerprint, run_progressive
+from .protocol import fingerprint, run_progressive
 from .scene_model import BenchScene
 from .scenes import load_bench_scene
 from .variants import Variant, build_variants
@@ -116,6 +117,7 @@ class RunPlan:
     device: torch.device
     out: Path
     embodied_k: int | None
+    eig_mass: bool = False
 
     def jobs(self) -> list[Job]:
         return [Job(name, v.key, s) for name in self.scenes for s in self.seeds
@@ -178,7 +180,7 @@ def parse(args: argparse.Namespace) -> RunPlan:
     with flag_values("--bag-topics"):
         bag_topics = BagTopics.parse(args.bag_topics) if args.bag_topics else None
     plan = RunPlan(profile, variants, seeds, {}, torch.device(args.device), Path(args.out),
-                   args.embodied)
+                   args.embodied, bool(getattr(args, "eig_mass", False)))
     plan.out.mkdir(parents=True, exist_ok=True)
     for path in args.scene:
         try:
@@ -222,7 +224,8 @@ def run_jobs(plan: RunPlan, console: Console, *, report_only: bool) -> RunOutcom
         for job in jobs:
             sc, v = plan.scenes[job.scene], plan.variant(job.variant)
             path = _run_path(plan.out, job.scene, job.variant, job.seed)
-            done = _load_done(path, fingerprint(sc, v, job.seed, plan.profile, plan.embodied_k))
+            done = _load_done(path, fingerprint(sc, v, job.seed, plan.profile, plan.embodied_k,
+                                                plan.eig_mass))
             if done is not None:
                 log.info("skip %s / %s / seed %d: done (%s)", job.scene, job.variant, job.seed,
                          path)
@@ -240,7 +243,8 @@ def run_jobs(plan: RunPlan, console: Console, *, report_only: bool) -> RunOutcom
                                description=f"{label} ({note})")
 
                 rec = run_progressive(sc, v, job.seed, plan.profile, embodied_k=plan.embodied_k,
-                                      device=plan.device, progress=on_progress)
+                                      device=plan.device, progress=on_progress,
+                                      eig_mass=plan.eig_mass)
                 _write_json(path, rec)
                 outcome.records[job] = rec
                 outcome.executed.append(job)
@@ -264,6 +268,7 @@ def summarise(plan: RunPlan, outcome: RunOutcome, estimates: dict[str, dict[str,
         seeds=plan.seeds,
         profile=plan.profile.describe(),
         settings={"embodied_k": plan.embodied_k, "device": str(plan.device),
+                  "eig_mass": plan.eig_mass,
                   "shortlist_method": args.shortlist_method,
                   "threads": torch.get_num_threads(), "estimate_s": estimates,
                   "kernel_warmup_s": warmup_s,

@@ -127,10 +127,11 @@ def _validate(
     current_pose: Tensor | None,
     config: SelectConfig,
     fields: tuple[str, ...],
+    uses_map: bool = True,
 ) -> None:
     if not isinstance(gmap, GaussianMap):
         raise TypeError(f"gmap must be a GaussianMap, got {type(gmap).__name__}")
-    if gmap.num_gaussians == 0:
+    if gmap.num_gaussians == 0 and uses_map:
         raise InputError("gmap", "gmap has no Gaussians")
     if not isinstance(intrinsics, Intrinsics):
         raise TypeError(f"intrinsics must be an Intrinsics, got {type(intrinsics).__name__}")
@@ -239,6 +240,7 @@ class SelectInputs:
     current: int | None = None
     current_pose: Tensor | None = None
     lam: float | None = None
+    targets: Tensor | None = None
 
     @property
     def fields(self) -> tuple[str, ...]:
@@ -248,15 +250,21 @@ class SelectInputs:
     def checked(self) -> SelectInputs:
         """These inputs validated (:func:`select`'s checks and errors), ``config`` as its
         validated copy."""
-        get_method(self.method)
+        impl = get_method(self.method)
         config = validate_config(SelectConfig, self.config)
         fields = tuple(config.fields) if config.fields is not None else FIELD_NAMES
         _validate(self.gmap, self.h_acc, self.candidates, self.intrinsics, self.acquired,
-                  self.current, self.current_pose, config, fields)
+                  self.current, self.current_pose, config, fields,
+                  getattr(impl, "uses_map", True))
         lam = self.lam
         if lam is not None and not (isinstance(lam, int | float) and math.isfinite(lam)
                                     and lam > 0):
             raise InputError("lam", f"lam must be a positive finite number, got {lam!r}")
+        t = self.targets
+        if t is not None:
+            if not isinstance(t, Tensor) or t.ndim != 3 or t.shape[1:] != (4, 4) or not len(t):
+                raise InputError("targets", "targets must be a tensor of poses [T, 4, 4], T >= 1")
+            check_pose(t, "targets")
         return dataclasses.replace(self, config=config)
 
 
@@ -273,6 +281,7 @@ def select(
     current_pose: Tensor | None = None,
     state: dict[str, Any] | None = None,
     lam: float | None = None,
+    targets: Tensor | None = None,
 ) -> Selection:
     """Choose the next view among ``candidates`` with ``method``.
 
@@ -292,6 +301,8 @@ def select(
             the anchor's proxy separates the views' information from it. None: estimated
             as each parameter slot's minimum over Gaussians (exact only when some Gaussian
             is seen by no acquired view).
+        targets: the target views [T, 4, 4] of ``config.objective = "target"`` (None: the
+            pool); ignored by the ``eig`` objective.
 
     Raises:
         ValueError: naming the argument, for an unknown method, an empty pool, a budget < 1,
@@ -300,7 +311,7 @@ def select(
     started = time.perf_counter()
     inputs = SelectInputs(method, gmap, h_acc, candidates, intrinsics,
                           config if config is not None else SelectConfig(), acquired, current,
-                          current_pose, lam)
+                          current_pose, lam, targets)
     return select_from(inputs.checked(), state=state, started=started)
 
 
@@ -320,7 +331,9 @@ def select_from(inputs: SelectInputs, *, state: dict[str, Any] | None = None,
     gmap = inputs.gmap
     dt = gmap.dtype
     pool = inputs.candidates.detach().to(dt)
-    aim, _ = scene_center_radius(gmap.means)
+    # a method that reads no map (spread) may select before the map has a Gaussian
+    aim = (scene_center_radius(gmap.means)[0] if gmap.num_gaussians
+           else pool[:, :3, 3].mean(0))
     radius = pool_radius(pool, aim)
     sc = config.scoring
     rot_weight = sc.rot_weight if sc.rot_weight is not None else radius
@@ -345,6 +358,8 @@ def select_from(inputs: SelectInputs, *, state: dict[str, Any] | None = None,
         fields=inputs.fields, eligible=eligible, acquired=inputs.acquired, state=state,
         event=event, aim=aim, radius=radius, rot_weight=rot_weight, background=bg,
         lam=inputs.lam,
+        targets=(None if inputs.targets is None
+                 else inputs.targets.detach().to(device=pool.device, dtype=dt)),
     )
     res = impl(ctx)
     lat = {k: 0.0 for k in STAGES}

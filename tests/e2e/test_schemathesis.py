@@ -152,6 +152,11 @@ def test_the_hooks_repair_exactly_what_json_schema_cannot_state() -> None:
     hooks.repair(body)
     m.SessionCreate.model_validate(body)  # every rule met
     assert body["intrinsics"]["width"] <= hooks.SIDE and body["pool"]["ids"][0] == 4
+    # a select's targets come with the target objective
+    select = {"targets": [{"matrix": [[1.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 1.0, 0],
+                                      [0, 0, 0, 1.0]]}], "config": None}
+    hooks.repair(select)
+    assert m.SelectRequest.model_validate(select).config.objective == "target"
 
 
 def test_a_body_given_by_a_link_gets_a_media_type(tmp_path: Path) -> None:

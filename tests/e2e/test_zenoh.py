@@ -45,14 +45,20 @@ def _comparable(r: SelectResponse) -> dict:
     return d
 
 
-@pytest.mark.parametrize("method", ["random", "agile", "agile_plus", "cover"])
+@pytest.mark.parametrize("method", ["random", "spread", "agile", "agile_plus", "cover",
+                                    "agile_plus@target"])
 def test_zenoh_and_http_give_the_same_selection(server: ServerProcess, zc: ZenohClient,
                                                 method: str) -> None:
+    method, _, objective = method.partition("@")
+    extra: dict = {}
+    if objective:  # the target objective, with the request's own targets
+        extra = {"config": {"objective": objective, "target_views": 2},
+                 "targets": ring_poses(5)[[0, 2]]}
     with Client(server.url) as c:
         sid = _session(c)
         c.commit(sid, 3)
-        via_http = c.select(sid, method=method)
-    via_zenoh = zc.select(sid, method=method)
+        via_http = c.select(sid, method=method, **extra)
+    via_zenoh = zc.select(sid, method=method, **extra)
     assert _comparable(via_zenoh) == _comparable(via_http)
     assert set(via_zenoh.latency_ms) == set(via_http.latency_ms)
 

@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
-from conftest import SMALL_INTRINSICS, call, ring_poses
+from conftest import SMALL_INTRINSICS, TRAIN_POSES, call, ring_poses
 
 from agilegs.schemas import NDArray, ObservationIn, codec
 from agilegs.service.errors import ServiceError
@@ -152,6 +152,37 @@ def test_empty_pool_and_empty_map_are_conflicts(core: SessionRegistry) -> None:
     with pytest.raises(ServiceError) as exc:
         call(core, "select", "empty", {"method": "random"})
     assert (exc.value.status, exc.value.code) == (409, "map_empty")
+
+
+def test_spread_selects_and_commits_without_a_map(core: SessionRegistry) -> None:
+    create(core, "empty", init_gaussians=0)
+    first = call(core, "select", "empty", {"method": "spread", "commit": True})
+    second = call(core, "select", "empty", {"method": "spread"})
+    assert first.committed is not None and second.chosen.id != first.chosen.id
+    assert second.chosen.id in second.eligible and first.chosen.id not in second.eligible
+
+
+def test_select_carries_the_objective_and_the_targets(core: SessionRegistry) -> None:
+    targets = [{"matrix": p.tolist()} for p in TRAIN_POSES[[1, 5]]]
+    cfg = {"objective": "target", "target_views": 2}
+    a = call(core, "select", "s", {"method": "full_eig", "config": cfg, "targets": targets})
+    assert a.latency_ms["scoring.targets"] > 0 and a.chosen.id in a.eligible
+    b = call(core, "select", "s", {"method": "full_eig", "config": cfg})  # the pool's
+    assert b.latency_ms["scoring.targets"] > 0
+    with pytest.raises(ServiceError) as exc:  # the eig objective takes no targets
+        call(core, "select", "s", {"method": "full_eig", "targets": targets})
+    assert (exc.value.status, exc.value.field) == (422, "body.targets")
+    bad = [{"matrix": (2.0 * TRAIN_POSES[0]).tolist()}]
+    with pytest.raises(ServiceError) as exc:
+        call(core, "select", "s", {"method": "full_eig", "config": cfg, "targets": bad})
+    assert exc.value.status == 422 and "targets" in str(exc.value.field)
+    with pytest.raises(ServiceError) as exc:
+        call(core, "select", "s", {"method": "full_eig", "config": cfg,
+                                   "targets": targets * 600})
+    assert exc.value.status == 422 and "targets" in str(exc.value.field)
+    with pytest.raises(ServiceError) as exc:
+        call(core, "select", "s", {"method": "full_eig", "config": {"objective": "best"}})
+    assert exc.value.status == 422 and "objective" in str(exc.value.field)
 
 
 def test_select_without_commit_changes_nothing_and_repeats(core: SessionRegistry) -> None:
@@ -329,3 +360,17 @@ def test_raw_images_round_trip_through_storage(core: SessionRegistry) -> None:
     o = ObservationIn.from_numpy(POOL[0], image=img)
     out = call(core, "add_observations", "s", {"observations": [o.model_dump()]})
     np.testing.assert_array_equal(core.sessions["s"].view_image(out.views[0].id), img)
+
+
+def test_the_target_objective_adds_its_fisher_passes_to_the_estimate(core: SessionRegistry
+                                                                      ) -> None:
+    from agilegs.config.selection import SelectConfig
+    from agilegs.service.sessions.selection import select_estimate
+
+    rec = core.sessions["s"].record
+    base = select_estimate(rec, "full_eig", SelectConfig())
+    more = select_estimate(rec, "full_eig", SelectConfig(objective="target", target_views=8))
+    most = select_estimate(rec, "full_eig", SelectConfig(objective="target", target_views=16))
+    assert base.seconds < more.seconds < most.seconds
+    assert select_estimate(rec, "agile", SelectConfig(objective="target")).seconds == \
+        select_estimate(rec, "agile", SelectConfig()).seconds

@@ -34,8 +34,10 @@ from ..coverage import coverage_matrix, jl_projection, support_samples
 from ..information import fisher_diag
 from ..leverage import greedy_ridge_leverage_gains, online_ridge_leverage, topnorm_shortlist
 from ..se3 import pose_distance
+from ..spread import farthest_point_order
 from .base import MethodResult, SelectionContext, register, timed
-from .common import argmax_first, eig_scores_keeping_best
+from .common import argmax_first
+from .objective import objective_scores_keeping_best
 
 
 def _typical(ctx: SelectionContext, out: dict[str, Any]) -> dict[str, Tensor] | None:
@@ -245,11 +247,16 @@ def probe_count(ctx: SelectionContext, n_short: int) -> int:
 
 
 def draw_probes(ctx: SelectionContext, picked: list[int], n: int) -> list[int]:
-    """``n`` eligible candidates outside ``picked``, drawn uniformly (seeded by the event)."""
+    """``n`` eligible candidates outside ``picked``, drawn uniformly (seeded by the event), or
+    with ``config.probe_draw = "spread"`` in their farthest-point order from the acquired
+    views."""
     if n <= 0:
         return []
     taken = set(picked)
     rest = [v for v in ctx.eligible if v not in taken]
+    if ctx.config.probe_draw == "spread":
+        far = farthest_point_order(ctx.pool[rest], ctx.acquired, ctx.rot_weight, n)
+        return [rest[i] for i in far]
     order = torch.randperm(len(rest), generator=ctx.generator(6))[:n].tolist()
     return [rest[i] for i in order]
 
@@ -291,9 +298,7 @@ class AgileMethod:
             probes = draw_probes(ctx, picked, n_probes)
             with timed(lat, "rerank"):
                 sl = torch.as_tensor(picked + probes, dtype=torch.long)
-                phi, chosen = eig_scores_keeping_best(
-                    ctx.gmap, ctx.h_acc, ctx.pool[sl], ctx.intrinsics,
-                    fields=ctx.fields, background=ctx.background)
+                phi, chosen = objective_scores_keeping_best(ctx, ctx.pool[sl], lat, "rerank")
             out["details"]["shortlist_scores"] = scores
             if probes:
                 _judge_model(ctx, phi, len(picked), len(probes), out)

@@ -36,7 +36,7 @@ RUN_KEYS = {
 EVENT_KEYS = {  # what the report, the plots and the replay (agilegs view --run) read
     "event", "step", "views_before", "choice", "shortlist", "eligible", "latency_ms",
     "select_wall_ms", "select_cpu_ms", "information_ms", "upkeep_ms", "num_gaussians",
-    "scores", "anchor", "anchor_psi", "best_candidate_psi", "probes", "probe_won",
+    "scores", "anchor", "anchor_psi", "best_candidate_psi", "probes", "probe_won", "eig_mass",
 }
 
 
