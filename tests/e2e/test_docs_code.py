@@ -83,7 +83,7 @@ HOW: dict[tuple[str, str], How] = {
     ("README.md", "import json"): How("server"),
     ("docs/your-data.md", "agilegs export room room.ply --server http://127.0.0.1:8000       "
      "# the map"): How("server", "exports the session the block before made"),
-    ("README.md", "curl -s -o /dev/null -X DELETE http://127.0.0.1:8000/v1/sessions/box     "
+    ("docs/server.md", "curl -s -o /dev/null -X DELETE http://127.0.0.1:8000/v1/sessions/box     "
      "# a fresh session"): How("server"),
     ("docs/viewer.md", "from agilegs.client import Client"): How("server"),
     ("docs/viewer.md", "pip install \"agilegs[viewer]\"          # viser, and no torch (the dev "
