@@ -41,7 +41,9 @@ from ..errors import validation_error as _validation_error
 from ..nbv import cancel
 from ..settings import Settings
 from ..store.integrity import Damage, FileProblem
-from ..store.write import SessionStore, StoreError
+from ..store.blobs import BlobError
+from ..store.objects import AnyStore, open_store
+from ..store.write import StoreError
 from .convert import (
     empty_map,
     gaussians_from_depth,
@@ -54,7 +56,7 @@ from .decisions import DecisionLog
 from .listing import damaged_error, damaged_summary
 from .mapper_state import initial_mapper_state, mapper_config
 from .selection import check_render_widths
-from .session import Session, SessionEnv
+from .session import Session, SessionEnv, store_unavailable
 from .trainer import Trainer
 from .transitions import Limits, integrate_frames, new_record, set_pool
 
@@ -99,12 +101,16 @@ class SessionRegistry:
     refused with 409 ``session_damaged`` but for ``repair_session`` and ``delete_session``.
 
     Args:
-        settings: the server's settings (limits, state folder, mapper schedule).
+        settings: the server's settings (limits, state folder or URL, mapper schedule).
+        store: the session store (default: the one the settings name, :func:`open_store
+            <agilegs.service.store.objects.open_store>`).
     """
 
-    def __init__(self, settings: Settings) -> None:
+    def __init__(self, settings: Settings, store: AnyStore | None = None) -> None:
         self.settings = settings
-        self.store = SessionStore(settings.state_dir, fsync=settings.fsync)
+        self.store = store if store is not None else open_store(
+            settings.state_url or settings.state_dir, fsync=settings.fsync,
+            endpoint=settings.state_endpoint)
         self.sessions: dict[str, Session] = {}
         self.damaged: dict[str, Damage] = {}
         self.lock = threading.Lock()
@@ -118,7 +124,7 @@ class SessionRegistry:
                                      max_waiters=max(1, settings.workers // 2))
         self.env = SessionEnv(settings=settings, store=self.store,
                               tmp_dir=Path(settings.state_dir) / "tmp",
-                              report_damage=self.report_damage)
+                              report_damage=self.report_damage, report_lost=self.drop_lost)
         if settings.torch_threads:
             torch.set_num_threads(settings.torch_threads)
 
@@ -140,7 +146,7 @@ class SessionRegistry:
             self.sessions[rec.id] = Session(rec, self.env)
         for d in damaged:
             self.damaged[d.session] = d
-        log.info("loaded %d session(s) from %s%s", len(self.sessions), self.settings.state_dir,
+        log.info("loaded %d session(s) from %s%s", len(self.sessions), self.store.where,
                  f" ({len(damaged)} damaged: {', '.join(sorted(self.damaged))})"
                  if damaged else "")
         if self.settings.mapper:
@@ -232,6 +238,17 @@ class SessionRegistry:
             self.sessions.pop(session.id, None)
             self.damaged[session.id] = got
         log.error("session %s is damaged: %s (repair: %s)", session.id, got.reason(), got.plan())
+
+    def drop_lost(self, session: Session, why: str) -> None:
+        """``session``'s commit was fenced: another instance owns it now. It leaves this
+        instance (the store forgets it; its operations go to the new owner)."""
+        log.warning("session %s: lost the lease (%s); dropping it here", session.id, why)
+        session.closed = True
+        with self.lock:
+            if self.sessions.get(session.id) is session:
+                self.sessions.pop(session.id, None)
+        self.store.forget(session.id)
+        self.decisions.close(session.id)
 
     def repair_session(self, sid: str | None) -> m.Repaired:
         """Bring a damaged session back (:meth:`SessionStore.repair
@@ -391,6 +408,8 @@ class SessionRegistry:
                 rec = self.store.create(rec, blobs)
             except FileExistsError:
                 raise conflict("body.id", f"session {sid!r} already exists") from None
+            except BlobError as exc:
+                raise store_unavailable(exc) from None
             s = Session(rec, self.env)
             if self.trainer is not None:
                 self.trainer.attach(s)

@@ -35,13 +35,14 @@ from torch import Tensor
 from agilegs import schemas as m
 from agilegs.schemas import Intrinsics as WireIntrinsics
 
-from ..errors import not_found, session_damaged
+from ..errors import ServiceError, not_found, session_damaged
 from ..nbv.cancel import checkpoint
 from ..nbv.gaussians import GaussianMap
 from ..settings import Settings
 from ..store.integrity import DamagedFile, FileProblem
 from ..store.records import SessionRecord, ViewRecord
-from ..store.write import SessionStore
+from ..store.blobs import BlobError
+from ..store.objects import AnyStore, Fenced
 from . import transitions as tr
 from .convert import (
     Frame,
@@ -56,19 +57,28 @@ from .listing import record_summary
 from .mapper_state import mapper_options, mapper_status
 from .selection import select_response, select_step
 
-__all__ = ["MapperHook", "Session", "SessionEnv", "changed_roles"]
+__all__ = ["MapperHook", "Session", "SessionEnv", "changed_roles", "store_unavailable"]
+
+
+def store_unavailable(exc: BaseException) -> ServiceError:
+    """503 ``unavailable``: the object store could not be written (nothing was changed)."""
+    return ServiceError(503, "unavailable", f"the session store could not be written ({exc}): "
+                        "nothing was changed, retry", retry_after=1.0)
 
 
 @dataclass(frozen=True)
 class SessionEnv:
-    """What every session shares: the server's settings, the store, a scratch folder, and
-    whom to tell when a file read back does not check out (``report_damage(session,
-    problem)``: the registry marks the session damaged)."""
+    """What every session shares: the server's settings, the store, a scratch folder, whom
+    to tell when a file read back does not check out (``report_damage(session, problem)``:
+    the registry marks the session damaged), and whom to tell when a commit is fenced
+    because another instance took the session over (``report_lost(session, why)``: the
+    registry drops it)."""
 
     settings: Settings
-    store: SessionStore
+    store: AnyStore
     tmp_dir: Path
     report_damage: Callable[[Session, FileProblem], None] | None = None
+    report_lost: Callable[[Session, str], None] | None = None
 
 
 class MapperHook(Protocol):
@@ -133,7 +143,17 @@ class Session:
         old = self.record
         if new is old:
             return old
-        saved = self.env.store.save(new, changed_roles(old, new), blobs)
+        try:
+            saved = self.env.store.save(new, changed_roles(old, new), blobs)
+        except Fenced as exc:
+            self.closed = True
+            if self.env.report_lost is not None:
+                self.env.report_lost(self, str(exc))
+            raise ServiceError(404, "session_unavailable", f"session {self.id!r} moved to "
+                               "another instance while this change was made (nothing was "
+                               "changed): retry", "path.session") from None
+        except BlobError as exc:
+            raise store_unavailable(exc) from None
         self.record = saved
         return saved
 
