@@ -15,7 +15,7 @@ import re
 import threading
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import replace
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
@@ -42,7 +42,7 @@ from ..nbv import cancel
 from ..settings import Settings
 from ..store.integrity import Damage, FileProblem
 from ..store.blobs import BlobError
-from ..store.objects import AnyStore, open_store
+from ..store.objects import AnyStore, Fenced, ObjectSessionStore, open_store
 from ..store.write import StoreError
 from .convert import (
     empty_map,
@@ -141,7 +141,10 @@ class SessionRegistry:
             if not is_disk_full(exc):
                 raise
             log.warning("the state folder is full: %s", exc)
-        records, damaged = self.store.load_all()
+        if self.fleet:  # the fleet node takes the sessions no live instance owns
+            records, damaged = [], []
+        else:
+            records, damaged = self.store.load_all()
         for rec in records:
             self.sessions[rec.id] = Session(rec, self.env)
         for d in damaged:
@@ -238,6 +241,69 @@ class SessionRegistry:
             self.sessions.pop(session.id, None)
             self.damaged[session.id] = got
         log.error("session %s is damaged: %s (repair: %s)", session.id, got.reason(), got.plan())
+
+    @property
+    def fleet(self) -> bool:
+        """Whether this instance is one of a fleet: its sessions are in an object store and
+        it joins Zenoh, where the instances hand the sessions over by lease
+        (:mod:`agilegs.service.transports.fleet`)."""
+        return isinstance(self.store, ObjectSessionStore) and self.settings.zenoh
+
+    def set_owner(self, instance_id: str) -> None:
+        """This instance's id, recorded in the leases it takes."""
+        if isinstance(self.store, ObjectSessionStore):
+            self.store.owner = instance_id
+
+    def take_over(self, sid: str, live: Iterable[str] = ()) -> bool:
+        """Take session ``sid`` over from the store (its lease, epoch + 1) and serve it; False
+        when it is here already, gone, or another instance took it first (its lease names
+        one of the ``live`` instances, or it changed while being taken)."""
+        if not isinstance(self.store, ObjectSessionStore):
+            return False
+        with self.lock:
+            if self.holds(sid):
+                return False
+        try:
+            got = self.store.take_over(sid, unless=live)
+        except (FileNotFoundError, Fenced):
+            return False
+        with self.lock:
+            if self.holds(sid):
+                return False
+            if isinstance(got, Damage):
+                self.damaged[sid] = got
+                log.error("session %s (taken over) is damaged: %s", sid, got.reason())
+            else:
+                s = Session(got, self.env)
+                if self.trainer is not None:
+                    self.trainer.attach(s)
+                self.sessions[sid] = s
+                self.decisions.open(sid)
+        if self.trainer is not None:
+            self.trainer.wake()
+        log.info("session %s taken over (version %s)", sid,
+                 got.version if isinstance(got, Damage) else got.version)
+        return True
+
+    def check_leases(self) -> list[str]:
+        """Drop the sessions whose lease another instance took (their manifest changed in
+        the store); the ids dropped."""
+        if not isinstance(self.store, ObjectSessionStore):
+            return []
+        out = []
+        for s in list(self.sessions.values()):
+            if not self.store.still_owned(s.id):
+                with s.lock:
+                    if not s.closed and not self.store.still_owned(s.id):
+                        self.drop_lost(s, "another instance holds it now")
+                        out.append(s.id)
+        for sid in list(self.damaged):
+            if not self.store.still_owned(sid):
+                with self.lock:
+                    self.damaged.pop(sid, None)
+                self.store.forget(sid)
+                out.append(sid)
+        return out
 
     def drop_lost(self, session: Session, why: str) -> None:
         """``session``'s commit was fenced: another instance owns it now. It leaves this

@@ -35,9 +35,15 @@ how a version is committed:
   :data:`LEFTOVER_AGE` (a write in flight elsewhere is younger).
 - A session is deleted by removing its manifest (then the rest).
 
-The ETag an instance commits against is learnt when it loads a session (:meth:`load_all`,
-:meth:`adopt`) and after each of its commits; :meth:`inspect` reads without learning, so a
-stale owner checking a session's files does not become current by it.
+The ETag an instance commits against is learnt when it takes a session over
+(:meth:`take_over`, :meth:`load_all`) and after each of its commits; :meth:`inspect` reads
+without learning, so a stale owner checking a session's files does not become current by it.
+
+Ownership: the manifest written to the object store records a lease, ``{"owner": <instance>,
+"epoch": n, "since": <unix time>}`` (a field a state folder's manifest does not have; the read
+path ignores it). Taking a session over rewrites its manifest with epoch + 1 by a conditional
+put: that write is the handover, and it fences the previous owner, whose next commit's
+``If-Match`` fails.
 """
 
 from __future__ import annotations
@@ -95,6 +101,7 @@ class _Head:
     manifest: bytes | None  # its bytes
     named: set[str] = field(default_factory=set)  # what the current version names
     previous: set[str] = field(default_factory=set)  # what the previous version names
+    lease: dict[str, Any] | None = None  # {"owner", "epoch", "since"} this instance holds
 
 
 class _Source:
@@ -132,6 +139,17 @@ def _token() -> str:
     return uuid.uuid4().hex[:10]
 
 
+def lease_of(manifest: bytes | None) -> dict[str, Any] | None:
+    """The lease a manifest's bytes record (None: none, or they do not decode)."""
+    if manifest is None:
+        return None
+    try:
+        lease = decode_manifest(manifest).get("lease")
+    except ManifestError:
+        return None
+    return lease if isinstance(lease, dict) else None
+
+
 def _named_in(manifest: bytes | None) -> set[str]:
     """The files a manifest's bytes name (none when they do not decode)."""
     if manifest is None:
@@ -152,12 +170,23 @@ class ObjectSessionStore:
 
     Args:
         blobs: the object store (:func:`~agilegs.service.store.blobs.open_blobs`).
+        owner: this instance's id, recorded in the leases it takes.
     """
 
-    def __init__(self, blobs: Blobs) -> None:
+    def __init__(self, blobs: Blobs, owner: str | None = None) -> None:
         self.blobs = blobs
+        self.owner = owner
         self._heads: dict[str, _Head] = {}
         self._lock = threading.Lock()
+
+    def _encode(self, record: SessionRecord, lease: dict[str, Any] | None) -> bytes:
+        body = record.manifest()
+        if lease is not None:
+            body["lease"] = lease
+        return encode_manifest(body)
+
+    def _new_lease(self, epoch: int) -> dict[str, Any]:
+        return {"owner": self.owner, "epoch": epoch, "since": time.time()}
 
     @property
     def where(self) -> str:
@@ -210,7 +239,8 @@ class ObjectSessionStore:
         written: list[str] = []
         try:
             new = self._write_files(record, ROLES, blobs or {}, written)
-            data = encode_manifest(new.manifest())
+            lease = self._new_lease(1)
+            data = self._encode(new, lease)
             etag = self.blobs.put_if_absent(_key(record.id, MANIFEST), data)
         except PreconditionFailed:
             self._remove(written)
@@ -219,7 +249,7 @@ class ObjectSessionStore:
             self._remove(written)
             raise
         with self._lock:
-            self._heads[record.id] = _Head(etag, data, new.named_files(), set())
+            self._heads[record.id] = _Head(etag, data, new.named_files(), set(), lease)
         return new
 
     def save(self, record: SessionRecord, dirty: Iterable[str],
@@ -234,14 +264,14 @@ class ObjectSessionStore:
         written: list[str] = []
         try:
             new = self._write_files(record, dirty, blobs or {}, written)
-            data = encode_manifest(new.manifest())
+            data = self._encode(new, head.lease)
             etag = self._commit(sid, head, data, keep_previous=True)
         except BaseException:
             self._remove(written)
             raise
         named = new.named_files()
         with self._lock:
-            self._heads[sid] = _Head(etag, data, named, head.named)
+            self._heads[sid] = _Head(etag, data, named, head.named, head.lease)
         self._remove(_key(sid, n) for n in head.previous - named - head.named)
         return new
 
@@ -249,7 +279,7 @@ class ObjectSessionStore:
         with self._lock:
             head = self._heads.get(sid)
         if head is None:
-            raise Fenced(f"session {sid!r} is not held here (load or adopt it first)")
+            raise Fenced(f"session {sid!r} is not held here (take it over first)")
         return head
 
     def _commit(self, sid: str, head: _Head, data: bytes, *, keep_previous: bool) -> str | None:
@@ -311,34 +341,81 @@ class ObjectSessionStore:
         docstring)."""
         return inspect_session(_Source(self.blobs, sid))
 
-    def adopt(self, sid: str) -> SessionRecord | Damage:
-        """Session ``sid`` read back and checked, and tracked from the manifest read: this
-        instance commits against it from now on. FileNotFoundError if it has none."""
+    def take_over(self, sid: str, *, unless: Iterable[str] = ()) -> SessionRecord | Damage:
+        """Session ``sid`` read back, checked, and owned from now on: its lease is taken by
+        writing the manifest read back with the lease's epoch + 1 and this instance as its
+        owner, conditionally on the manifest's ETag as read, so that of several instances
+        taking it at once one wins (the others get :class:`Fenced`), and the previous owner's
+        next commit is fenced. A damaged session is held without a write (its operations are
+        refused but for a repair, itself conditional, and a deletion). FileNotFoundError if
+        it has no manifest; :class:`Fenced` if its lease names an owner in ``unless`` (the
+        live instances: one took it over already)."""
         src = _Source(self.blobs, sid)
         got = inspect_session(src)
         if src.manifest is None:
             if src.manifest_seen:
                 raise FileNotFoundError(sid)
-            data, etag = None, None  # unreadable: the store failed, not the session
-        else:
-            data, etag = src.manifest
-        prev = self._previous_manifest(sid)
-        named = got.named_files() if isinstance(got, SessionRecord) else _named_in(data)
+            raise StoreError(f"session {sid!r}: its manifest cannot be read")
+        data, etag = src.manifest
+        holder = (lease_of(data) or {}).get("owner")
+        if holder is not None and holder != self.owner and holder in set(unless):
+            raise Fenced(f"session {sid!r} is owned by live instance {holder!r}")
+        prev = _named_in(self._previous_manifest(sid))
+        if isinstance(got, Damage):
+            with self._lock:
+                self._heads[sid] = _Head(etag, data, _named_in(data), prev, lease_of(data))
+            return got
+        old = lease_of(data) or {}
+        lease = self._new_lease(int(old.get("epoch", 0)) + 1)
+        body = decode_manifest(data)
+        body["lease"] = lease
+        data = encode_manifest(body)
+        try:
+            etag = (self.blobs.put_if_match(_key(sid, MANIFEST), data, etag) if etag is not None
+                    else self.blobs.put(_key(sid, MANIFEST), data))
+        except PreconditionFailed:
+            raise Fenced(f"session {sid!r} changed while it was taken over") from None
         with self._lock:
-            self._heads[sid] = _Head(etag, data, named, _named_in(prev))
+            self._heads[sid] = _Head(etag, data, got.named_files(), prev, lease)
+        log.info("session %s: lease taken (epoch %d, previous owner %s)", sid, lease["epoch"],
+                 old.get("owner"))
         return got
 
+    def still_owned(self, sid: str) -> bool:
+        """Whether the manifest of ``sid`` is still the one this instance last read or wrote
+        (False: another instance took the session over, or it is gone)."""
+        with self._lock:
+            head = self._heads.get(sid)
+        if head is None:
+            return False
+        try:
+            _, etag = self.blobs.get(_key(sid, MANIFEST))
+        except FileNotFoundError:
+            return False
+        return etag == head.etag
+
+    def lease(self, sid: str) -> dict[str, Any] | None:
+        """The lease recorded in the store for ``sid`` (None: none, or unreadable)."""
+        try:
+            return lease_of(self.blobs.get(_key(sid, MANIFEST))[0])
+        except OSError:
+            return None
+
     def load_all(self) -> tuple[list[SessionRecord], list[Damage]]:
-        """Every session in the store, checked and adopted: the intact ones, and the damaged
-        ones with what is wrong (none is skipped). Removes old leftovers of interrupted
-        writes."""
+        """Every session in the store, checked and taken over (:meth:`take_over`): the intact
+        ones, and the damaged ones with what is wrong (none is skipped). Removes old
+        leftovers of interrupted writes. (An instance of a fleet takes sessions one by one
+        instead, those no live instance owns.)"""
         records: list[SessionRecord] = []
         damaged: list[Damage] = []
         for sid in self.session_ids():
             try:
-                got = self.adopt(sid)
+                got = self.take_over(sid)
             except FileNotFoundError:  # a create that never committed, or a delete half done
                 self._collect(sid, set())
+                continue
+            except Fenced:
+                log.warning("session %s is being written by another instance: not loaded", sid)
                 continue
             except Exception as exc:  # one session must never stop the others loading
                 log.exception("could not check session %s", sid)
@@ -399,14 +476,14 @@ class ObjectSessionStore:
         written: list[str] = []
         try:
             new = self._write_files(new, ("warm",), {}, written)
-            data = encode_manifest(new.manifest())
+            data = self._encode(new, head.lease or lease_of(head.manifest))
             etag = self._commit(sid, head, data, keep_previous=False)
         except BaseException:
             self._remove(written)
             raise
         named = new.named_files()
         with self._lock:
-            self._heads[sid] = _Head(etag, data, named, head.previous)
+            self._heads[sid] = _Head(etag, data, named, head.previous, head.lease)
         log.warning("session %s repaired: %s; now version %d", sid, got.plan(), new.version)
         return Repair(new, got.rollback_to, got.drop_frames)
 

@@ -307,15 +307,8 @@ class SessionStore:
         return records, damaged
 
     # ------------------------------------------------------------------ checking
-    def adopt(self, sid: str) -> SessionRecord | Damage:
-        """Session ``sid`` read back and checked (:meth:`inspect`; FileNotFoundError if it is
-        not there): the folder has one server, which holds every session in it."""
-        if not self.session_dir(sid).is_dir():
-            raise FileNotFoundError(sid)
-        return self.inspect(sid)
-
     def forget(self, sid: str) -> None:
-        """Nothing to forget: the folder has one server (see :meth:`adopt`)."""
+        """Nothing to forget: the folder has one server, which holds every session in it."""
 
     def inspect(self, sid: str) -> SessionRecord | Damage:
         """Session ``sid`` read back and checked (see

@@ -61,10 +61,14 @@ Topology
     to one peer instance reaches the others through it, while a Zenoh *peer* reaches only the
     instances it connects to.
 
-Known limits: two instances creating the same explicit session id at the same moment may
-both succeed (the check-then-create is not atomic); a session created while an instance
-that owns the same id is down collides with it when that instance comes back (both declare
-it; avoid reusing ids). Instances sharing a token (``AGILEGS_TOKEN``) forward with it; all
+A fleet (the sessions in an object store, ``--state-url s3://...``): an instance owns the
+sessions whose lease it holds, not those it created, and a live instance takes over the
+sessions of one that died (:mod:`agilegs.service.transports.fleet`); creating a session is a
+conditional create in the store, so of two instances creating one id at once exactly one
+succeeds. Known limits of instances with state folders of their own: two instances creating
+the same explicit session id at the same moment may both succeed (the check-then-create is
+not atomic); a session created while an instance that owns the same id is down collides with
+it when that instance comes back (both declare it; avoid reusing ids). Instances sharing a token (``AGILEGS_TOKEN``) forward with it; all
 instances of a cluster must use the same token.
 """
 
@@ -93,6 +97,7 @@ from agilegs.schemas.keys import (
 )
 
 from ..errors import ServiceError
+from .fleet import Fleet
 from .gateway import Forwarded
 
 if TYPE_CHECKING:
@@ -202,6 +207,8 @@ class ClusterNode:
         self._stop = threading.Event()
         self._syncer: threading.Thread | None = None
         self._seen_others = False
+        self.fleet: Fleet | None = None  # sessions handed over by lease (an object store)
+        registry.set_owner(self.instance_id)
 
     # ------------------------------------------------------------------ lifecycle
     def attach(self, zsession: Any, *, on_query: QueryHandler,
@@ -231,6 +238,9 @@ class ClusterNode:
             self._fixed.append(zsession.declare_queryable(
                 reply_key, lambda q, op=op, rk=reply_key: on_query(q, op, None, True, rk)))
         self.sync()
+        if self.registry.fleet:
+            self.fleet = Fleet(self.registry, self.instance_id, self.sync)
+            self.fleet.attach(zsession)
         self._stop.clear()
         self._syncer = threading.Thread(target=self._sync_loop, name="agilegs-cluster-sync",
                                          daemon=True)
@@ -239,6 +249,9 @@ class ClusterNode:
 
     def detach(self) -> None:
         """Undeclare everything this node declared (before the Zenoh session closes)."""
+        if self.fleet is not None:
+            self.fleet.detach()
+            self.fleet = None
         self._stop.set()
         if self._syncer is not None:
             self._syncer.join(timeout=10)
@@ -288,6 +301,8 @@ class ClusterNode:
                     z.declare_subscriber(keys.session_key(sid, keys.CANDIDATES), self._on_sample),
                 ]
                 log.debug("cluster: %s served here", sid)
+        if self.fleet is not None:
+            self.fleet.sync_tokens()
 
     def _sync_loop(self) -> None:
         ticks = 0

@@ -3,13 +3,15 @@ object store (moto's server on loopback), driven from outside with the client SD
 
 from __future__ import annotations
 
+import signal
 import threading
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import httpx
 import pytest
-from conftest import SMALL_INTRINSICS, ServerProcess
+from conftest import SMALL_INTRINSICS, ServerProcess, ring_poses
 from s3api import S3Api, s3_api
 
 from agilegs.client import Client, ConflictError
@@ -68,3 +70,112 @@ def test_100_concurrent_creations_of_one_id_on_three_instances_make_one(
     finally:
         for srv in servers:
             srv.stop()
+
+
+def start_mesh(api: S3Api, root: Path, prefix: str, n: int = 3) -> list[ServerProcess]:
+    """``n`` instances of one fleet, Zenoh peers each connected to the ones before it."""
+    servers: list[ServerProcess] = []
+    for i in range(n):
+        connect = ",".join(s.zenoh_endpoint for s in servers)
+        srv = ServerProcess(root / f"local-{i}",
+                            env={**api.env, "AGILEGS_STATE_URL": api.url(prefix),
+                                 "AGILEGS_INSTANCE_ID": f"i{i}",
+                                 **({"AGILEGS_ZENOH_CONNECT": connect} if connect else {})})
+        servers.append(srv.start())
+    return servers
+
+
+def until(check: Callable[[], bool], what: str, timeout: float = 30.0) -> float:
+    """Seconds until ``check()`` holds (AssertionError after ``timeout``)."""
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        try:
+            if check():
+                return time.monotonic() - t0
+        except Exception:
+            pass
+        time.sleep(0.05)
+    raise AssertionError(f"not within {timeout} s: {what}")
+
+
+def version_on(url: str, sid: str) -> int | None:
+    r = httpx.get(f"{url}/v1/sessions/{sid}", timeout=10)
+    return r.json()["version"] if r.status_code == 200 else None
+
+
+def test_a_killed_owners_sessions_are_taken_over_and_a_paused_one_is_fenced(
+        api: S3Api, tmp_path: Path) -> None:
+    servers = start_mesh(api, tmp_path, "takeover")
+    a, b, c = servers
+    try:
+        with Client(a.url) as ca:
+            for k in range(4):
+                ca.create_session(SMALL_INTRINSICS, id=f"s{k}", bounds=BOUNDS,
+                                  init_gaussians=20, instance="i0",
+                                  pool=ring_poses(6))
+                ca.commit(f"s{k}", candidate_id=1)
+        acked = {f"s{k}": 2 for k in range(4)}
+        for sid, version in acked.items():  # every instance reaches every session
+            assert version_on(b.url, sid) == version and version_on(c.url, sid) == version
+        a.kill()
+        took = until(lambda: all(version_on(b.url, sid) == v for sid, v in acked.items()),
+                     "every session answers again")
+        assert took < 10, took
+        owners = {sid: _owner(api, sid) for sid in acked}
+        assert set(owners.values()) <= {"i1", "i2"}, owners  # taken over, epoch 2
+        assert all(_epoch(api, sid) == 2 for sid in acked)
+        # a paused owner: its sessions are taken over; resumed, it writes nothing
+        victim = next(s for s in (b, c) if any(o == ("i1" if s is b else "i2")
+                                              for o in owners.values()))
+        other = c if victim is b else b
+        mine = [sid for sid, o in owners.items() if o == ("i1" if victim is b else "i2")]
+        assert victim.proc is not None
+        victim.proc.send_signal(signal.SIGSTOP)
+        try:
+            until(lambda: all(_owner(api, sid) != ("i1" if victim is b else "i2")
+                              for sid in mine), "the paused owner's sessions taken", 40)
+        finally:
+            victim.proc.send_signal(signal.SIGCONT)
+        stale = httpx.post(f"{victim.url}/v1/sessions/{mine[0]}/commit",
+                           json={"candidate_id": 2}, timeout=30)
+        # either it noticed on resuming and forwards to the new owner (200: the new owner
+        # applied it), or it tries itself, is fenced and says so: its own write never lands
+        assert stale.status_code in (200, 404), stale.text
+        if stale.status_code == 404:
+            assert stale.json()["error"]["code"] == "session_unavailable"
+        until(lambda: "lost the lease" in victim.log(), "the paused owner logs its loss", 20)
+        want = acked[mine[0]] + (1 if stale.status_code == 200 else 0)
+        assert version_on(other.url, mine[0]) == want
+        for sid in mine[1:]:
+            assert version_on(other.url, sid) == acked[sid]
+        assert _owner(api, mine[0]) != ("i1" if victim is b else "i2")
+    finally:
+        for srv in servers:
+            srv.stop()
+
+
+def _manifest(api: S3Api, sid: str) -> dict:
+    import os
+
+    from agilegs.service.store.blobs import open_blobs
+    from agilegs.service.store.integrity import decode_manifest
+
+    old = {k: os.environ.get(k) for k in api.env}
+    os.environ.update(api.env)
+    try:
+        data, _ = open_blobs(api.url("takeover")).get(f"sessions/{sid}/manifest.json")
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+    return decode_manifest(data)
+
+
+def _owner(api: S3Api, sid: str) -> str:
+    return str(_manifest(api, sid)["lease"]["owner"])
+
+
+def _epoch(api: S3Api, sid: str) -> int:
+    return int(_manifest(api, sid)["lease"]["epoch"])
