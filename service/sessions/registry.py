@@ -29,6 +29,7 @@ from agilegs.schemas import OPERATIONS, DecisionsOut, DecisionsRequest
 from agilegs.schemas.config import patch_dict
 
 from ..errors import (
+    ServiceError,
     conflict,
     invalid,
     is_disk_full,
@@ -113,6 +114,7 @@ class SessionRegistry:
             endpoint=settings.state_endpoint)
         self.sessions: dict[str, Session] = {}
         self.damaged: dict[str, Damage] = {}
+        self.lost: dict[str, str] = {}  # sessions another instance took over: why
         self.lock = threading.Lock()
         self._repairing = threading.Lock()  # one repair or deletion of a damaged session
         self.started = time.time()
@@ -197,6 +199,10 @@ class SessionRegistry:
             d = self.damaged.get(sid)
             if d is not None:
                 raise damaged_error(d)
+            why = self.lost.get(sid)
+            if why is not None:
+                raise ServiceError(404, "session_unavailable", f"session {sid!r} moved to "
+                                   f"another instance ({why}): retry", "path.session")
             raise not_found("session", f"session {sid!r} does not exist")
         return s
 
@@ -270,6 +276,7 @@ class SessionRegistry:
         with self.lock:
             if self.holds(sid):
                 return False
+            self.lost.pop(sid, None)
             if isinstance(got, Damage):
                 self.damaged[sid] = got
                 log.error("session %s (taken over) is damaged: %s", sid, got.reason())
@@ -309,8 +316,10 @@ class SessionRegistry:
         """``session``'s commit was fenced: another instance owns it now. It leaves this
         instance (the store forgets it; its operations go to the new owner)."""
         log.warning("session %s: lost the lease (%s); dropping it here", session.id, why)
+        session.lost = why
         session.closed = True
         with self.lock:
+            self.lost[session.id] = why
             if self.sessions.get(session.id) is session:
                 self.sessions.pop(session.id, None)
         self.store.forget(session.id)

@@ -116,6 +116,7 @@ class Session:
         self.lock = threading.Lock()
         self.closed = False
         self.damaged: str | None = None  # why, once a file read back did not check out
+        self.lost: str | None = None  # why, once another instance took the session over
         self.mapper: MapperHook | None = None  # the trainer plugs in (on_observation)
         self.pending: tr.PendingSelection | None = None  # the last selection without commit
         self._frames: dict[int, tuple[np.ndarray | None, np.ndarray | None]] = {}
@@ -134,6 +135,9 @@ class Session:
         if self.damaged is not None:
             raise session_damaged("path.session", f"session {self.id!r} is damaged: "
                                                   f"{self.damaged}")
+        if self.lost is not None:
+            raise ServiceError(404, "session_unavailable", f"session {self.id!r} moved to "
+                               f"another instance ({self.lost}): retry", "path.session")
         if self.closed:
             raise not_found("session", f"session {self.id!r} was deleted")
 
@@ -147,6 +151,7 @@ class Session:
             saved = self.env.store.save(new, changed_roles(old, new), blobs)
         except Fenced as exc:
             self.closed = True
+            self.lost = str(exc)
             if self.env.report_lost is not None:
                 self.env.report_lost(self, str(exc))
             raise ServiceError(404, "session_unavailable", f"session {self.id!r} moved to "

@@ -136,13 +136,13 @@ def test_a_killed_owners_sessions_are_taken_over_and_a_paused_one_is_fenced(
                               for sid in mine), "the paused owner's sessions taken", 40)
         finally:
             victim.proc.send_signal(signal.SIGCONT)
-        stale = httpx.post(f"{victim.url}/v1/sessions/{mine[0]}/commit",
+        stale = httpx.post(f"{victim.url}/v1/sessions/{mine[0]}/views",
                            json={"candidate_id": 2}, timeout=30)
         # either it noticed on resuming and forwards to the new owner (200: the new owner
         # applied it), or it tries itself, is fenced and says so: its own write never lands
         assert stale.status_code in (200, 404), stale.text
         if stale.status_code == 404:
-            assert stale.json()["error"]["code"] == "session_unavailable"
+            assert stale.json()["error"]["code"] == "session_unavailable", stale.text
         until(lambda: "lost the lease" in victim.log(), "the paused owner logs its loss", 20)
         want = acked[mine[0]] + (1 if stale.status_code == 200 else 0)
         assert version_on(other.url, mine[0]) == want
