@@ -27,6 +27,7 @@ from agilegs.schemas import ErrorBody, codec, keys
 from . import _requests as rq
 from ._ops import ObservationLike, PoolLike, SyncOperations
 from ._requests import Call
+from ._retry import RETRY_WINDOW, retry_sync
 from .errors import (
     ProtocolError,
     RequestTimeout,
@@ -62,6 +63,10 @@ class ZenohClient(SyncOperations):
             state folder, ``<state-dir>/zenoh/client.json``: its endpoints, the Zenoh user
             and password it made (and its CA); ``user`` / ``password`` / ``tls_root_ca``
             given here win.
+        retry_window: seconds an operation is retried, with backoff, while its session is
+            handed over in a fleet (no instance answers for it, or it answers
+            ``session_unavailable`` with a ``retry_after``); 0: never
+            (:mod:`agilegs.client._retry`).
     """
 
     def __init__(
@@ -79,6 +84,7 @@ class ZenohClient(SyncOperations):
         tls_certificate: str | Path | None = None,
         tls_private_key: str | Path | None = None,
         credentials: str | Path | None = None,
+        retry_window: float = RETRY_WINDOW,
     ) -> None:
         try:
             import zenoh
@@ -98,6 +104,7 @@ class ZenohClient(SyncOperations):
         if connect is None:
             connect = ("tcp/127.0.0.1:7447",)
         self.timeout = timeout
+        self.retry_window = retry_window
         self._attachment = f"Bearer {token}".encode() if token else None
         self._session: Any = None
         try:
@@ -135,6 +142,9 @@ class ZenohClient(SyncOperations):
             raise ValidationError(422, "invalid", str(exc), "session") from None
 
     def _send(self, call: Call, parameters: str | None = None) -> BaseModel:
+        return retry_sync(lambda: self._send_once(call, parameters), self.retry_window)
+
+    def _send_once(self, call: Call, parameters: str | None = None) -> BaseModel:
         if parameters is None:
             # the server gives up on the work once this client stops waiting for it
             params = {**(call.params or {}), "deadline_ms": f"{self.timeout * 1e3:.0f}"}
@@ -158,12 +168,22 @@ class ZenohClient(SyncOperations):
         if timed_out:
             raise RequestTimeout(f"{call.op.name}: no reply on {key} within {self.timeout} s")
         if call.op.scope == "session" and self._any_server():
+            # in a fleet, a live instance takes a dead owner's sessions over: worth a retry
             raise SessionUnavailableError(
                 404, "session_unavailable",
                 f"{call.op.name}: no instance answers for session {call.session!r}: it does not "
-                "exist, or the instance that owns it is down", "path.session")
+                "exist, or the instance that owns it is down", "path.session",
+                retry_after=0.05 if self._in_fleet() else None)
         raise TransportError(f"{call.op.name}: no reply on {key} (is the server running with "
                              "Zenoh, and reachable?)")
+
+    def _in_fleet(self) -> bool:
+        """Whether the instances answering form a fleet (they declare member tokens)."""
+        try:
+            return any(True for _ in self._session.liveliness().get(
+                f"{keys.PREFIX}/{keys.MEMBERS}/*", timeout=min(self.timeout, 1.0)))
+        except Exception:
+            return False
 
     def _any_server(self) -> bool:
         """Whether some server instance answers ``health`` (every instance does)."""

@@ -202,7 +202,8 @@ class SessionRegistry:
             why = self.lost.get(sid)
             if why is not None:
                 raise ServiceError(404, "session_unavailable", f"session {sid!r} moved to "
-                                   f"another instance ({why}): retry", "path.session")
+                                   f"another instance ({why}): retry", "path.session",
+                                   retry_after=0.2)
             raise not_found("session", f"session {sid!r} does not exist")
         return s
 

@@ -137,7 +137,8 @@ class Session:
                                                   f"{self.damaged}")
         if self.lost is not None:
             raise ServiceError(404, "session_unavailable", f"session {self.id!r} moved to "
-                               f"another instance ({self.lost}): retry", "path.session")
+                               f"another instance ({self.lost}): retry", "path.session",
+                               retry_after=0.2)
         if self.closed:
             raise not_found("session", f"session {self.id!r} was deleted")
 
@@ -156,7 +157,7 @@ class Session:
                 self.env.report_lost(self, str(exc))
             raise ServiceError(404, "session_unavailable", f"session {self.id!r} moved to "
                                "another instance while this change was made (nothing was "
-                               "changed): retry", "path.session") from None
+                               "changed): retry", "path.session", retry_after=0.2) from None
         except BlobError as exc:
             raise store_unavailable(exc) from None
         self.record = saved

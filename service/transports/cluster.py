@@ -124,6 +124,9 @@ log = logging.getLogger(__name__)
 PROBE_TIMEOUT = 2.0
 """Seconds to wait for the live instances' health replies (they answer inline)."""
 
+HANDOVER_RETRY = 0.2
+"""The ``retry_after`` of a fleet's ``session_unavailable`` (seconds)."""
+
 SYNC_INTERVAL = 1.0
 """Seconds between two checks that the declared sessions match the loaded ones."""
 
@@ -158,12 +161,16 @@ def placement_order(loads: Mapping[str, int]) -> list[str]:
     return sorted(loads, key=lambda iid: (int(loads[iid]), iid))
 
 
-def session_unavailable(session: str, instances: list[str]) -> ServiceError:
+def session_unavailable(session: str, instances: list[str], *, fleet: bool = False
+                        ) -> ServiceError:
+    """404 ``session_unavailable``; in a fleet with ``retry_after`` (a live instance takes a
+    dead owner's sessions over: the client retries)."""
     live = ", ".join(sorted(instances))
     return ServiceError(
         404, "session_unavailable",
         f"no instance answers for session {session!r}: it does not exist, or the instance that "
-        f"owns it is down (live instances: {live})", "path.session")
+        f"owns it is down (live instances: {live})", "path.session",
+        retry_after=HANDOVER_RETRY if fleet else None)
 
 
 def instance_unavailable(instance: str) -> ServiceError:
@@ -405,7 +412,7 @@ class ClusterNode:
         live = sorted(self.instances())
         if not self.in_cluster:
             return None
-        raise session_unavailable(session, live)
+        raise session_unavailable(session, live, fleet=self.fleet is not None)
 
     def _forward_session(self, spec: Operation, session: str, req: BaseModel | None,
                          run_local: Callable[[], BaseModel]) -> BaseModel:
@@ -416,7 +423,7 @@ class ClusterNode:
         live = sorted(self.instances())
         if not self.in_cluster:  # a lone server: the session simply does not exist
             return self._local(spec.name, run_local)
-        raise session_unavailable(session, live)
+        raise session_unavailable(session, live, fleet=self.fleet is not None)
 
     def _create_on(self, instance: str, body: bytes | None) -> BaseModel:
         got = self._forward(instance_key(instance, "create_session"), body,
