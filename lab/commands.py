@@ -19,10 +19,13 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
      "what each candidate is worth, and which scores predict it"),
     (("bench", "proxy"), "agilegs.lab.bench.proxy_check",
      "how the anchor's choices follow the exact EIG on trained maps"),
+    (("bench", "fleet"), "agilegs.lab.bench.fleet",
+     "instances sharing an object store, killed and paused under load: takeover, losses"),
 ]
 
 GROUPS: dict[str, str] = {
-    "bench": "the benchmarks: render, latency, run, service, bigmap, edge, value, proxy",
+    "bench": "the benchmarks: render, latency, run, service, bigmap, edge, value, proxy, "
+             "fleet",
 }
 """The help of each command that groups subcommands."""
 
