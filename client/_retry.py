@@ -3,10 +3,11 @@
 ``retry_window``.
 
 A fleet's instances say ``retry_after`` when the session's owner is gone and a live instance
-is taking it over (or it moved while the request ran); such an answer guarantees the request
-changed nothing (a write that reached a stale owner is fenced before anything of it lands), so
-retrying it applies it once. Without ``retry_after`` (a cluster whose instances keep their own
-state folders, a session that does not exist) the error is raised at once, as before.
+is taking it over (or it moved while the request ran), and only when the request changed
+nothing (no owner received it, or a stale owner's commit was fenced), so retrying it applies
+it once. Without ``retry_after`` (a cluster whose instances keep their own state folders, a
+session that does not exist, a write whose owner died while answering it) the error is raised
+at once.
 """
 
 from __future__ import annotations

@@ -168,12 +168,14 @@ class ZenohClient(SyncOperations):
         if timed_out:
             raise RequestTimeout(f"{call.op.name}: no reply on {key} within {self.timeout} s")
         if call.op.scope == "session" and self._any_server():
-            # in a fleet, a live instance takes a dead owner's sessions over: worth a retry
+            # in a fleet, a live instance takes a dead owner's sessions over: a read is worth
+            # a retry (a write may have been applied by an owner that died answering it)
+            read = call.op.http_method == "GET"
             raise SessionUnavailableError(
                 404, "session_unavailable",
                 f"{call.op.name}: no instance answers for session {call.session!r}: it does not "
                 "exist, or the instance that owns it is down", "path.session",
-                retry_after=0.05 if self._in_fleet() else None)
+                retry_after=0.05 if read and self._in_fleet() else None)
         raise TransportError(f"{call.op.name}: no reply on {key} (is the server running with "
                              "Zenoh, and reachable?)")
 

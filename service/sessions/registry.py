@@ -256,6 +256,12 @@ class SessionRegistry:
         (:mod:`agilegs.service.transports.fleet`)."""
         return isinstance(self.store, ObjectSessionStore) and self.settings.zenoh
 
+    def in_store(self, sid: str) -> bool:
+        """Whether session ``sid`` is in the store (a folder store: held here)."""
+        if isinstance(self.store, ObjectSessionStore):
+            return self.store.exists(sid)
+        return self.holds(sid)
+
     def set_owner(self, instance_id: str) -> None:
         """This instance's id, recorded in the leases it takes."""
         if isinstance(self.store, ObjectSessionStore):

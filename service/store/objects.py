@@ -381,6 +381,17 @@ class ObjectSessionStore:
                  old.get("owner"))
         return got
 
+    def exists(self, sid: str) -> bool:
+        """Whether session ``sid`` has a manifest in the store (True when that cannot be
+        read: the store, not the session, failed)."""
+        try:
+            self.blobs.get(_key(sid, MANIFEST))
+        except FileNotFoundError:
+            return False
+        except OSError:
+            return True
+        return True
+
     def still_owned(self, sid: str) -> bool:
         """Whether the manifest of ``sid`` is still the one this instance last read or wrote
         (False: another instance took the session over, or it is gone)."""

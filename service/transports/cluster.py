@@ -342,7 +342,7 @@ class ClusterNode:
         """Whether this instance is part of a cluster: it connects to other Zenoh nodes, or
         it has seen another instance since it started. A session that no instance answers
         for is then ``session_unavailable`` (its owner may be down), not ``not_found``."""
-        return bool(self.settings.zenoh_connect) or self._seen_others
+        return bool(self.settings.zenoh_connect) or self._seen_others or self.fleet is not None
 
     def coordinator(self) -> str:
         """The live instance that answers ``@service`` creates and listings: the smallest id."""
@@ -406,24 +406,44 @@ class ClusterNode:
         answer comes in ``kind``), as it came; None when no instance answers and this one is
         not in a cluster (a lone server: the session does not exist, and it says so)."""
         spec = OPERATIONS[op]
+        sent_to_owner = self.fleet is not None and self.fleet.owned(session)
         ans = self._ask(keys.session_key(session, op), body, spec, kind)
         if ans is not None:
             return Forwarded(ans.ok, ans.payload, ans.kind)
         live = sorted(self.instances())
-        if not self.in_cluster:
+        if not self.in_cluster or not self._may_exist(session):
             return None
-        raise session_unavailable(session, live, fleet=self.fleet is not None)
+        raise self._unanswered(spec, session, live, sent_to_owner)
 
     def _forward_session(self, spec: Operation, session: str, req: BaseModel | None,
                          run_local: Callable[[], BaseModel]) -> BaseModel:
         body = codec.dump(req, codec.MSGPACK) if req is not None else None
+        sent_to_owner = self.fleet is not None and self.fleet.owned(session)
         got = self._forward(keys.session_key(session, spec.name), body, spec)
         if got is not None:
             return got
         live = sorted(self.instances())
-        if not self.in_cluster:  # a lone server: the session simply does not exist
+        if not self.in_cluster or not self._may_exist(session):  # it simply does not exist
             return self._local(spec.name, run_local)
-        raise session_unavailable(session, live, fleet=self.fleet is not None)
+        raise self._unanswered(spec, session, live, sent_to_owner)
+
+    def _unanswered(self, spec: Operation, session: str, live: list[str], sent_to_owner: bool
+                    ) -> ServiceError:
+        """The error of an operation no instance answered. In a fleet it is retryable
+        (``retry_after``) unless it may have changed the session: a write that went to an
+        owner that then went away may have been committed (503, no ``retry_after``: read the
+        session to know)."""
+        if self.fleet is not None and sent_to_owner and spec.http_method != "GET":
+            return ServiceError(
+                503, "unavailable", f"{spec.name}: the instance that owned session "
+                f"{session!r} went away while answering; the change may or may not have been "
+                "made: read the session to know", "path.session")
+        return session_unavailable(session, live, fleet=self.fleet is not None)
+
+    def _may_exist(self, session: str) -> bool:
+        """Whether a session no instance answers for may exist: always, but in a fleet,
+        whose store says (a session there is being taken over: worth a retry)."""
+        return self.fleet is None or self.registry.in_store(session)
 
     def _create_on(self, instance: str, body: bytes | None) -> BaseModel:
         got = self._forward(instance_key(instance, "create_session"), body,

@@ -130,6 +130,11 @@ class Fleet:
             except Exception:
                 log.debug("undeclare failed", exc_info=True)
 
+    def owned(self, session: str) -> bool:
+        """Whether some instance's token says it owns ``session`` now."""
+        with self._lock:
+            return bool(self._owners.get(session))
+
     # ------------------------------------------------------------------ tokens
     def sync_tokens(self) -> None:
         """Declare the token of every session held here, undeclare those of the others."""

@@ -14,7 +14,13 @@ import pytest
 from conftest import SMALL_INTRINSICS, ServerProcess, ring_poses
 from s3api import S3Api, s3_api
 
-from agilegs.client import Client, ConflictError, ZenohClient
+from agilegs.client import (
+    Client,
+    ConflictError,
+    NotFoundError,
+    SessionUnavailableError,
+    ZenohClient,
+)
 
 BOUNDS = {"min": [-0.5] * 3, "max": [0.5] * 3}
 
@@ -115,6 +121,12 @@ def test_a_killed_owners_sessions_are_taken_over_and_a_paused_one_is_fenced(
                                   pool=ring_poses(6))
                 ca.commit(f"s{k}", candidate_id=1)
         acked = {f"s{k}": 2 for k in range(4)}
+        with Client(b.url) as cb:  # what the store does not hold fails at once: no retries
+            t0 = time.monotonic()
+            with pytest.raises(NotFoundError) as missing:
+                cb.get_session("never-made")
+            assert not isinstance(missing.value, SessionUnavailableError)
+            assert time.monotonic() - t0 < 5
         for sid, version in acked.items():  # every instance reaches every session
             assert version_on(b.url, sid) == version and version_on(c.url, sid) == version
         with ZenohClient([c.zenoh_endpoint], mode="client", timeout=30) as zc:
