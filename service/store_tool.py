@@ -11,10 +11,11 @@ every session checks out, 1 when one is damaged, 2 when the folder cannot be rea
 
 ``repair`` claims the folder (it refuses while a server holds it: use that server's
 ``repair_session`` operation instead; an object store has no claim: a repair commits by a
-conditional put, so it fails rather than overwrite a change a server made meanwhile) and repairs each damaged session
-(:meth:`~agilegs.service.store.write.SessionStore.repair`: roll back to the previous version, drop
-damaged frames); ``--dry-run`` prints what it would do. Exit status 0 when every session
-checks out afterwards, 1 when one could not be repaired, 2 when the folder cannot be used.
+conditional put, so it fails rather than overwrite a change a server made meanwhile) and
+repairs each damaged session (:meth:`~agilegs.service.store.write.SessionStore.repair`: roll
+back to the previous version, drop damaged frames); ``--dry-run`` prints what it would do.
+Exit status 0 when every session checks out afterwards, 1 when one could not be repaired, 2
+when the folder cannot be used.
 
 The store (torch) is imported when a command runs, so that ``--help`` answers at once.
 """

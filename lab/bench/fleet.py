@@ -306,9 +306,20 @@ def _pause_phase(fleet: Fleet, args: argparse.Namespace) -> dict[str, Any]:
 
 
 # ============================================================================ scale
+def _selector(url: str, sid: str, stop: threading.Event, lock: threading.Lock,
+              count: list[int]) -> None:
+    """Select (without commit) on ``sid`` until ``stop``, counting the answers."""
+    import httpx
+
+    with httpx.Client(base_url=url, timeout=120) as h:
+        while not stop.is_set():
+            if h.post(f"/v1/sessions/{sid}/select", json={}).status_code == 200:
+                with lock:
+                    count[0] += 1
+
+
 def _scale_phase(root: Path, endpoint: str, aws: dict[str, str], bucket: str,
                  args: argparse.Namespace) -> dict[str, float]:
-    import httpx
 
     out = {}
     for n in range(1, args.instances + 1):
@@ -324,15 +335,8 @@ def _scale_phase(root: Path, endpoint: str, aws: dict[str, str], bucket: str,
             count = [0]
             lock = threading.Lock()
             stop = threading.Event()
-
-            def selector(url: str, sid: str) -> None:
-                with httpx.Client(base_url=url, timeout=120) as h:
-                    while not stop.is_set():
-                        if h.post(f"/v1/sessions/{sid}/select", json={}).status_code == 200:
-                            with lock:
-                                count[0] += 1
-
-            threads = [threading.Thread(target=selector, args=sids[k % len(sids)], daemon=True)
+            threads = [threading.Thread(target=_selector, args=(*sids[k % len(sids)], stop,
+                                                                 lock, count), daemon=True)
                        for k in range(args.selectors * n)]
             for t in threads:
                 t.start()

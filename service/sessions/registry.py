@@ -41,9 +41,10 @@ from ..errors import (
 from ..errors import validation_error as _validation_error
 from ..nbv import cancel
 from ..settings import Settings
-from ..store.integrity import Damage, FileProblem
 from ..store.blobs import BlobError
+from ..store.integrity import Damage, FileProblem
 from ..store.objects import AnyStore, Fenced, ObjectSessionStore, open_store
+from ..store.records import SessionRecord
 from ..store.write import StoreError
 from .convert import (
     empty_map,
@@ -143,9 +144,9 @@ class SessionRegistry:
             if not is_disk_full(exc):
                 raise
             log.warning("the state folder is full: %s", exc)
-        if self.fleet:  # the fleet node takes the sessions no live instance owns
-            records, damaged = [], []
-        else:
+        records: list[SessionRecord] = []
+        damaged: list[Damage] = []
+        if not self.fleet:  # a fleet's node takes the sessions no live instance owns
             records, damaged = self.store.load_all()
         for rec in records:
             self.sessions[rec.id] = Session(rec, self.env)

@@ -39,10 +39,10 @@ from ..errors import ServiceError, not_found, session_damaged
 from ..nbv.cancel import checkpoint
 from ..nbv.gaussians import GaussianMap
 from ..settings import Settings
-from ..store.integrity import DamagedFile, FileProblem
-from ..store.records import SessionRecord, ViewRecord
 from ..store.blobs import BlobError
+from ..store.integrity import DamagedFile, FileProblem
 from ..store.objects import AnyStore, Fenced
+from ..store.records import SessionRecord, ViewRecord
 from . import transitions as tr
 from .convert import (
     Frame,

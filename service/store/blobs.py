@@ -31,11 +31,14 @@ import threading
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, Protocol, cast
 from urllib.parse import urlsplit
 
 __all__ = ["BlobError", "BlobInfo", "Blobs", "MemoryBlobs", "PreconditionFailed", "S3Blobs",
            "open_blobs"]
+
+
+_List = list  # the classes below have a method named list
 
 
 class PreconditionFailed(Exception):
@@ -87,11 +90,11 @@ class Blobs(Protocol):
         """Remove ``keys`` (a missing one is no error)."""
         ...
 
-    def list(self, prefix: str) -> list[BlobInfo]:
+    def list(self, prefix: str) -> _List[BlobInfo]:
         """Every object whose key starts with ``prefix`` (a folder: ending in ``/``)."""
         ...
 
-    def children(self, prefix: str) -> list[str]:
+    def children(self, prefix: str) -> _List[str]:
         """The names of the "folders" right under ``prefix`` (ending in ``/``), sorted."""
         ...
 
@@ -145,12 +148,12 @@ class MemoryBlobs:
             for key in keys:
                 self.objects.pop(key, None)
 
-    def list(self, prefix: str) -> list[BlobInfo]:
+    def list(self, prefix: str) -> _List[BlobInfo]:
         with self._lock:
             return [BlobInfo(k, len(d), t, when) for k, (d, t, when) in sorted(self.objects.items())
                     if k.startswith(prefix)]
 
-    def children(self, prefix: str) -> list[str]:
+    def children(self, prefix: str) -> _List[str]:
         with self._lock:
             keys = list(self.objects)
         return sorted({k[len(prefix):].split("/", 1)[0] for k in keys
@@ -182,8 +185,9 @@ class S3Blobs:
         # private network (AWS's own endpoints are https whatever this says)
         client: dict[str, Any] = {"timeout": f"{int(timeout * 1000)}ms",
                                   "connect_timeout": "5s", "allow_http": True}
-        self._store = S3Store(bucket, prefix=self.prefix or None, config=config or None,
-                              client_options=client)
+        self._store = S3Store(bucket, prefix=self.prefix or None,
+                              config=cast(Any, config or None),
+                              client_options=cast(Any, client))
 
     @property
     def where(self) -> str:
@@ -239,7 +243,7 @@ class S3Blobs:
         except Exception as exc:
             raise self._fail("delete", keys[0], exc) from exc
 
-    def list(self, prefix: str) -> list[BlobInfo]:
+    def list(self, prefix: str) -> _List[BlobInfo]:
         import obstore
 
         out = []
@@ -254,7 +258,7 @@ class S3Blobs:
             raise self._fail("list", prefix, exc) from exc
         return sorted(out, key=lambda b: b.key)
 
-    def children(self, prefix: str) -> list[str]:
+    def children(self, prefix: str) -> _List[str]:
         import obstore
 
         try:

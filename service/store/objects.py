@@ -328,7 +328,7 @@ class ObjectSessionStore:
     def session_ids(self, *, tidy: bool = True) -> list[str]:
         """The sessions in the store (their key prefixes), sorted; names that cannot be
         session ids are skipped."""
-        out = []
+        out: list[str] = []
         for name in self.blobs.children(SESSIONS):
             if SESSION_NAME.match(name):
                 out.append(name)

@@ -15,6 +15,7 @@ from __future__ import annotations
 import io
 import logging
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -100,7 +101,7 @@ def read_version(source: Source | Path, name: str) -> Version:
     """The manifest ``name`` of ``source`` (a session folder, or any :class:`Source`) and
     every file it names, checked."""
     src: Source = FolderSource(source) if isinstance(source, Path) else source
-    data, problem = read_checked(lambda: src.read(name), name, None)
+    data, problem = read_checked(partial(src.read, name), name, None)
     if problem is not None or data is None:
         return Version(problems=[problem or FileProblem(name, "unreadable")])
     try:
@@ -124,7 +125,7 @@ def read_version(source: Source | Path, name: str) -> Version:
             if role != "warm":
                 out.problems.append(FileProblem(name, f"names no {role} file"))
             continue
-        raw, problem = read_checked(lambda f=fname: src.read(f), fname, sums.get(fname))
+        raw, problem = read_checked(partial(src.read, fname), fname, sums.get(fname))
         if raw is not None:
             try:
                 obj = torch.load(io.BytesIO(raw), map_location="cpu", weights_only=True)
@@ -143,7 +144,7 @@ def read_version(source: Source | Path, name: str) -> Version:
         for fname in (v.image_file, v.depth_file):
             if fname:
                 rel = f"{VIEWS}/{fname}"
-                raw, problem = read_checked(lambda r=rel: src.read(r), rel, sums.get(rel))
+                raw, problem = read_checked(partial(src.read, rel), rel, sums.get(rel))
                 if problem is not None:
                     out.problems.append(problem)
                 elif legacy and raw is not None:

@@ -68,8 +68,9 @@ conditional create in the store, so of two instances creating one id at once exa
 succeeds. Known limits of instances with state folders of their own: two instances creating
 the same explicit session id at the same moment may both succeed (the check-then-create is
 not atomic); a session created while an instance that owns the same id is down collides with
-it when that instance comes back (both declare it; avoid reusing ids). Instances sharing a token (``AGILEGS_TOKEN``) forward with it; all
-instances of a cluster must use the same token.
+it when that instance comes back (both declare it; avoid reusing ids). Instances sharing a
+token (``AGILEGS_TOKEN``) forward with it; all instances of a cluster must use the same
+token.
 """
 
 from __future__ import annotations

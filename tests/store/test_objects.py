@@ -19,9 +19,9 @@ from agilegs.service import store_tool
 from agilegs.service.errors import ServiceError
 from agilegs.service.sessions.registry import SessionRegistry
 from agilegs.service.settings import Settings
+from agilegs.service.store import objects
 from agilegs.service.store.blobs import MemoryBlobs
 from agilegs.service.store.integrity import Damage, decode_manifest
-from agilegs.service.store import objects
 from agilegs.service.store.objects import Fenced, ObjectSessionStore, open_store
 from agilegs.service.store.records import MANIFEST
 from agilegs.service.store.write import SessionStore
