@@ -146,12 +146,15 @@ class Fleet:
         return out
 
 
-def _environment(endpoint: str) -> dict[str, str]:
-    aws = {"AWS_ACCESS_KEY_ID": os.environ.get("AWS_ACCESS_KEY_ID", "bench"),
-           "AWS_SECRET_ACCESS_KEY": os.environ.get("AWS_SECRET_ACCESS_KEY", "bench"),
-           "AWS_REGION": os.environ.get("AWS_REGION", "us-east-1"),
-           "AWS_ENDPOINT_URL": endpoint}
-    os.environ.update(aws)  # this process reads the store too (the leases)
+def _environment(endpoint: str, ours: bool) -> dict[str, str]:
+    """The ``AWS_*`` variables of the instances (this process reads the leases with them
+    too): moto's made-up credentials, or for an S3 API of one's own those of the environment
+    (inherited) and its endpoint."""
+    aws = {"AWS_ENDPOINT_URL": endpoint}
+    if ours:
+        aws.update(AWS_ACCESS_KEY_ID="bench", AWS_SECRET_ACCESS_KEY="bench",
+                   AWS_REGION="us-east-1")
+    os.environ.update(aws)
     return aws
 
 
@@ -365,7 +368,7 @@ def run(args: argparse.Namespace) -> int:
     results: dict[str, Any] = {}
     with tempfile.TemporaryDirectory() as tmp, _store(args) as endpoint:
         root = Path(tmp)
-        aws = _environment(endpoint)
+        aws = _environment(endpoint, ours=not args.endpoint)
         if "kill" in phases or "pause" in phases:
             fleet = Fleet(root / "fleet", f"s3://{args.bucket}/fleet", aws,
                           args.instances).start()

@@ -125,8 +125,7 @@ log = logging.getLogger(__name__)
 PROBE_TIMEOUT = 2.0
 """Seconds to wait for the live instances' health replies (they answer inline)."""
 
-HANDOVER_RETRY = 0.2
-"""The ``retry_after`` of a fleet's ``session_unavailable`` (seconds)."""
+HANDOVER_RETRY = 0.2  # the retry_after of a fleet's session_unavailable (s)
 
 SYNC_INTERVAL = 1.0
 """Seconds between two checks that the declared sessions match the loaded ones."""
@@ -442,8 +441,7 @@ class ClusterNode:
         return session_unavailable(session, live, fleet=self.fleet is not None)
 
     def _may_exist(self, session: str) -> bool:
-        """Whether a session no instance answers for may exist: always, but in a fleet,
-        whose store says (a session there is being taken over: worth a retry)."""
+        """Whether a session no instance answers for may exist (in a fleet: in the store)."""
         return self.fleet is None or self.registry.in_store(session)
 
     def _create_on(self, instance: str, body: bytes | None) -> BaseModel:
