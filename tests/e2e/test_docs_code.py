@@ -107,6 +107,10 @@ HOW: dict[tuple[str, str], How] = {
     ("docs/deploy.md", "export AGILEGS_TOKEN=$(openssl rand -hex 32) "
      "MINIO_ROOT_PASSWORD=$(openssl rand -hex 16)"):
         How("skip", "needs a Docker daemon (the compose file: tests/e2e/test_deploy_files.py)"),
+    ("docs/benchmarks.md", "OMP_NUM_THREADS=1 agilegs bench fleet --sessions 10 --kills 20 "
+     "--json fleet.json"):
+        How("parse", "three servers killed twenty times, minutes (the fleet on loopback: "
+                     "tests/e2e/test_fleet.py)"),
     ("docs/deploy.md", "export AWS_ACCESS_KEY_ID=... AWS_SECRET_ACCESS_KEY=... "
      "AWS_REGION=us-east-1"):
         How("parse", "an instance of a fleet on a lab's object store and router, running until "
