@@ -94,6 +94,14 @@ class SyncOperations:
     def list_views(self, session: str) -> m.ViewsOut:
         return self._send(rq.call("list_views", session))  # type: ignore[no-any-return]
 
+    def get_frames(self, session: str, view_id: int | None = None, *, depth: bool = True
+                   ) -> m.FramesOut:
+        """Acquired views with their images (``frame.image.to_numpy()``: RGB [H, W, 3]; png
+        and jpeg files as they came) and depth maps (``frame.depth.to_numpy()``: [H, W]
+        float32, 0 where missing): the view ``view_id``, or every view."""
+        return self._send(rq.get_frames(  # type: ignore[no-any-return]
+            session, view_id, depth=depth))
+
     def commit(self, session: str, candidate_id: int | None = None, *,
                pose: PoseLike | None = None, keep_in_pool: bool = False) -> m.View:
         """Acquire a candidate (by id) or a pose as a view; updates Ĥ."""
@@ -130,12 +138,15 @@ class SyncOperations:
         current_pose: PoseLike | None = None,
         pool: PoolLike | None = None,
         commit: bool = False,
+        targets: np.ndarray | Sequence[PoseLike] | None = None,
     ) -> m.SelectResponse:
-        """Choose the next view (unset arguments take the session's defaults)."""
+        """Choose the next view (unset arguments take the session's defaults); ``targets``:
+        the views of interest [T, 4, 4] of ``config={"objective": "target"}``."""
         return self._send(rq.select(  # type: ignore[no-any-return]
             session, method=method, shortlist_size=shortlist_size, shortlist=shortlist,
             embodied_k=embodied_k, seed=seed, fields=fields, config=config,
-            current_id=current_id, current_pose=current_pose, pool=pool, commit=commit))
+            current_id=current_id, current_pose=current_pose, pool=pool, commit=commit,
+            targets=targets))
 
     def get_information(self, session: str) -> m.InformationOut:
         """Ĥ per parameter block (``.arrays()`` gives numpy arrays)."""
@@ -145,6 +156,12 @@ class SyncOperations:
         """The session's current Gaussians (``.to_numpy()`` gives the five arrays): the map
         the service's mapper last published, or the one last set."""
         return self._send(rq.call("get_gaussians", session))  # type: ignore[no-any-return]
+
+    def save_gaussians(self, session: str, path: str | Path) -> Path:
+        """Write the session's current Gaussians to ``path``: an Inria 3DGS ``.ply`` (the
+        float32 parameters as they are; SuperSplat, gsplat, nerfstudio read it) or an
+        antimatter15 ``.splat`` (quantised), by its suffix; returns ``path``."""
+        return rq.write_file(path, self._send(rq.gaussians_file(session, path)))
 
     def get_decisions(self, session: str, *, after: int = 0, wait: float = 0.0,
                       limit: int = 100) -> d.DecisionsOut:
@@ -211,6 +228,11 @@ class AsyncOperations:
     async def list_views(self, session: str) -> m.ViewsOut:
         return await self._send(rq.call("list_views", session))  # type: ignore[no-any-return]
 
+    async def get_frames(self, session: str, view_id: int | None = None, *, depth: bool = True
+                         ) -> m.FramesOut:
+        return await self._send(rq.get_frames(  # type: ignore[no-any-return]
+            session, view_id, depth=depth))
+
     async def commit(self, session: str, candidate_id: int | None = None, *,
                      pose: PoseLike | None = None, keep_in_pool: bool = False) -> m.View:
         return await self._send(rq.commit(  # type: ignore[no-any-return]
@@ -244,17 +266,22 @@ class AsyncOperations:
         current_pose: PoseLike | None = None,
         pool: PoolLike | None = None,
         commit: bool = False,
+        targets: np.ndarray | Sequence[PoseLike] | None = None,
     ) -> m.SelectResponse:
         return await self._send(rq.select(  # type: ignore[no-any-return]
             session, method=method, shortlist_size=shortlist_size, shortlist=shortlist,
             embodied_k=embodied_k, seed=seed, fields=fields, config=config,
-            current_id=current_id, current_pose=current_pose, pool=pool, commit=commit))
+            current_id=current_id, current_pose=current_pose, pool=pool, commit=commit,
+            targets=targets))
 
     async def get_information(self, session: str) -> m.InformationOut:
         return await self._send(rq.call("get_information", session))  # type: ignore[no-any-return]
 
     async def get_gaussians(self, session: str) -> m.GaussiansOut:
         return await self._send(rq.call("get_gaussians", session))  # type: ignore[no-any-return]
+
+    async def save_gaussians(self, session: str, path: str | Path) -> Path:
+        return rq.write_file(path, await self._send(rq.gaussians_file(session, path)))
 
     async def get_decisions(self, session: str, *, after: int = 0, wait: float = 0.0,
                             limit: int = 100) -> d.DecisionsOut:

@@ -23,6 +23,8 @@ from agilegs.schemas import (
     Operation,
     Pose,
 )
+from agilegs.schemas.codec import GAUSSIAN_FILE_TYPES
+from agilegs.schemas.config import SelectConfigPatch
 from agilegs.schemas.geometry import trusted_poses
 from agilegs.schemas.views import InitialFrame
 
@@ -62,6 +64,7 @@ class Call:
     session: str | None = None
     body: BaseModel | None = None
     params: dict[str, str] | None = None  # query parameters (HTTP) / selector (Zenoh)
+    file: str | None = None  # answered as this file (get_gaussians: ply / splat), as bytes
 
 
 def call(name: str, session: str | None = None, body: BaseModel | None = None) -> Call:
@@ -102,6 +105,27 @@ def to_gaussians(g: m.GaussiansIn | str | Path | Mapping[str, Any]) -> m.Gaussia
         return m.GaussiansIn(format=fmt, data=path.read_bytes())  # type: ignore[arg-type]
     arrays = {k: NDArray.from_numpy(np.asarray(v, dtype=np.float32)) for k, v in g.items()}
     return m.GaussiansIn(format="arrays", arrays=m.GaussianArrays(**arrays))
+
+
+@checked
+def gaussians_file(session: str, path: str | Path) -> Call:
+    """``get_gaussians`` answered as the file ``path``'s suffix names (.ply / .splat)."""
+    fmt = Path(path).suffix.lower().lstrip(".")
+    if fmt not in GAUSSIAN_FILE_TYPES:
+        raise ValueError(f"{path}: the file name must end in .ply (Inria 3DGS) or .splat")
+    return Call(OPERATIONS["get_gaussians"], session, None, file=fmt)
+
+
+def write_file(path: str | Path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` through a temporary name (a reader never sees half of it)."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.part")
+    try:
+        tmp.write_bytes(data)
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
 
 
 @checked
@@ -169,6 +193,7 @@ def select(
     current_pose: PoseLike | None = None,
     pool: m.PoolIn | np.ndarray | Sequence[PoseLike] | None = None,
     commit: bool = False,
+    targets: np.ndarray | Sequence[PoseLike] | None = None,
 ) -> Call:
     body = m.SelectRequest.model_construct(
         method=method,
@@ -177,10 +202,11 @@ def select(
         embodied_k=embodied_k,
         seed=seed,
         fields=list(fields) if fields is not None else None,
-        config=dict(config) if config is not None else None,
+        config=SelectConfigPatch.model_validate(dict(config)) if config is not None else None,
         current_id=current_id,
         current_pose=to_pose(current_pose) if current_pose is not None else None,
         pool=to_pool(pool, None) if pool is not None else None,
+        targets=to_pool(targets, None).poses if targets is not None else None,
         commit=commit,
     )
     return call("select", session, body)
@@ -204,6 +230,11 @@ def add_observations(session: str, observations: m.ObservationIn | Mapping[str, 
     body = m.ObservationsIn.model_construct(
         observations=[to_observation(o) for o in observations])
     return call("add_observations", session, body)
+
+
+@checked
+def get_frames(session: str, view_id: int | None = None, *, depth: bool = True) -> Call:
+    return call("get_frames", session, m.FramesRequest(view_id=view_id, depth=depth))
 
 
 @checked

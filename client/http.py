@@ -9,6 +9,7 @@ from pydantic import BaseModel
 from pydantic import ValidationError as PydanticValidationError
 
 from agilegs.schemas import codec
+from agilegs.schemas.codec import GAUSSIAN_FILE_TYPES
 
 from ._ops import AsyncOperations, SyncOperations
 from ._requests import Call, query_params
@@ -36,6 +37,8 @@ class _HTTPBase:
         if call.session is not None:
             path = path.replace("{session}", call.session)
         headers = dict(self.headers)
+        if call.file is not None:  # the file, else (an error) the body in our encoding
+            headers["accept"] = f"{GAUSSIAN_FILE_TYPES[call.file]}, {self.kind};q=0.5"
         content = None
         params = call.params
         if call.body is not None and call.op.query:
@@ -46,10 +49,16 @@ class _HTTPBase:
         return {"method": call.op.http_method, "url": path, "content": content,
                 "headers": headers, "params": params}
 
-    def _response(self, call: Call, r: httpx.Response) -> BaseModel:
+    def _response(self, call: Call, r: httpx.Response) -> BaseModel | bytes:
         kind = codec.media_type(r.headers.get("content-type")) or codec.JSON
         if r.status_code >= 400:
             raise error_from_body(r.status_code, r.content, kind)
+        if call.file is not None:
+            got = r.headers.get("content-type", "").split(";", 1)[0].strip().lower()
+            if got != GAUSSIAN_FILE_TYPES[call.file]:
+                raise ProtocolError(f"{call.op.name}: asked for a .{call.file} file, the server "
+                                    f"answered {got or 'no type'}")
+            return r.content
         try:
             return call.op.response.model_validate(codec.load(r.content, kind))
         except (codec.DecodeError, PydanticValidationError) as exc:
@@ -85,10 +94,10 @@ class Client(_HTTPBase, SyncOperations):
         self._http = httpx.Client(base_url=base_url, timeout=timeout, transport=transport)
         self.retry_window = retry_window
 
-    def _send(self, call: Call) -> BaseModel:
+    def _send(self, call: Call) -> BaseModel | bytes:
         return retry_sync(lambda: self._send_once(call), self.retry_window)
 
-    def _send_once(self, call: Call) -> BaseModel:
+    def _send_once(self, call: Call) -> BaseModel | bytes:
         try:
             r = self._http.request(**self._request_args(call))
         except httpx.TimeoutException as exc:
@@ -124,10 +133,10 @@ class AsyncClient(_HTTPBase, AsyncOperations):
         self._http = httpx.AsyncClient(base_url=base_url, timeout=timeout, transport=transport)
         self.retry_window = retry_window
 
-    async def _send(self, call: Call) -> BaseModel:
+    async def _send(self, call: Call) -> BaseModel | bytes:
         return await retry_async(lambda: self._send_once(call), self.retry_window)
 
-    async def _send_once(self, call: Call) -> BaseModel:
+    async def _send_once(self, call: Call) -> BaseModel | bytes:
         try:
             r = await self._http.request(**self._request_args(call))
         except httpx.TimeoutException as exc:

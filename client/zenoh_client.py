@@ -4,9 +4,9 @@ Needs ``eclipse-zenoh`` (``pip install 'agilegs[zenoh]'``). Every operation is a
 ``agilegs/<session>/<op>`` (or ``agilegs/@service/<op>``) with a msgpack payload; besides, a
 robot can publish frames and pools and follow every decision (see :mod:`agilegs.schemas.keys`).
 
-With several server instances (see :mod:`agilegs.service.transports.cluster`), a client that reaches
-one of them or their router reaches every session: Zenoh routes each query to the instance
-that owns the session. A query that no instance answers raises
+With several server instances (see :mod:`agilegs.service.transports.zenoh.cluster`), a
+client that reaches one of them or their router reaches every session: Zenoh routes each query
+to the instance that owns the session. A query that no instance answers raises
 :class:`~agilegs.client.errors.SessionUnavailableError` while some instance is alive, and
 :class:`~agilegs.client.errors.TransportError` when none is.
 """
@@ -51,7 +51,8 @@ class ZenohClient(SyncOperations):
         token: bearer token, sent as the attachment ``Bearer <token>``.
         timeout: seconds to wait for a reply (sent as the query's ``deadline_ms``: the
             server cancels work this client no longer waits for).
-        wait: seconds to wait at start for the server to answer ``health`` (0: do not wait).
+        wait: seconds to wait at start for the server to answer ``health`` (0: do not wait;
+            at most ``timeout``).
         mode: zenoh mode, ``"peer"`` or ``"client"`` (through a router, or through one
             server instance that is a peer: it routes to the other instances).
         user, password: Zenoh credentials, for a server or router that authenticates its
@@ -105,6 +106,7 @@ class ZenohClient(SyncOperations):
             connect = ("tcp/127.0.0.1:7447",)
         self.timeout = timeout
         self.retry_window = retry_window
+        self._connect = list(connect)
         self._attachment = f"Bearer {token}".encode() if token else None
         self._session: Any = None
         try:
@@ -115,19 +117,26 @@ class ZenohClient(SyncOperations):
             raise TransportError(f"cannot open a Zenoh session: {exc}") from exc
         self._subscribers: list[Any] = []
         if wait > 0:
-            self._wait_for_server(wait)
+            self._wait_for_server(min(wait, timeout))
 
     def _wait_for_server(self, wait: float) -> None:
+        """Wait up to ``wait`` s in all for ``health`` to answer (each query within what is
+        left of it)."""
         deadline = time.monotonic() + wait
-        while True:
-            try:
-                self.health()
-                return
-            except TransportError:
-                if time.monotonic() > deadline:
-                    self.close()
-                    raise
-                time.sleep(0.05)
+        timeout = self.timeout
+        try:
+            while True:
+                self.timeout = max(0.05, deadline - time.monotonic())
+                try:
+                    self.health()
+                    return
+                except TransportError:
+                    if time.monotonic() + 0.05 >= deadline:
+                        self.close()
+                        raise
+                    time.sleep(0.05)
+        finally:
+            self.timeout = timeout
 
     @staticmethod
     def _key(call: Call) -> str:
@@ -141,13 +150,15 @@ class ZenohClient(SyncOperations):
 
             raise ValidationError(422, "invalid", str(exc), "session") from None
 
-    def _send(self, call: Call, parameters: str | None = None) -> BaseModel:
+    def _send(self, call: Call, parameters: str | None = None) -> BaseModel | bytes:
         return retry_sync(lambda: self._send_once(call, parameters), self.retry_window)
 
-    def _send_once(self, call: Call, parameters: str | None = None) -> BaseModel:
+    def _send_once(self, call: Call, parameters: str | None = None) -> BaseModel | bytes:
         if parameters is None:
             # the server gives up on the work once this client stops waiting for it
             params = {**(call.params or {}), "deadline_ms": f"{self.timeout * 1e3:.0f}"}
+            if call.file is not None:
+                params["format"] = call.file
             parameters = ";".join(f"{k}={v}" for k, v in params.items())
         key = self._key(call)
         payload = codec.dump(call.body, codec.MSGPACK) if call.body is not None else None
@@ -157,6 +168,11 @@ class ZenohClient(SyncOperations):
                                           timeout=self.timeout)
         except Exception as exc:
             raise TransportError(f"{call.op.name}: zenoh query on {key} failed: {exc}") from exc
+        if ans is not None and ans.ok and call.file is not None:
+            if ans.encoding.split(";", 1)[0] != codec.GAUSSIAN_FILE_TYPES[call.file]:
+                raise ProtocolError(f"{call.op.name}: asked for a .{call.file} file, the reply "
+                                    f"is encoded {ans.encoding!r}")
+            return ans.payload
         if ans is not None and ans.ok:
             try:
                 return call.op.response.model_validate(ans.load())
@@ -176,8 +192,23 @@ class ZenohClient(SyncOperations):
                 f"{call.op.name}: no instance answers for session {call.session!r}: it does not "
                 "exist, or the instance that owns it is down", "path.session",
                 retry_after=0.05 if read and self._in_fleet() else None)
+        if not self._linked():
+            raise TransportError(
+                f"{call.op.name}: no Zenoh peer reached at {', '.join(self._connect)}: no server "
+                "listens there, or it refused this client's link (a server with AGILEGS_TOKEN or "
+                "a users file lets in only peers with its Zenoh credentials: "
+                "ZenohClient(credentials='<state-dir>/zenoh/client.json') or user= and "
+                "password=; with TLS, tls_root_ca=)")
         raise TransportError(f"{call.op.name}: no reply on {key} (is the server running with "
                              "Zenoh, and reachable?)")
+
+    def _linked(self) -> bool:
+        """Whether this session holds a link to some peer or router."""
+        try:
+            info = self._session.info
+            return any(True for _ in info.peers_zid()) or any(True for _ in info.routers_zid())
+        except Exception:  # an API without it: say nothing more
+            return True
 
     def _in_fleet(self) -> bool:
         """Whether the instances answering form a fleet (they declare member tokens)."""

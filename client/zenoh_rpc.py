@@ -94,12 +94,14 @@ def open_session(listen: Sequence[str] = (), connect: Sequence[str] = (), mode: 
 @dataclass(frozen=True)
 class Answer:
     """One reply to a query: ``ok`` (a response) or not (an error reply), the key it came
-    on, its payload and the payload's media type (JSON or msgpack)."""
+    on, its payload and the payload's media type (JSON or msgpack), and its Zenoh encoding
+    as sent (a file's media type: ``application/x-ply``)."""
 
     ok: bool
     key: str
     payload: bytes
     kind: str
+    encoding: str = ""
 
     def load(self) -> Any:
         """The payload as Python data (``codec.DecodeError`` if malformed)."""
@@ -110,7 +112,8 @@ def _answer(reply: Any) -> Answer:
     if reply.ok is not None:
         sample = reply.ok
         kind = codec.media_type(str(sample.encoding)) or codec.MSGPACK
-        return Answer(True, str(sample.key_expr), sample.payload.to_bytes(), kind)
+        return Answer(True, str(sample.key_expr), sample.payload.to_bytes(), kind,
+                      str(sample.encoding))
     err = reply.err
     kind = (codec.media_type(str(err.encoding)) if err.encoding is not None else None
             ) or codec.MSGPACK

@@ -44,6 +44,7 @@ __all__ = [
     "FISHERRF_FIELDS",
     "METHODS",
     "MIXED_ZBUFFER",
+    "OBJECTIVES",
     "POINT_ZBUFFER",
     "PRESETS",
     "SHORTLISTS",
@@ -52,15 +53,18 @@ __all__ = [
     "FisherRFConfig",
     "FisherRFField",
     "Method",
+    "Objective",
     "ScoringConfig",
     "SelectConfig",
     "ShortlistStrategy",
     "preset_config",
 ]
 
-Method = Literal["random", "fisherrf", "cover", "full_eig", "agile", "agile_plus"]
+Method = Literal["random", "spread", "fisherrf", "cover", "full_eig", "agile", "agile_plus"]
 """The selection methods (the maths' registry holds one implementation per name): the
-baselines Random, FisherRF and COVER as their authors' code computes them, ``full_eig`` (the
+baselines Random, spread (farthest-point sampling over the pool: the candidate farthest from
+every acquired view, position and rotation; it needs no map), FisherRF and COVER as their
+authors' code computes them, ``full_eig`` (the
 exact diagonal EIG of every eligible candidate: the ceiling AGILE-GS+ approximates), and
 AGILE-GS / AGILE-GS+."""
 METHODS: tuple[str, ...] = get_args(Method)
@@ -68,6 +72,10 @@ ShortlistStrategy = Literal["leverage", "knearest", "topnorm", "online"]
 """Shortlist strategies of ``agile`` / ``agile_plus``: the paper's ridge leverage and the
 ablations."""
 SHORTLISTS: tuple[str, ...] = get_args(ShortlistStrategy)
+Objective = Literal["eig", "target"]
+"""What the exact scoring maximises: the paper's expected information gain, or the worth of a
+view on the target views' renders."""
+OBJECTIVES: tuple[str, ...] = get_args(Objective)
 FieldName = Literal["means", "log_scales", "quats", "opacity_logits", "sh"]
 """The parameter blocks of a Gaussian map."""
 FIELD_NAMES: tuple[str, ...] = get_args(FieldName)
@@ -301,6 +309,11 @@ class SelectConfig:
         "where a probe beats every model candidate doubles the probes of the next event (at "
         "most half of N), one where the model wins halves them (at least this number); 0: "
         "none, every slot the model's (the paper)")
+    probe_draw: Literal["uniform", "spread"] = Field(
+        default="uniform",
+        description="how agile_plus draws its probes among the eligible candidates outside "
+        "the model's shortlist: 'uniform' (seeded by the event) or 'spread' (their "
+        "farthest-point order from the acquired views: the first probe is spread's pick there)")
     embodied_k: Annotated[int, Strict(), Field(ge=1, le=100_000),
                           BeforeValidator(integral)] | None = Field(
         default=None, description="only the K candidates nearest the current view are "
@@ -313,6 +326,23 @@ class SelectConfig:
         default=0, description="seeds every random choice")
     fields: Blocks | None = Field(
         default=None, description="parameter blocks entering phi and psi (None: all five)")
+    objective: Objective = Field(
+        default="eig",
+        description="what full_eig and agile_plus's rerank maximise: 'eig' (the paper's "
+        "expected information gain sum log(1 + H_v / Hhat) over every parameter) or 'target' "
+        "(the fall of the target views' predicted render variance, sum T H_v / (Hhat (Hhat + "
+        "H_v)) with T the targets' summed Fisher: the request's target poses, else the pool)")
+    spread_filter: UnitFloat = Field(
+        default=0.0,
+        description="full_eig scores only the eligible candidates whose distance to the "
+        "nearest acquired view (spread's SE(3) distance) is at least this fraction of the "
+        "farthest candidate's: spread broken by the objective (0: every eligible candidate, "
+        "1: spread's own pick)")
+    target_views: Annotated[int, Strict(), Field(ge=1, le=256),
+                            BeforeValidator(integral)] = Field(
+        default=8,
+        description="objective 'target': the targets' Fisher T is summed over this many of "
+        "them, a farthest-point subsample (one Fisher pass each, once per selection)")
     anchor: AnchorConfig = Field(default_factory=AnchorConfig)
     scoring: ScoringConfig = Field(default_factory=ScoringConfig)
     cover_bins: Dim = Field(default=128, description="COVER's direction bins per Gaussian")

@@ -19,13 +19,17 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
      "what each candidate is worth, and which scores predict it"),
     (("bench", "proxy"), "agilegs.lab.bench.proxy_check",
      "how the anchor's choices follow the exact EIG on trained maps"),
+    (("bench", "firstcall"), "agilegs.lab.bench.firstcall",
+     "a fresh server's first selection against its tenth (the kernels' compile)"),
+    (("bench", "coverage"), "agilegs.lab.bench.coverage_report",
+     "where a bench run's picks went, the test views' coverage, and their EIG's mass"),
     (("bench", "fleet"), "agilegs.lab.bench.fleet",
      "instances sharing an object store, killed and paused under load: takeover, losses"),
 ]
 
 GROUPS: dict[str, str] = {
     "bench": "the benchmarks: render, latency, run, service, bigmap, edge, value, proxy, "
-             "fleet",
+             "firstcall, coverage, fleet",
 }
 """The help of each command that groups subcommands."""
 

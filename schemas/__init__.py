@@ -28,7 +28,17 @@ from .sessions import (
     SessionList,
     SessionSummary,
 )
-from .views import CommitRequest, ImageData, ObservationIn, ObservationsIn, View, ViewsOut
+from .views import (
+    CommitRequest,
+    Frame,
+    FramesOut,
+    FramesRequest,
+    ImageData,
+    ObservationIn,
+    ObservationsIn,
+    View,
+    ViewsOut,
+)
 
 __all__ = [
     "OPERATIONS",
@@ -47,6 +57,9 @@ __all__ = [
     "ErrorItem",
     "FieldSummary",
     "FileProblem",
+    "Frame",
+    "FramesOut",
+    "FramesRequest",
     "GaussianArrays",
     "GaussiansIn",
     "GaussiansOut",

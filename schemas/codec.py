@@ -2,7 +2,8 @@
 
 msgpack maps carry string keys, bytes travel as msgpack ``bin``; JSON carries bytes as
 base64 strings. :func:`dump` turns a model into either; :func:`load` parses either into
-plain Python data for ``Model.model_validate``.
+plain Python data for ``Model.model_validate``. An operation that also answers a file
+(``get_gaussians``: :data:`GAUSSIAN_FILE_TYPES`) finds it in Accept with :func:`preferred_file`.
 """
 
 from __future__ import annotations
@@ -18,12 +19,14 @@ __all__ = [
     "JSON",
     "MSGPACK",
     "MSGPACK_TYPES",
+    "GAUSSIAN_FILE_TYPES",
     "DecodeError",
     "dump",
     "load",
     "media_ranges",
     "media_type",
     "negotiate",
+    "preferred_file",
 ]
 
 JSON = "application/json"
@@ -31,6 +34,12 @@ MSGPACK = "application/msgpack"
 MSGPACK_TYPES = frozenset(
     {"application/msgpack", "application/x-msgpack", "application/vnd.msgpack"}
 )
+
+
+GAUSSIAN_FILE_TYPES: dict[str, str] = {"ply": "application/x-ply", "splat": "application/x-splat"}
+"""The files ``get_gaussians`` answers besides JSON and msgpack, by format: the Inria 3DGS
+``.ply`` and the antimatter15 ``.splat``. Over HTTP a request asks for one with ``Accept``,
+over Zenoh with the query parameter ``format`` (``ply`` or ``splat``)."""
 
 
 class DecodeError(ValueError):
@@ -81,6 +90,26 @@ def negotiate(accept: str | None, default: str = JSON) -> str | None:
             chosen = JSON
         elif kind in ("*/*", "application/*"):
             chosen = default
+        else:
+            continue
+        if best is None or (q, -order) > (best[0], best[1]):
+            best = (q, -order, chosen)
+    return best[2] if best else None
+
+
+def preferred_file(accept: str | None, files: dict[str, str]) -> str | None:
+    """The format (a key of ``files``, format -> media type) whose media type ``accept``
+    prefers to JSON and msgpack; None when it prefers those (or ``*/*``), or names none."""
+    by_type = {t: f for f, t in files.items()}
+    best: tuple[float, int, str | None] | None = None
+    for order, (kind, q) in enumerate(media_ranges(accept)):
+        if q <= 0:
+            continue
+        if kind in by_type:
+            chosen: str | None = by_type[kind]
+        elif (kind in MSGPACK_TYPES or kind == JSON or kind.endswith("+json")
+              or kind in ("*/*", "application/*")):
+            chosen = None
         else:
             continue
         if best is None or (q, -order) > (best[0], best[1]):

@@ -17,7 +17,10 @@ key expression                         kind          payload (msgpack of a schem
 =====================================  ============  =======================================
 
 A query's reply is the operation's response model, or an error reply carrying an
-:class:`~agilegs.schemas.errors.ErrorBody` (same body and status as over HTTP). Payloads are
+:class:`~agilegs.schemas.errors.ErrorBody` (same body and status as over HTTP). ``get_gaussians``
+with the selector parameter ``format=ply`` (or ``splat``) replies with the file's bytes instead,
+encoded ``application/x-ply`` (``application/x-splat``; see
+:data:`~agilegs.schemas.codec.GAUSSIAN_FILE_TYPES`). Payloads are
 msgpack (JSON is accepted and answered in kind when the query's encoding says
 ``application/json``). With a server token, queries and publications carry the attachment
 ``Bearer <token>``.
@@ -70,6 +73,7 @@ SESSION_OPS: tuple[str, ...] = (
     "set_gaussians",
     "add_observations",
     "list_views",
+    "get_frames",
     "commit",
     "set_pool",
     "extend_pool",

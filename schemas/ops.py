@@ -14,7 +14,7 @@ from .information import InformationOut
 from .pool import PoolIn, PoolOut
 from .selection import SelectRequest, SelectResponse
 from .sessions import Deleted, Health, Repaired, SessionCreate, SessionInfo, SessionList
-from .views import CommitRequest, ObservationsIn, View, ViewsOut
+from .views import CommitRequest, FramesOut, FramesRequest, ObservationsIn, View, ViewsOut
 
 __all__ = ["OPERATIONS", "Operation"]
 
@@ -69,6 +69,8 @@ OPERATIONS: dict[str, Operation] = {
             ViewsOut, "add posed frames (acquired views; update Ĥ)"),
         _op("list_views", "session", "GET", _S + "/views", None, ViewsOut,
             "list acquired views"),
+        _op("get_frames", "session", "GET", _S + "/frames", FramesRequest, FramesOut,
+            "read acquired views with their images and depth (one view, or all)", query=True),
         _op("commit", "session", "POST", _S + "/views", CommitRequest, View,
             "acquire a view (update Ĥ)"),
         _op("set_pool", "session", "PUT", _S + "/pool", PoolIn, PoolOut,

@@ -8,17 +8,22 @@ from agilegs.config.selection import FieldName, Method, ShortlistStrategy
 
 from .config import SelectConfigPatch
 from .fields import STRICT, UNIQUE, EmbodiedK, Id, Seed, ShortlistSize, unique
-from .forms import WireInt
-from .geometry import Pose
+from .forms import RULES_KEY, WireInt
+from .geometry import Pose, PoseList
 from .pool import Candidate, PoolIn
 from .views import View
 
 __all__ = [
+    "MAX_TARGETS",
     "ScoredCandidate",
     "SelectDefaults",
     "SelectRequest",
     "SelectResponse",
 ]
+
+
+MAX_TARGETS = 1024
+"""The most target poses a select request carries (``config.target_views`` of them are used)."""
 
 
 class SelectDefaults(BaseModel):
@@ -61,11 +66,16 @@ class SelectRequest(BaseModel):
     acquires the chosen candidate (as a commit does) in the same step. A selection without
     commit changes nothing persisted; the next acquisition (a commit, or an observation of a
     new view) moves the selector's warm state on as ``commit`` would have.
+
+    ``targets`` are the views of interest of ``config.objective = "target"`` (full_eig's
+    scores, agile_plus's rerank: the fall of these views' predicted render variance); without
+    them that objective's targets are the pool. They are refused with the ``eig`` objective.
     """
 
     model_config = ConfigDict(extra="forbid", strict=True, json_schema_extra={
         "not": {"required": ["current_id", "current_pose"], "properties": {
-            "current_id": {"type": "integer"}, "current_pose": {"type": "object"}}}})
+            "current_id": {"type": "integer"}, "current_pose": {"type": "object"}}},
+        RULES_KEY: ["targets-objective"]})
 
     method: Method | None = None
     shortlist_size: ShortlistSize | None = None
@@ -79,6 +89,10 @@ class SelectRequest(BaseModel):
     current_id: Id | None = Field(default=None, description="the current view, a candidate id")
     current_pose: Pose | None = Field(default=None, description="the current view's pose")
     pool: PoolIn | None = Field(default=None, description="replace the pool before selecting")
+    targets: PoseList | None = Field(
+        default=None, min_length=1, max_length=MAX_TARGETS,
+        description="camera-to-world poses of the views of interest of config.objective "
+        "'target' (default: the pool); only with that objective")
     commit: bool = Field(default=False, description="acquire the chosen candidate")
 
     @model_validator(mode="after")

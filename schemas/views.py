@@ -18,6 +18,9 @@ from .geometry import Intrinsics, Pose
 
 __all__ = [
     "CommitRequest",
+    "Frame",
+    "FramesOut",
+    "FramesRequest",
     "ImageData",
     "InitialFrame",
     "ObservationIn",
@@ -235,4 +238,30 @@ class View(BaseModel):
 
 class ViewsOut(BaseModel):
     views: list[View]
+    version: int
+
+
+class FramesRequest(BaseModel):
+    """Which acquired views to read with their frames: the view ``view_id``, or every view
+    (none given); ``depth`` false leaves the depth maps out. Over HTTP the fields are query
+    parameters."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    view_id: Id | None = Field(default=None, description="one view (default: every view)")
+    depth: bool = Field(default=True, description="include the depth maps")
+
+
+class Frame(BaseModel):
+    """An acquired view and its frame as the server keeps it: ``image`` the file as it came
+    (png / jpeg bytes unchanged, raw pixels as sent), ``depth`` [H, W] float32 in scene
+    units (0: missing); None where the view has none (or the request left depth out)."""
+
+    view: View
+    image: ImageData | None = None
+    depth: NDArray | None = None
+
+
+class FramesOut(BaseModel):
+    frames: list[Frame]
     version: int

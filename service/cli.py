@@ -26,6 +26,8 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
      "check a state folder's sessions against their checksums (offline)"),
     (("store", "repair"), "agilegs.service.store_tool",
      "roll damaged sessions of a state folder back to their last intact version (offline)"),
+    (("export",), "agilegs.service.export",
+     "write a session's views as a nerfstudio / COLMAP dataset (from a server or a state folder)"),
     (("view",), "agilegs.service.viewer.cli",
      "a live browser view of a session, or the replay of a benchmark run (agilegs[viewer])"),
 ]

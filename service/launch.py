@@ -126,6 +126,19 @@ class ServerProcess:
             zc.health()
         return True
 
+    def wait_ready(self, timeout: float = 600.0) -> float:
+        """Wait until ``/readyz`` answers 200 (the warm-up done); the seconds waited.
+        RuntimeError if the server exits or is not ready in time."""
+        import httpx
+
+        t0 = time.perf_counter()
+        token = self.env.get("AGILEGS_TOKEN")
+        headers = {"authorization": f"Bearer {token}"} if token else {}
+        wait_until(lambda: httpx.get(self.url + "/readyz", headers=headers,
+                                     timeout=1).status_code == 200,
+                   timeout, alive=self.alive, what="agilegs serve's /readyz")
+        return time.perf_counter() - t0
+
     def alive(self) -> bool:
         return self.proc is not None and self.proc.poll() is None
 

@@ -30,7 +30,8 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from .server import Server
 
-__all__ = ["add_arguments", "build_settings", "run", "zenoh_start_error"]
+__all__ = ["SettingError", "add_arguments", "build_settings", "check_settings", "run",
+           "zenoh_start_error"]
 
 log = logging.getLogger(__name__)
 
@@ -45,11 +46,49 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_flags(parser)
 
 
+class SettingError(ValueError):
+    """A setting that this machine or the ROS 2 naming rules refuse; ``setting`` names the
+    field (its flag is ``--`` + the name with dashes, its variable ``AGILEGS_`` + the name)."""
+
+    def __init__(self, setting: str, message: str) -> None:
+        super().__init__(f"{setting}: {message}")
+        self.setting = setting
+        self.message = message
+
+
+def check_settings(settings: Any) -> None:
+    """What the settings cannot check, as they import neither torch nor the client: the
+    device exists on this machine, the ROS 2 namespaces are ROS names that do not repeat.
+    Raises :class:`SettingError`."""
+    device = str(settings.device)
+    if device != "cpu":
+        import torch
+
+        if not torch.cuda.is_available():
+            raise SettingError("device", f"{device!r}: CUDA is not available on this machine")
+        index = int(device.partition(":")[2] or 0)
+        if index >= torch.cuda.device_count():
+            raise SettingError("device", f"{device!r}: this machine has "
+                                         f"{torch.cuda.device_count()} CUDA device(s)")
+    if settings.ros2:
+        from agilegs.client.ros2 import normalize_namespace
+
+        try:
+            names = [normalize_namespace(v) for v in settings.ros2]
+        except ValueError as exc:
+            raise SettingError("ros2", str(exc)) from None
+        if len(set(names)) != len(names):
+            raise SettingError("ros2", f"ROS 2 namespaces repeat: {names}")
+
+
 def build_settings(args: argparse.Namespace) -> Any:
-    """Settings from the environment, overridden by the flags given."""
+    """Settings from the environment, overridden by the flags given, and checked against
+    this machine (:func:`check_settings`)."""
     from .settings import settings_from_flags
 
-    return settings_from_flags(args)
+    settings = settings_from_flags(args)
+    check_settings(settings)
+    return settings
 
 
 def bind_http(host: str, port: int) -> socket.socket:
@@ -79,6 +118,10 @@ def http_bind_error(exc: OSError, host: str, port: int) -> str:
 def zenoh_start_error(exc: BaseException, settings: Any) -> str | None:
     """One line saying why Zenoh could not start (the endpoint, the cause, the flag to
     change), or None when ``exc`` is not Zenoh's."""
+    from .transports.zenoh.security import UsersFileError
+
+    if isinstance(exc, UsersFileError):
+        return str(exc)
     if type(exc).__module__.split(".")[0] != "zenoh":
         return None
     text = str(exc)
@@ -111,6 +154,11 @@ def run(args: argparse.Namespace) -> int:
             name = str(err["loc"][0]) if err["loc"] else "settings"
             sys.stderr.write(f"agilegs serve: --{name.replace('_', '-')} "
                              f"(AGILEGS_{name.upper()}): {err['msg']}\n")
+        return 2
+    except SettingError as exc:
+        name = exc.setting
+        sys.stderr.write(f"agilegs serve: --{name.replace('_', '-')} "
+                         f"(AGILEGS_{name.upper()}): {exc.message}\n")
         return 2
     tune_allocator()
     server = Server(settings, freeze_gc=True)

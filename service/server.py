@@ -3,7 +3,8 @@
 :class:`Server` wires one instance together: the sessions (:class:`SessionRegistry
 <agilegs.service.sessions.registry.SessionRegistry>`), the request pipeline
 (:class:`~agilegs.service.transports.gateway.Gateway`), the cluster node that routes operations to
-the instance owning a session (:class:`~agilegs.service.transports.cluster.ClusterNode`), the Zenoh
+the instance owning a session
+(:class:`~agilegs.service.transports.zenoh.cluster.ClusterNode`), the Zenoh
 transport (:class:`~agilegs.service.transports.zenoh.adapter.ZenohAdapter`) with the ROS 2 one on
 its
 session (:class:`~agilegs.service.transports.ros2.adapter.Ros2Adapter`) and the metrics; the HTTP
@@ -16,15 +17,17 @@ from __future__ import annotations
 
 import gc
 import logging
+import threading
+import time
 from typing import TYPE_CHECKING
 
 from .sessions.registry import SessionRegistry
 from .settings import Settings
 from .store.state_dir import StateLock, claim_state_dir
-from .transports.cluster import ClusterNode
 from .transports.gateway import Gateway
 from .transports.metrics import Metrics
 from .transports.zenoh.adapter import ZenohAdapter
+from .transports.zenoh.cluster import ClusterNode
 
 if TYPE_CHECKING:
     from .transports.ros2.adapter import Ros2Adapter
@@ -61,6 +64,29 @@ class Server:
         self.zenoh: ZenohAdapter | None = None
         self.ros2: Ros2Adapter | None = None
         self.state_lock: StateLock | None = None
+        self.warm: str | None = None  # "compiling", "done", "failed" (None: no warm-up)
+        self.warm_seconds: float | None = None
+
+    def warming(self) -> str | None:
+        """The reason ``/readyz`` gives while the warm-up runs, or None."""
+        if self.warm == "compiling":
+            return "compiling the selection kernels (warm-up: AGILEGS_WARMUP)"
+        return None
+
+    def _warm_up(self) -> None:
+        """Compile the kernels (:func:`~agilegs.service.nbv.warmup.warm_up`); a failure is
+        logged and leaves the server ready (its first calls compile them instead)."""
+        t0 = time.perf_counter()
+        try:
+            from .nbv.warmup import warm_up
+
+            warm_up()
+            self.warm = "done"
+        except Exception:
+            log.exception("warm-up failed: the first selection compiles the kernels instead")
+            self.warm = "failed"
+        self.warm_seconds = time.perf_counter() - t0
+        log.info("warm-up: kernels ready in %.1f s", self.warm_seconds)
 
     def claim_state(self) -> None:
         """Claim the state folder (created if missing); a one-line
@@ -72,8 +98,11 @@ class Server:
 
     def start(self) -> None:
         """Claim the state folder, load the sessions (the mapper starts with them) and join
-        Zenoh when it is on."""
+        Zenoh when it is on; the warm-up starts in the background (``warmup``)."""
         self.claim_state()
+        if self.settings.warmup and self.warm is None:
+            self.warm = "compiling"
+            threading.Thread(target=self._warm_up, name="agilegs-warmup", daemon=True).start()
         self.registry.load()
         if self.settings.zenoh:
             self.zenoh = ZenohAdapter(self.gateway, self.cluster, self.settings)

@@ -159,7 +159,7 @@ class Settings(Credentials):
     )
     zenoh_connect: Annotated[Endpoints, Flag("network", metavar="ENDPOINTS")] = Field(
         default_factory=list, description="Zenoh peers to connect")
-    # several instances (see agilegs.service.transports.cluster)
+    # several instances (see agilegs.service.transports.zenoh.cluster)
     zenoh_mode: Annotated[Literal["peer", "client", "router"], Flag("network")] = Field(
         default="peer", description="Zenoh mode: peer, or client of a router (zenohd)"
     )
@@ -291,6 +291,9 @@ class Settings(Credentials):
         default=0, ge=0, description="torch intra-op threads (0: default)")
     fsync: Annotated[bool, Flag("execution")] = Field(
         default=True, description="fsync files and folders before acknowledging")
+    warmup: Annotated[bool, Flag("execution")] = Field(
+        default=True, description="compile (or load from numba's cache) the kernels of every "
+        "method at start, in the background; /readyz answers 503 until done")
     # the mapper (see agilegs.service.sessions.trainer)
     mapper: Annotated[bool, Flag("mapper")] = Field(
         default=True, description="train sessions' maps from their images")
@@ -340,16 +343,6 @@ class Settings(Credentials):
             raise ValueError("ROS 2 (AGILEGS_ROS2) travels over Zenoh: turn AGILEGS_ZENOH on")
         return self
 
-    @field_validator("ros2")
-    @classmethod
-    def _namespaces(cls, value: list[str]) -> list[str]:
-        from agilegs.client.ros2 import normalize_namespace
-
-        out = [normalize_namespace(v) for v in value]
-        if len(set(out)) != len(out):
-            raise ValueError(f"ROS 2 namespaces repeat: {out}")
-        return out
-
     @model_validator(mode="after")
     def _zenoh_security(self) -> Settings:
         if self.zenoh_dev_certs is not None:
@@ -369,20 +362,6 @@ class Settings(Credentials):
         if (self.zenoh_user is None) != (self.zenoh_password is None):
             raise ValueError("AGILEGS_ZENOH_USER and AGILEGS_ZENOH_PASSWORD go together")
         return self
-
-    @field_validator("device")
-    @classmethod
-    def _device_exists(cls, v: str) -> str:
-        if v != "cpu":
-            import torch
-
-            if not torch.cuda.is_available():
-                raise ValueError(f"{v!r}: CUDA is not available on this machine")
-            index = int(v.partition(":")[2] or 0)
-            if index >= torch.cuda.device_count():
-                raise ValueError(f"{v!r}: this machine has {torch.cuda.device_count()} CUDA "
-                                 "device(s)")
-        return v
 
     @field_validator("zenoh_password", mode="before")
     @classmethod

@@ -62,10 +62,11 @@ class InProcess:
 @contextmanager
 def serve_in_process(state_dir: Path, **settings: Any) -> Iterator[InProcess]:
     """An agilegs server on ``state_dir`` in this process (HTTP only; the mapper off unless
-    ``mapper=True``), started and, on exit, stopped."""
+    ``mapper=True``; no warm-up unless ``warmup=True``), started and, on exit, stopped."""
     settings.setdefault("zenoh", False)
     settings.setdefault("mapper", False)
     settings.setdefault("workers", 4)
+    settings.setdefault("warmup", False)
     server = Server(Settings(state_dir=state_dir, **settings))
     app = create_app(server)
     with anyio.from_thread.start_blocking_portal() as portal:

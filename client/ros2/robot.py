@@ -21,7 +21,7 @@ import itertools
 import json
 import os
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -227,15 +227,22 @@ class Ros2Robot:
                          expect_depth=expect_depth)
 
     def select(self, *, method: str = "", shortlist_size: int = 0, embodied_k: int = 0,
-               current_pose: Any = None, commit: bool = False) -> Any:
-        """``select``; the response message (``chosen``, ``shortlist``, ``status``)."""
+               current_pose: Any = None, commit: bool = False,
+               config: Mapping[str, Any] | None = None, targets: Any = None) -> Any:
+        """``select``; the response message (``chosen``, ``shortlist``, ``status``).
+        ``config``: SelectConfig fields (e.g. ``{"objective": "target"}``); ``targets``: the
+        target objective's camera-to-world matrices [T, 4, 4]."""
         fields: dict[str, Any] = {"token": self.token, "method": method,
                                   "shortlist_size": shortlist_size, "embodied_k": embodied_k,
                                   "commit": commit}
+        axes = axes_of_frame(self.camera_frame)
         if current_pose is not None:
             fields["use_current_pose"] = True
-            fields["current_pose"] = matrix_to_pose_msg(current_pose,
-                                                        axes_of_frame(self.camera_frame))
+            fields["current_pose"] = matrix_to_pose_msg(current_pose, axes)
+        if config:
+            fields["config_json"] = json.dumps(dict(config))
+        if targets is not None:
+            fields["targets"] = [matrix_to_pose_msg(t, axes) for t in targets]
         return self.call("select", **fields)
 
 

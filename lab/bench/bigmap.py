@@ -29,7 +29,7 @@ __all__ = ["add_arguments", "run"]
 log = logging.getLogger(__name__)
 
 PLANT = Path(__file__).resolve().parents[1] / "scenes" / "plant" / "plant.splat"
-METHODS = ("random", "cover", "fisherrf", "full_eig", "agile", "agile_plus")
+METHODS = ("random", "spread", "cover", "fisherrf", "full_eig", "agile", "agile_plus")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -93,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
 
     from agilegs.lab.bench.latency import densified
     from agilegs.service.launch import ServerProcess
-    from agilegs.service.nbv.gaussians import GaussianMap
+    from agilegs.service.nbv import GaussianMap
 
     logging.getLogger("httpx").setLevel(logging.WARNING)
     env = {"AGILEGS_TORCH_THREADS": "1", "AGILEGS_MAPPER": "0"}

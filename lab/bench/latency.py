@@ -27,8 +27,8 @@ view's Fisher while scoring (``full_eig``, ``agile_plus``: ``Selection.chosen_in
 reused at commit).
 
 Memory: ``peak_rss_mb`` per entry is the largest resident set size sampled (every few ms)
-during its selections, and ``base_rss_mb`` the process's before the first selection (the map,
-Hhat and the pool); ``peak_rss_mb`` of the run is the process's own peak (``getrusage``).
+during its selections, ``base_rss_mb`` the process's before the first selection, and the run's
+``peak_rss_mb`` the process's own peak (``getrusage``).
 
 Entries are methods and variants (:mod:`agilegs.lab.bench.variants`): by default the
 methods, the shortlist ablations (``agile@knearest``, ``agile_plus@topnorm``, ...) and the
@@ -39,10 +39,6 @@ methods ``proxy_spearman`` (the rank correlation of the anchor's proxy psi of ev
 candidate with the exact phi, mean over events) and, for shortlist methods,
 ``head_eig_percentile`` (the percentile of the shortlist's first, i.e. what AGILE-GS picks
 from that shortlist).
-
-:func:`run`: :func:`parse` (a :class:`Plan`), :func:`set_up` (a :class:`Setup`),
-:func:`time_events` (:class:`Timings`: an :class:`EntryRecord` per entry), :func:`summarise`
-(the JSON), :func:`write`.
 """
 
 from __future__ import annotations
@@ -67,18 +63,22 @@ import torch
 
 from agilegs.config.selection import SelectConfig
 from agilegs.config.types import validate_config
-from agilegs.service.nbv.camera import Camera, Intrinsics
-from agilegs.service.nbv.candidates import capture_pool, scene_center_radius
-from agilegs.service.nbv.gaussians import GaussianMap, load_scene
-from agilegs.service.nbv.information import (
+from agilegs.service.nbv import (
+    Camera,
+    GaussianMap,
+    Intrinsics,
+    Selection,
     accumulate_information,
     eig_scores,
     fisher_diag,
     init_information,
+    load_scene,
+    select,
 )
+from agilegs.service.nbv.candidates import capture_pool, scene_center_radius
 from agilegs.service.nbv.methods.base import get_method, method_names
 from agilegs.service.nbv.rotations import quat_to_rotmat
-from agilegs.service.nbv.selectors import Selection, select, select_validated
+from agilegs.service.nbv.selectors import SelectInputs, select_from
 
 from .options import add_latency_arguments, use_threads
 from .stages import ANCHOR_STAGES
@@ -422,7 +422,7 @@ def time_events(setup: Setup, names: list[str], events: int, shortlist: int) -> 
     states: dict[str, dict[str, Any] | None] = {n: None for n in names}
     variants = {n: parse_variant(n, shortlist) for n in names}
     # every entry's settings validated once, as the service does: each event selects through
-    # select_validated on the map, Hhat and pool set up (and checked) here
+    # select_from on the map, Hhat and pool set up (and checked) here
     configs = {n: validate_config(SelectConfig, variants[n].config(setup.base)) for n in names}
     order = sorted(names, key=lambda n: n != REFERENCE)  # the yardstick first, when timed
     for event in range(events):
@@ -432,9 +432,8 @@ def time_events(setup: Setup, names: list[str], events: int, shortlist: int) -> 
         for name in order:
             cpu0 = time.process_time()
             with PeakRSS() as mem:
-                sel = select_validated(variants[name].method, gmap, h_acc, pool, intr,
-                                       config=configs[name], acquired=acquired,
-                                       state=states[name])
+                sel = select_from(SelectInputs(variants[name].method, gmap, h_acc, pool, intr,
+                                               configs[name], acquired), state=states[name])
             cpu_ms = (time.process_time() - cpu0) * 1e3
             states[name] = sel.state
             if name == REFERENCE:

@@ -124,6 +124,10 @@ def add_run_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--rasterizer", default=None, choices=("auto", "builtin", "gsplat"),
                    help="what trains the map (MapperConfig.rasterizer; default auto: gsplat on "
                         "a GPU where it loads)")
+    a("--eig-mass", action="store_true",
+      help="also record per event where the chosen view's EIG lies (near/far Gaussians, seen "
+           "by many/few pool views; Ĥ computed for every method) and its target gain, for "
+           "agilegs bench coverage; a run with it is another run than one without")
     a("--no-plots", action="store_true", help="skip the PNG plots")
     a("--estimate-only", action="store_true", help="print the wall-time estimate and stop")
     a("--report-only", action="store_true",

@@ -32,6 +32,7 @@ __all__ = ["write_plots", "plot_psnr_vs_views", "plot_latency", "plot_trajectori
 
 COLORS = {
     "random": "#7f7f7f",
+    "spread": "#17becf",
     "fisherrf": "#1f77b4",
     "cover": "#2ca02c",
     "full_eig": "#9467bd",

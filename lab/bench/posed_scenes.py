@@ -281,7 +281,7 @@ def load_bag_scene(path: Path, opt: SceneOptions, topics: Any = None) -> BenchSc
 
     from agilegs.client.ros2 import read_bag
     from agilegs.service.data.images import View, target_size
-    from agilegs.service.nbv.camera import Camera, Intrinsics
+    from agilegs.service.nbv import Camera, Intrinsics
 
     frames = read_bag(path, topics, max_frames=2 * (opt.pool_size + opt.test_count))
     if not frames:

@@ -60,10 +60,11 @@ from agilegs.config.mapper import MapperConfig
 from agilegs.config.selection import SelectConfig
 from agilegs.service.mapper.mapper import Mapper
 from agilegs.service.mapper.quality import lpips, lpips_available, psnr, ssim
-from agilegs.service.nbv.information import fisher_diag, init_information
+from agilegs.service.nbv import Camera, fisher_diag, init_information, render, select
+from agilegs.service.nbv.candidates import pool_radius, scene_center_radius
 from agilegs.service.nbv.methods.base import get_method
-from agilegs.service.nbv.rasterize import render
-from agilegs.service.nbv.selectors import select, state_to
+from agilegs.service.nbv.selectors import state_to
+from agilegs.service.nbv.targets import target_gain, target_information, target_subsample
 from agilegs.service.sessions.transitions import (
     Limits,
     acquire,
@@ -74,6 +75,7 @@ from agilegs.service.sessions.transitions import (
 )
 from agilegs.service.store.records import SessionRecord
 
+from .eig_mass import eig_mass as eig_mass_of
 from .profiles import RESULTS_FORMAT, Profile
 from .redundancy import run_redundancy
 from .scene_model import BenchScene
@@ -84,7 +86,6 @@ __all__ = [
     "EventRecord",
     "PhaseTimes",
     "add_pool_view",
-    "estimate_seconds",
     "evaluate",
     "fingerprint",
     "initial_view_indices",
@@ -175,21 +176,20 @@ def _finite_mean(values: Sequence[float]) -> float:
 
 
 def fingerprint(scene: BenchScene, variant: Variant, seed: int, profile: Profile,
-                 embodied_k: int | None) -> str:
-    blob = json.dumps(
-        {
-            "scene": scene.source,
-            "variant": asdict(variant),
-            # the settings it selects with: a changed default is another run
-            "config": asdict(variant.config()),
-            "seed": seed,
-            "profile": profile.describe(),
-            "embodied_k": embodied_k,
-            "format": RESULTS_FORMAT,
-        },
-        sort_keys=True,
-        default=str,
-    )
+                 embodied_k: int | None, eig_mass: bool = False) -> str:
+    facts: dict[str, Any] = {
+        "scene": scene.source,
+        "variant": asdict(variant),
+        # the settings it selects with: a changed default is another run
+        "config": asdict(variant.config()),
+        "seed": seed,
+        "profile": profile.describe(),
+        "embodied_k": embodied_k,
+        "format": RESULTS_FORMAT,
+    }
+    if eig_mass:  # a run that also records where its picks' EIG lies
+        facts["eig_mass"] = True
+    blob = json.dumps(facts, sort_keys=True, default=str)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
@@ -223,13 +223,15 @@ def add_pool_view(mapper: Mapper, scene: BenchScene, i: int, profile: Profile, *
 
 @dataclass
 class PhaseTimes:
-    """Seconds a run spent training, selecting, recomputing Ĥ and evaluating (the record's
-    ``train_s``, ``select_s``, ``information_s`` and ``eval_s``)."""
+    """Seconds a run spent training, selecting, recomputing Ĥ, evaluating and on the EIG mass
+    of its picks (the record's ``train_s``, ``select_s``, ``information_s``, ``eval_s`` and
+    ``diagnostics_s``)."""
 
     train_s: float = 0.0
     select_s: float = 0.0
     information_s: float = 0.0
     eval_s: float = 0.0
+    diagnostics_s: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -268,6 +270,7 @@ class EventRecord:
     best_candidate_psi: float | None
     probes: int | None = None
     probe_won: bool | None = None
+    eig_mass: dict[str, Any] | None = None
 
 
 class _ProgressiveRun:
@@ -277,9 +280,10 @@ class _ProgressiveRun:
 
     def __init__(self, scene: BenchScene, variant: Variant, seed: int, profile: Profile, *,
                  embodied_k: int | None, device: torch.device,
-                 progress: ProgressFn | None) -> None:
+                 progress: ProgressFn | None, eig_mass: bool = False) -> None:
         self.scene, self.variant, self.seed, self.profile = scene, variant, seed, profile
         self.embodied_k, self.device, self.progress = embodied_k, device, progress
+        self.eig_mass = eig_mass
         self.t_run = time.perf_counter()
         torch.manual_seed(seed)
         d = scene.pool_size
@@ -386,6 +390,7 @@ class _ProgressiveRun:
             best_candidate_psi=sel.details.get("best_candidate_psi"),
             probes=sel.details.get("probes"),
             probe_won=sel.details.get("probe_won"),
+            eig_mass=self._eig_mass(gmap, h_acc, sel, cands) if self.eig_mass else None,
         )
         self.events.append(ev)
         self.times.select_s += wall_ms / 1e3
@@ -398,6 +403,32 @@ class _ProgressiveRun:
         self.acquired.append(choice)
         add_pool_view(self.mapper, self.scene, choice, self.profile, device=self.device)
         return ev
+
+    def _eig_mass(self, gmap: Any, h_acc: dict[str, Tensor], sel: Any, cands: Tensor
+                  ) -> dict[str, Any]:
+        """Where the chosen view's EIG lies (:mod:`agilegs.lab.bench.eig_mass`), against Ĥ of
+        the acquired views on this map (computed here for the methods that do not read it),
+        and its fall of the pool's predicted render variance (the target objective's gain,
+        T from ``target_views`` farthest-point pool views)."""
+        t0 = time.perf_counter()
+        if not self.uses_information:
+            h_acc = recompute_information(self.rec, gmap)
+        bg = self.background.to(gmap.dtype)
+        pose = cands[sel.index]
+        h_view = sel.chosen_information
+        if h_view is None or set(h_view) != set(h_acc):
+            h_view = fisher_diag(gmap, Camera(c2w=pose, intrinsics=self.scene.intrinsics),
+                                 background=bg)
+        out = eig_mass_of(gmap, h_acc, h_view, pose, self.candidates_all,
+                          self.scene.intrinsics, self.profile.lam)
+        radius = pool_radius(cands, scene_center_radius(gmap.means)[0])  # select's rot_weight
+        picks = target_subsample(cands, radius, self.config.target_views)
+        fields = tuple(h_acc)
+        t_info = target_information(gmap, cands[picks], self.scene.intrinsics, fields=fields,
+                                    background=bg)
+        out["target_gain"] = target_gain(h_view, h_acc, t_info)
+        self.times.diagnostics_s += time.perf_counter() - t0
+        return out
 
     def final_evaluation(self) -> dict[str, Any]:
         """The test views' PSNR / SSIM (/ LPIPS) of the final map; closes the curve."""
@@ -419,6 +450,7 @@ def run_progressive(
     device: torch.device | str = "cpu",
     progress: ProgressFn | None = None,
     on_event: Callable[[dict[str, Any]], None] | None = None,
+    eig_mass: bool = False,
 ) -> dict[str, Any]:
     """One (method, seed) run of the progressive protocol on ``scene``; the run's record.
 
@@ -437,12 +469,15 @@ def run_progressive(
             ``background`` [3], ``event``, ``step``, and ``mapper``, the live trainer: clone
             it to branch), for diagnostics such as ``agilegs bench proxy`` and ``bench
             value``.
+        eig_mass: also record, per event, where the chosen view's EIG lies (the event's
+            ``eig_mass``: :func:`agilegs.lab.bench.eig_mass.eig_mass`, and its target gain);
+            its time is ``diagnostics_s``, apart from the selection's.
 
     Returns:
         The JSON-ready record (see the module docstring).
     """
     run = _ProgressiveRun(scene, variant, seed, profile, embodied_k=embodied_k,
-                          device=torch.device(device), progress=progress)
+                          device=torch.device(device), progress=progress, eig_mass=eig_mass)
     while run.wants_event():
         run.train(profile.interval)
         if profile.curve_every and len(run.events) % profile.curve_every == 0:
@@ -471,7 +506,8 @@ def _run_summary(run: _ProgressiveRun, final: dict[str, Any]) -> dict[str, Any]:
         "seed": int(run.seed),
         "embodied_k": run.embodied_k,
         "profile": run.profile.name,
-        "fingerprint": fingerprint(scene, variant, run.seed, run.profile, run.embodied_k),
+        "fingerprint": fingerprint(scene, variant, run.seed, run.profile, run.embodied_k,
+                                   run.eig_mass),
         "initial": initial,
         "sequence": acquired,
         "selected": acquired[len(initial):],
@@ -491,6 +527,8 @@ def _run_summary(run: _ProgressiveRun, final: dict[str, Any]) -> dict[str, Any]:
         "trajectory": [[float(x) for x in p] for p in scene.pool_poses[seq, :3, 3]],
         # the pool's camera-to-world poses [D, 4, 4] and intrinsics (agilegs view --run)
         "pool_poses": [_matrix(p) for p in scene.pool_poses],
+        # the test views' [T, 4, 4], in per_view's order (agilegs bench coverage)
+        "test_poses": [_matrix(p) for p in scene.test_poses],
         "intrinsics": {k: float(getattr(scene.intrinsics, k))
                        for k in ("fx", "fy", "cx", "cy", "width", "height")},
         "num_gaussians": run.mapper.num_gaussians,
@@ -515,58 +553,3 @@ def _median(values: Sequence[float]) -> float | None:
     s = sorted(values)
     m = len(s) // 2
     return s[m] if len(s) % 2 else 0.5 * (s[m - 1] + s[m])
-
-
-# ----------------------------------------------------------------------------- estimate
-def estimate_seconds(
-    scene: BenchScene, variants: Sequence[Variant], seeds: Sequence[int], profile: Profile,
-    *, device: torch.device | str = "cpu", embodied_k: int | None = None,
-) -> dict[str, float]:
-    """Rough wall-time estimate (s) per variant for all seeds, from a short calibration.
-
-    Times a few training steps, one render and one Fisher pass on the seed-0 initial map and
-    scales them by the schedule (the map grows during a run, so this is a lower bound made
-    roughly honest by a factor 1.5).
-    """
-    dev = torch.device(device)
-    mapper = new_mapper(scene, profile, 0, dev)
-    for i in initial_view_indices(scene.pool_size, profile.initial_views, 0):
-        depth = scene.pool_depths[i].to(dev) if scene.pool_depths is not None else None
-        mapper.add_view(scene.pool_camera(i).to(device=dev), scene.pool_images[i].to(dev),
-                        depth=depth if profile.depth != "none" else None)
-    mapper.step(1)
-    t0 = time.perf_counter()
-    mapper.step(3)
-    t_step = (time.perf_counter() - t0) / 3
-    g = mapper.gmap
-    cam = scene.pool_camera(0).to(device=dev)
-    with torch.no_grad():
-        t0 = time.perf_counter()
-        render(g, cam)
-        t_render = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        fisher_diag(g, cam)
-        t_fisher = time.perf_counter() - t0
-    d = scene.pool_size
-    events = min(profile.num_events, min(profile.view_budget or d, d) - profile.initial_views)
-    n_test = scene.test_poses.shape[0]
-    base = profile.total_steps * t_step + (events + 1) * n_test * t_render * 2
-    acq = sum(profile.initial_views + e for e in range(events))
-    rem = sum(d - profile.initial_views - e for e in range(events))
-    if embodied_k is not None:
-        rem = events * min(embodied_k, d)
-    out: dict[str, float] = {}
-    for v in variants:
-        sel = 0.0
-        if get_method(v.method).uses_information or v.method == "fisherrf":
-            sel += acq * t_fisher  # Hhat, or FisherRF's own H_train
-        if v.method in ("fisherrf", "full_eig"):
-            sel += rem * t_fisher
-        elif v.method == "cover":
-            sel += rem * t_render * 1.5
-        elif v.method == "agile":
-            sel += events * 0.1
-        elif v.method == "agile_plus":
-            sel += events * (0.1 + min(v.shortlist_size, d) * t_fisher)
-        out[v.key] = 1.5 * len(seeds) * (base + sel)
-    return out

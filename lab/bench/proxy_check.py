@@ -31,9 +31,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from agilegs.service.nbv import information_of_views, select
 from agilegs.service.nbv.candidates import scene_center_radius
-from agilegs.service.nbv.selectors import select
-from agilegs.service.nbv.upkeep import information_of_views
 
 from .latency import eig_percentile, spearman
 from .options import DEFAULT_CONFIGS, protocol_profile

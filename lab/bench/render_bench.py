@@ -65,8 +65,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def _build(scene: str | None, n: int, res: int) -> tuple[Any, Any]:
     import torch
 
-    from agilegs.service.nbv.camera import Camera, look_at
-    from agilegs.service.nbv.gaussians import load_scene
+    from agilegs.service.nbv import Camera, load_scene, look_at
 
     if scene:
         gm = load_scene(scene, max_gaussians=n, seed=0)
@@ -85,9 +84,8 @@ def _functions(gm: Any, cam: Any) -> dict[str, Callable[[], Any]]:
     import torch
 
     from agilegs.lab.bench.render_reference import baseline_fisher_diag, baseline_render
-    from agilegs.service.nbv.information import fisher_diag
+    from agilegs.service.nbv import fisher_diag, render
     from agilegs.service.nbv.kernels.backend import Backend
-    from agilegs.service.nbv.rasterize import render
 
     def fwd() -> None:
         with torch.no_grad():

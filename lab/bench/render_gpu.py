@@ -55,8 +55,7 @@ def _build(scene: str | None, n: int, width: int, height: int, device: Any) -> t
 
     from agilegs.lab.bench.latency import densified
     from agilegs.lab.bench.scenes import random_cube
-    from agilegs.service.nbv.camera import Camera, look_at
-    from agilegs.service.nbv.gaussians import load_scene
+    from agilegs.service.nbv import Camera, load_scene, look_at
 
     if scene:
         gm = densified(load_scene(scene), n, seed=0)
@@ -80,8 +79,8 @@ def _functions(gm: Any, cam: Any, with_gsplat: bool
     from agilegs.config.mapper import MapperConfig
     from agilegs.service.mapper.gsplat_render import render_gsplat
     from agilegs.service.mapper.mapper import Mapper
-    from agilegs.service.nbv.information import fisher_diag, screen_second_moments
-    from agilegs.service.nbv.rasterize import render
+    from agilegs.service.nbv import fisher_diag, render
+    from agilegs.service.nbv.information import screen_second_moments
 
     gen = torch.Generator(device=gm.means.device).manual_seed(1)
     weight = torch.rand(cam.height, cam.width, 3, generator=gen, device=gm.means.device)
@@ -107,7 +106,7 @@ def _functions(gm: Any, cam: Any, with_gsplat: bool
         names = list(gm.tensors().keys())
 
         def gsplat_step() -> None:
-            from agilegs.service.nbv.gaussians import GaussianMap
+            from agilegs.service.nbv import GaussianMap
 
             g = GaussianMap(**dict(zip(names, params, strict=True)))
             loss = (render_gsplat(g, cam).rgb - target).abs().mean()
@@ -133,8 +132,8 @@ def _time_gpu(scene: str | None, n: int, width: int, height: int, repeats: int,
     import torch
 
     from agilegs.service.mapper.gsplat_render import gsplat_status, render_gsplat
+    from agilegs.service.nbv import render
     from agilegs.service.nbv.kernels.gpu import gpu_moments_apply
-    from agilegs.service.nbv.rasterize import render
 
     dev = torch.device(device)
     cuda = dev.type == "cuda"

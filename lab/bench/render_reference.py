@@ -25,8 +25,7 @@ import torch
 from torch import Tensor
 
 from agilegs.config.selection import FIELD_NAMES
-from agilegs.service.nbv.camera import Camera
-from agilegs.service.nbv.gaussians import GaussianMap
+from agilegs.service.nbv import Camera, GaussianMap
 from agilegs.service.nbv.information import jacobian_sandwich, projection_jacobians
 from agilegs.service.nbv.projection import Projected, project_map
 from agilegs.service.nbv.rasterize import ALPHA_MAX, ALPHA_MIN, T_MIN

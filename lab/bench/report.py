@@ -50,8 +50,8 @@ from agilegs.lab.bench.variants import SHORTLIST_DISPLAY, display_name
 
 __all__ = ["build_results", "scene_summary", "render_table", "mean_std", "paired_differences"]
 
-MAIN_ORDER = ("random", "fisherrf", "cover", "full_eig", "agile", "agile_plus", "agile@paper",
-              "agile_plus@paper")
+MAIN_ORDER = ("random", "spread", "fisherrf", "cover", "full_eig", "agile", "agile_plus",
+              "agile@paper", "agile_plus@paper")
 REFERENCE = "agile_plus"
 """The method whose paired differences are tabulated per scene and per scene type."""
 

@@ -37,10 +37,11 @@ from torch import Tensor
 from agilegs.client.ros2 import BagTopics
 
 from . import plots, report
+from .estimate import estimate_seconds
 from .options import add_run_arguments as add_arguments
 from .options import flag_values, int_list, protocol_profile, str_list
 from .profiles import Profile
-from .protocol import estimate_seconds, fingerprint, run_progressive
+from .protocol import fingerprint, run_progressive
 from .scene_model import BenchScene
 from .scenes import load_bench_scene
 from .variants import Variant, build_variants
@@ -116,6 +117,7 @@ class RunPlan:
     device: torch.device
     out: Path
     embodied_k: int | None
+    eig_mass: bool = False
 
     def jobs(self) -> list[Job]:
         return [Job(name, v.key, s) for name in self.scenes for s in self.seeds
@@ -139,11 +141,19 @@ def run(args: argparse.Namespace) -> int:
     console = Console(stderr=True)
     t_start = time.perf_counter()
     plan = parse(args)
+    warmup_s = None
+    if not args.report_only:  # the kernels' compile, apart from every selection's latency
+        from agilegs.service.nbv.warmup import warm_up
+
+        warmup_s = warm_up()["total"]
+        console.print(f"kernels compiled (or loaded from numba's cache) in {warmup_s:.1f} s, "
+                      "before any timed selection")
     estimates = {} if args.report_only else estimate(plan, console)
     if args.estimate_only:
         return 0
     outcome = run_jobs(plan, console, report_only=args.report_only)
-    results = summarise(plan, outcome, estimates, args, wall_s=time.perf_counter() - t_start)
+    results = summarise(plan, outcome, estimates, args, wall_s=time.perf_counter() - t_start,
+                        warmup_s=warmup_s)
     write(plan, results, plots_too=not args.no_plots)
     console.print(f"{len(outcome.executed)} runs done, {len(outcome.skipped)} skipped"
                   + (f", {len(outcome.missing)} missing" if outcome.missing else "")
@@ -170,7 +180,7 @@ def parse(args: argparse.Namespace) -> RunPlan:
     with flag_values("--bag-topics"):
         bag_topics = BagTopics.parse(args.bag_topics) if args.bag_topics else None
     plan = RunPlan(profile, variants, seeds, {}, torch.device(args.device), Path(args.out),
-                   args.embodied)
+                   args.embodied, bool(getattr(args, "eig_mass", False)))
     plan.out.mkdir(parents=True, exist_ok=True)
     for path in args.scene:
         try:
@@ -214,7 +224,8 @@ def run_jobs(plan: RunPlan, console: Console, *, report_only: bool) -> RunOutcom
         for job in jobs:
             sc, v = plan.scenes[job.scene], plan.variant(job.variant)
             path = _run_path(plan.out, job.scene, job.variant, job.seed)
-            done = _load_done(path, fingerprint(sc, v, job.seed, plan.profile, plan.embodied_k))
+            done = _load_done(path, fingerprint(sc, v, job.seed, plan.profile, plan.embodied_k,
+                                                plan.eig_mass))
             if done is not None:
                 log.info("skip %s / %s / seed %d: done (%s)", job.scene, job.variant, job.seed,
                          path)
@@ -232,7 +243,8 @@ def run_jobs(plan: RunPlan, console: Console, *, report_only: bool) -> RunOutcom
                                description=f"{label} ({note})")
 
                 rec = run_progressive(sc, v, job.seed, plan.profile, embodied_k=plan.embodied_k,
-                                      device=plan.device, progress=on_progress)
+                                      device=plan.device, progress=on_progress,
+                                      eig_mass=plan.eig_mass)
                 _write_json(path, rec)
                 outcome.records[job] = rec
                 outcome.executed.append(job)
@@ -245,8 +257,10 @@ def run_jobs(plan: RunPlan, console: Console, *, report_only: bool) -> RunOutcom
 
 
 def summarise(plan: RunPlan, outcome: RunOutcome, estimates: dict[str, dict[str, float]],
-              args: argparse.Namespace, *, wall_s: float) -> dict[str, Any]:
-    """``results.json``'s content: the records, the scenes, the settings, the machine."""
+              args: argparse.Namespace, *, wall_s: float, warmup_s: float | None = None
+              ) -> dict[str, Any]:
+    """``results.json``'s content: the records, the scenes, the settings, the machine (and
+    the seconds the kernels' warm-up took, apart from the selections')."""
     return report.build_results(
         records={(j.scene, j.variant, j.seed): r for j, r in outcome.records.items()},
         scenes={n: report.scene_summary(sc) for n, sc in plan.scenes.items()},
@@ -254,8 +268,10 @@ def summarise(plan: RunPlan, outcome: RunOutcome, estimates: dict[str, dict[str,
         seeds=plan.seeds,
         profile=plan.profile.describe(),
         settings={"embodied_k": plan.embodied_k, "device": str(plan.device),
+                  "eig_mass": plan.eig_mass,
                   "shortlist_method": args.shortlist_method,
                   "threads": torch.get_num_threads(), "estimate_s": estimates,
+                  "kernel_warmup_s": warmup_s,
                   "args": {k: v for k, v in vars(args).items() if not k.startswith("_")}},
         environment=environment(),
         invocation={"executed": [asdict(j) for j in outcome.executed],

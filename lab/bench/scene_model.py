@@ -13,7 +13,7 @@ from typing import Any, Literal
 import torch
 from torch import Tensor
 
-from agilegs.service.nbv.camera import Camera, Intrinsics, look_at
+from agilegs.service.nbv import Camera, Intrinsics, look_at
 
 PathLike = str | os.PathLike[str]
 SceneKind = Literal["splat", "transforms", "colmap", "rosbag"]

@@ -60,10 +60,9 @@ import torch
 from torch import Tensor
 
 from agilegs.client.ros2 import BagTopics, is_bag
-from agilegs.service.nbv.camera import Camera, Intrinsics, look_at
+from agilegs.service.nbv import Camera, GaussianMap, Intrinsics, load_scene, look_at, render
 from agilegs.service.nbv.candidates import capture_pool, scene_center_radius
-from agilegs.service.nbv.gaussians import SUFFIXES, GaussianMap, load_scene
-from agilegs.service.nbv.rasterize import render
+from agilegs.service.nbv.gaussians import SUFFIXES
 
 from .posed_scenes import load_bag_scene, load_colmap_scene, load_transforms_scene
 from .scene_model import (

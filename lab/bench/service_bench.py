@@ -100,7 +100,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _scene_arrays(path: str, max_gaussians: int) -> dict[str, np.ndarray] | None:
     if not Path(path).is_file():
         return None
-    from agilegs.service.nbv.gaussians import load_scene
+    from agilegs.service.nbv import load_scene
 
     g = load_scene(path, max_gaussians=max_gaussians, seed=0)
     return {k: v.detach().cpu().numpy() for k, v in g.items()}

@@ -45,9 +45,7 @@ import torch
 from torch import Tensor
 
 from agilegs.config.selection import FIELD_NAMES, SelectConfig
-from agilegs.service.nbv.camera import Camera
-from agilegs.service.nbv.information import fisher_diag
-from agilegs.service.nbv.selectors import select
+from agilegs.service.nbv import Camera, fisher_diag, select
 
 from .options import add_value_arguments as add_arguments
 from .options import protocol_profile
@@ -70,8 +68,8 @@ BLOCKS: dict[str, tuple[str, ...]] = {
 """Parameter-block subsets of the information-model variants."""
 LAMBDAS: tuple[float, ...] = (1e-6, 1e-3, 1e-1)
 """λ of the information-model variants (the profile's λ is among the defaults)."""
-PICKS: tuple[str, ...] = ("random", "fisherrf", "cover", "full_eig", "agile", "agile_plus",
-                          "agile@paper", "agile_plus@paper")
+PICKS: tuple[str, ...] = ("random", "spread", "fisherrf", "cover", "full_eig", "agile",
+                          "agile_plus", "agile@paper", "agile_plus@paper")
 """The methods whose picks are placed in the realised-gain ranking."""
 SHORTLISTS: tuple[str, ...] = ("agile", "agile@paper", "agile@cover_zbuffer",
                                "agile@unconditioned")
@@ -195,6 +193,7 @@ def method_scores(ctx: Mapping[str, Any], lam: float, seed: int
     phi = scores["eig"]
     picks["full_eig"] = max(range(n), key=lambda i: (phi[i], -i))
     picks["random"] = _select("random", ctx, h_acc, base, lam).index
+    picks["spread"] = _select("spread", ctx, h_acc, base, lam).index
     fr = _select("fisherrf", ctx, h_acc, base, lam)
     scores["fisherrf"] = [fr.scores[i] for i in range(n)]
     picks["fisherrf"] = fr.index

@@ -2,7 +2,8 @@
 benchmark (``bench run``, ``bench latency``, ``bench proxy``).
 
 A variant key is ``<method>`` or ``<method>@<option>[+<option>...]``, for example
-``agile@knearest``, ``agile_plus@n20``, ``agile_plus@exact`` or ``agile_plus@typical+cold``.
+``agile@knearest``, ``agile_plus@n20``, ``agile_plus@exact``, ``agile_plus@typical+cold`` or
+``full_eig@target`` (the target objective instead of the EIG).
 The options (:data:`OPTIONS`) change the :class:`~agilegs.config.selection.SelectConfig` the
 method selects with; ``n<N>`` sets the shortlist size N.
 """
@@ -24,8 +25,7 @@ from agilegs.config.selection import (
     SelectConfig,
 )
 from agilegs.config.types import deep_merge, validate_config
-
-from ..nbv.methods.base import method_names
+from agilegs.service.nbv.methods.base import method_names
 
 __all__ = [
     "DISPLAY",
@@ -41,6 +41,7 @@ Group = Literal["main", "shortlist", "budget", "variant"]
 
 DISPLAY = {
     "random": "Random",
+    "spread": "Spread (farthest point)",
     "fisherrf": "FisherRF",
     "cover": "COVER",
     "full_eig": "Full-pool EIG (ceiling)",
@@ -50,6 +51,8 @@ DISPLAY = {
     "agile_plus@paper": "AGILE-GS+ (paper)",
     "agile@single": "AGILE-GS (one anchor)",
     "agile_plus@single": "AGILE-GS+ (one anchor)",
+    "full_eig@target": "Full-pool target objective",
+    "agile_plus@target": "AGILE-GS+ (target objective)",
 }
 SHORTLIST_DISPLAY = {
     "leverage": "Ridge leverage",
@@ -130,6 +133,22 @@ OPTIONS: dict[str, tuple[str, Callable[[SelectConfig], SelectConfig]]] = {
                   lambda c: dataclasses.replace(c, probes=0)),
     "probes3": ("AGILE-GS+ gives at least 3 of the N reranked slots to uniform probes",
                 lambda c: dataclasses.replace(c, probes=3)),
+    "target": ("full_eig scores and AGILE-GS+ reranks by the target objective: the fall of "
+               "the pool's predicted render variance (T from 8 farthest-point pool views)",
+               lambda c: dataclasses.replace(c, objective="target")),
+    "target16": ("the target objective with T from 16 farthest-point pool views",
+                 lambda c: dataclasses.replace(c, objective="target", target_views=16)),
+    "target4": ("the target objective with T from 4 farthest-point pool views",
+                lambda c: dataclasses.replace(c, objective="target", target_views=4)),
+    "spread_probes": ("AGILE-GS+ draws its probes in their farthest-point order from the "
+                      "acquired views (the first is spread's pick) instead of uniformly",
+                      lambda c: dataclasses.replace(c, probe_draw="spread")),
+    "spread50": ("full_eig scores only the candidates at least half as far from the acquired "
+                 "views as the farthest one (spread broken by the objective)",
+                 lambda c: dataclasses.replace(c, spread_filter=0.5)),
+    "spread75": ("full_eig scores only the candidates at least 75% as far from the acquired "
+                 "views as the farthest one",
+                 lambda c: dataclasses.replace(c, spread_filter=0.75)),
 }
 """Variant options: name -> (what it changes, the change)."""
 

@@ -75,7 +75,7 @@ class CaptureRobot:
         from agilegs.lab.bench.posed_scenes import random_init_points
         from agilegs.lab.bench.scene_model import SceneOptions
         from agilegs.service.mapper.points import nearest_neighbour_scales
-        from agilegs.service.nbv.gaussians import GaussianMap
+        from agilegs.service.nbv import GaussianMap
 
         torch = self._torch
         sc = self.scene
@@ -128,8 +128,7 @@ class CaptureRobot:
     def psnr(self, arrays: dict[str, np.ndarray]) -> float:
         """Mean PSNR (dB) of a downloaded map on the capture's held-out photographs."""
         from agilegs.service.mapper.quality import psnr
-        from agilegs.service.nbv.gaussians import GaussianMap
-        from agilegs.service.nbv.rasterize import render
+        from agilegs.service.nbv import GaussianMap, render
 
         torch = self._torch
         gmap = GaussianMap(**{k: torch.from_numpy(v.copy()) for k, v in arrays.items()})
@@ -142,12 +141,14 @@ class CaptureRobot:
         return float(sum(vals) / len(vals))
 
 
-def load_capture(scene: str, width: int, test_count: int, seed: int) -> BenchScene:
+def load_capture(scene: str, width: int, test_count: int, seed: int,
+                 init_points: int = 5000) -> BenchScene:
     """The capture at ``scene`` as the demo sees it: images ``width`` pixels wide, every pool
-    frame kept in capture order, at most ``test_count`` test frames."""
+    frame kept in capture order, at most ``test_count`` test frames, ``init_points`` random
+    points where the capture has none of its own."""
     from agilegs.lab.bench.scene_model import SceneOptions
     from agilegs.lab.bench.scenes import load_bench_scene
 
     opts = SceneOptions(width=width, height=width, pool_size=100_000, test_count=test_count,
-                        seed=seed)
+                        seed=seed, random_init_points=init_points)
     return load_bench_scene(scene, opts)

@@ -1,8 +1,8 @@
 """``agilegs demo``: the closed loop on a bundled scene, over real HTTP.
 
-The demo starts ``agilegs serve`` as a subprocess (127.0.0.1, a free port, a temporary state
-folder, HTTP only) and plays a simulated robot written with the client SDK
-(:class:`agilegs.client.Client`):
+The demo starts ``agilegs serve`` as a subprocess (127.0.0.1, a free port, HTTP only, its
+state folder ``--out``/state, where the sessions stay for ``agilegs export``) and plays a
+simulated robot written with the client SDK (:class:`agilegs.client.Client`):
 
 1. The ground truth is a splat scene (``--scene spot`` or ``teapot``, bundled with the
    project, or a ``.splat`` / ``.ply`` path), subsampled; the robot renders every frame it
@@ -41,13 +41,12 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
-import tempfile
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from agilegs.lab.demo.report import METHODS, plot, summary
 from agilegs.service.launch import ServerProcess
 
 if TYPE_CHECKING:
@@ -60,7 +59,6 @@ __all__ = ["DemoSize", "FULL", "QUICK", "add_arguments", "attribution", "make_ro
 
 log = logging.getLogger(__name__)
 
-METHODS: tuple[tuple[str, str], ...] = (("agile_plus", "AGILE-GS+"), ("random", "Random"))
 STAGES: tuple[str, ...] = ("information", "anchor", "scoring", "leverage", "rerank", "total")
 
 
@@ -147,7 +145,8 @@ def attribution(scene: str) -> str:
     from agilegs.lab.scenes import bundled_scene
 
     if scene not in ("spot", "teapot"):
-        return f"Scene {scene}: not bundled; see its source for its licence."
+        return _repository_scene(scene) or (f"Scene {scene}: not bundled; see its source "
+                                             "for its licence.")
     file = bundled_scene(scene)
     text = (file.parent.parent / "README.md").read_text(encoding="utf-8")
     row = next((ln for ln in text.splitlines() if f"`{file.name}`" in ln), "")
@@ -162,6 +161,27 @@ def attribution(scene: str) -> str:
     return f"Scene: {file.name}. {credit}".strip()
 
 
+def _repository_scene(scene: str) -> str | None:
+    """The attribution of a scene of ``lab/scenes`` given as a path (its row of the folder's
+    README: source and licence), or None for a path elsewhere."""
+    import agilegs.lab.scenes as scenes
+
+    root = Path(scenes.__file__).parent.resolve()
+    try:
+        name = Path(scene).resolve().relative_to(root).parts[0]
+    except (ValueError, IndexError):
+        return None
+    text = (root / "README.md").read_text(encoding="utf-8")
+    row = next((ln for ln in text.splitlines() if ln.startswith(f"| `{name}` |")), None)
+    cells = [c.strip() for c in (row or "").strip().strip("|").split("|")]
+    if len(cells) < 6:
+        return None
+    import re
+
+    credit = re.sub(r"\[[^\]]+\]\(([^)]+)\)", r"lab/scenes/\1", cells[5])  # changes made
+    return f"Scene {name} (in this repository, lab/scenes/{name}): {credit}. Licence {cells[4]}."
+
+
 # ============================================================================ the robot
 class Robot:
     """The simulated robot: it owns the ground truth and renders the frames it captures."""
@@ -172,9 +192,8 @@ class Robot:
         from agilegs.lab.bench.scene_model import orbit_cameras
         from agilegs.lab.bench.scenes import render_references
         from agilegs.lab.scenes import bundled_scene
-        from agilegs.service.nbv.camera import Intrinsics
+        from agilegs.service.nbv import Intrinsics, load_scene
         from agilegs.service.nbv.candidates import capture_pool, scene_center_radius
-        from agilegs.service.nbv.gaussians import load_scene
 
         path = bundled_scene(scene) if scene in ("spot", "teapot") else Path(scene)
         if not path.exists():
@@ -212,9 +231,7 @@ class Robot:
     def psnr(self, arrays: dict[str, np.ndarray]) -> float:
         """Mean PSNR (dB) of a downloaded map on the held-out test views."""
         from agilegs.service.mapper.quality import psnr
-        from agilegs.service.nbv.camera import Camera
-        from agilegs.service.nbv.gaussians import GaussianMap
-        from agilegs.service.nbv.rasterize import render
+        from agilegs.service.nbv import Camera, GaussianMap, render
 
         torch = self._torch
         gmap = GaussianMap(**{k: torch.from_numpy(v.copy()) for k, v in arrays.items()})
@@ -231,20 +248,26 @@ class Robot:
 def make_robot(scene: str, size: DemoSize, seed: int, work_dir: Path) -> tuple[Any, DemoSize]:
     """The robot for ``--scene`` and the demo's size fitted to it: a splat scene's rendering
     :class:`Robot`, or a :class:`~agilegs.lab.demo.capture_robot.CaptureRobot` that replays a
-    posed capture, whose pool and test views are the capture's (the events capped by the
-    pool; its starting map is written to ``work_dir``)."""
+    posed capture, whose pool and test views are the capture's (the events capped at half the
+    frames left after the initial views, so that the methods have a choice to make; its
+    starting map is written to ``work_dir``). An empty folder is refused naming every layout
+    a scene may have."""
     from agilegs.lab.demo.capture_robot import CaptureRobot, is_capture, load_capture
 
     if not is_capture(scene):
+        if Path(scene).is_dir():  # no capture: a splat file, or the error naming every layout
+            from agilegs.lab.bench.scenes import detect_scene_kind
+
+            detect_scene_kind(scene)
         return Robot(scene, size, seed), size
-    sc = load_capture(scene, size.width, size.test_count, seed)
+    sc = load_capture(scene, size.width, size.test_count, seed, size.init_gaussians)
     if sc.pool_size < size.initial_views + 1:
         raise ValueError(f"--scene: the capture's pool ({sc.pool_size} frames) is smaller than "
                          f"{size.initial_views} initial views and one event")
     robot = CaptureRobot(sc, work_dir, size.init_gaussians, seed)
     fitted = replace(size, pool_size=sc.pool_size, test_count=int(sc.test_poses.shape[0]),
                      width=sc.intrinsics.width,
-                     events=min(size.events, sc.pool_size - size.initial_views))
+                     events=min(size.events, max(1, (sc.pool_size - size.initial_views) // 2)))
     return robot, fitted
 
 
@@ -347,32 +370,35 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     console.print(f"[bold]agilegs demo[/bold]: scene {args.scene} ({robot.summary}), "
-                  f"{size.width}x{size.width} images, pool {size.pool_size}, "
+                  f"{robot.intrinsics.width}x{robot.intrinsics.height} images, "
+                  f"pool {size.pool_size}, "
                   f"{size.test_count} test views, {size.initial_views} initial views, "
                   f"{size.events} events, {size.steps_per_view} mapper steps per view",
                   soft_wrap=True)
     console.print(EXPECT, soft_wrap=True)
-    with tempfile.TemporaryDirectory(prefix="agilegs-demo-") as tmp:
-        server = ServerProcess(
-            Path(tmp) / "state", zenoh=False, log_path=out / "server.log",
-            args=["--log-level", "warning"],
-            env={"AGILEGS_TORCH_THREADS": str(args.server_threads), "AGILEGS_MAPPER": "1",
-                 "AGILEGS_MAPPER_BURST": "10"})
-        try:
-            server.start(timeout=120.0)
-            console.print(f"server: {server.url} (pid {server.proc.pid if server.proc else '?'}"
-                          f", log {out / 'server.log'})", soft_wrap=True)
-            results = closed_loop(server.url, robot, size, int(args.seed), console,
-                                  view=args if args.view else None)
-        except Exception as exc:
-            log.error("demo failed: %s", exc)
-            tail = server.log()[-3000:]
-            if tail:
-                console.print(f"[dim]server log (tail):[/dim]\n{tail}", soft_wrap=True,
-                              markup=False)
-            return 1
-        finally:
-            server.stop()
+    server = ServerProcess(
+        out / "state", zenoh=False, log_path=out / "server.log",
+        args=["--log-level", "warning"],
+        env={"AGILEGS_TORCH_THREADS": str(args.server_threads), "AGILEGS_MAPPER": "1",
+             "AGILEGS_MAPPER_BURST": "10"})
+    try:
+        server.start(timeout=120.0)
+        console.print(f"server: {server.url} (pid {server.proc.pid if server.proc else '?'}"
+                      f", log {out / 'server.log'})", soft_wrap=True)
+        ready = server.wait_ready(timeout=1800.0)  # its kernels compiled before the first event
+        console.print(f"server ready in {ready:.1f} s more (its kernels compiled, or loaded "
+                      "from numba's cache)", soft_wrap=True)
+        results = closed_loop(server.url, robot, size, int(args.seed), console,
+                              view=args if args.view else None)
+    except Exception as exc:
+        log.error("demo failed: %s", exc)
+        tail = server.log()[-3000:]
+        if tail:
+            console.print(f"[dim]server log (tail):[/dim]\n{tail}", soft_wrap=True,
+                          markup=False)
+        return 1
+    finally:
+        server.stop()
     wall = time.perf_counter() - t_start
     results.update(scene=args.scene, size=asdict(size), seed=int(args.seed), wall_s=wall,
                    attribution=attribution(args.scene))
@@ -381,6 +407,11 @@ def run(args: argparse.Namespace) -> int:
     (out / "demo.json").write_text(json.dumps(results, indent=2))
     console.print(f"table: {out / 'psnr.md'}\nplot: {png}\nresults: {out / 'demo.json'}",
                   soft_wrap=True)
+    sid = session_id("agile_plus")
+    console.print(f"export (the map; the views as a nerfstudio and COLMAP dataset):\n"
+                  f"  agilegs export {sid} {out / 'map.ply'} --state-dir {out / 'state'}\n"
+                  f"  agilegs export {sid} {out / 'dataset'} --state-dir {out / 'state'}",
+                  soft_wrap=True, markup=False)
     console.print(results["attribution"], soft_wrap=True)
     console.print(f"done in {wall:.1f} s", soft_wrap=True)
     return 0
@@ -406,10 +437,7 @@ def closed_loop(url: str, robot: Robot, size: DemoSize, seed: int, console: Cons
         results = _loop(url, robot, size, seed, console, viewer)
         if viewer is not None and _hold(Client(url), viewer, view, console):  # type: ignore[arg-type]
             return results  # Ctrl-C stopped the server too: nothing left to delete
-    with Client(url) as c:  # the view closed first: it does not report the deletion
-        for key, _ in METHODS:
-            c.delete_session(session_id(key))
-    return results
+    return results  # the sessions stay in the state folder, for agilegs export
 
 
 def _hold(client: Client, viewer: Any, view: argparse.Namespace, console: Console) -> bool:
@@ -434,7 +462,9 @@ def _hold(client: Client, viewer: Any, view: argparse.Namespace, console: Consol
 
 def _loop(url: str, robot: Robot, size: DemoSize, seed: int, console: Console,
           viewer: Any) -> dict[str, Any]:
-    from agilegs.client import Client
+    from contextlib import suppress
+
+    from agilegs.client import Client, NotFoundError
 
     intr = robot.intrinsics
     intrinsics = {"fx": intr.fx, "fy": intr.fy, "cx": intr.cx, "cy": intr.cy,
@@ -447,6 +477,8 @@ def _loop(url: str, robot: Robot, size: DemoSize, seed: int, console: Console,
     results: dict[str, Any] = {"methods": {}, "initial_views": initial}
     with Client(url, timeout=600.0) as c:
         for key, _name in METHODS:
+            with suppress(NotFoundError):  # the last run's
+                c.delete_session(sids[key])
             c.create_session(intrinsics, id=sids[key], frames=frames,
                              gaussians=getattr(robot, "initial_gaussians", None),
                              init_gaussians=size.init_gaussians, seed=seed,
@@ -491,79 +523,3 @@ def _loop(url: str, robot: Robot, size: DemoSize, seed: int, console: Console,
                               f"{latency_text(d.latency_ms, d.server_ms)}  PSNR {p:6.2f} dB",
                               soft_wrap=True)
     return results
-
-
-LEVEL_DB = 0.1
-"""PSNR differences smaller than this are reported as level."""
-
-
-def summary(console: Console, results: dict[str, Any]) -> str:
-    """Print the PSNR table of both methods per event, each method's mean selection time and
-    where AGILE-GS+ stands against Random, as this run measured them; returns the table and
-    those lines as Markdown."""
-    from rich.table import Table
-
-    names = dict(METHODS)
-    keys = list(results["methods"])
-    table = Table(title="test PSNR (dB) per event")
-    head = ["event", "views"] + [names.get(k, k) for k in keys] + (["Δ"] if len(keys) == 2
-                                                                   else [])
-    for h in head:
-        table.add_column(h, justify="right")
-    md = ["| " + " | ".join(head) + " |", "|" + "---:|" * len(head)]
-    curves = [results["methods"][k]["curve"] for k in keys]
-    deltas: list[tuple[int, float]] = []
-    for i in range(min(len(cv) for cv in curves)):
-        vals = [cv[i]["psnr"] for cv in curves]
-        row = [str(i), str(curves[0][i]["views"])] + [f"{v:.2f}" for v in vals]
-        if len(vals) == 2:
-            row.append(f"{vals[0] - vals[1]:+.2f}")
-            if i > 0:
-                deltas.append((i, vals[0] - vals[1]))
-        table.add_row(*row)
-        md.append("| " + " | ".join(row) + " |")
-    console.print(table)
-    lines = []
-    for k in keys:
-        ev = results["methods"][k]["events"]
-        if ev:
-            tot = [e["latency_ms"].get("total", math.nan) for e in ev]
-            lines.append(f"{names.get(k, k)}: mean selection {sum(tot) / len(tot):.1f} ms "
-                         f"over {len(ev)} events")
-    if deltas and len(keys) == 2:
-        a, b = (names.get(k, k) for k in keys)
-        groups = {"ahead of": [i for i, d in deltas if d >= LEVEL_DB],
-                  "level with": [i for i, d in deltas if abs(d) < LEVEL_DB],
-                  "behind": [i for i, d in deltas if d <= -LEVEL_DB]}
-        parts = [f"{what} {b} at event{'s' if len(idx) > 1 else ''} "
-                 f"{', '.join(str(i) for i in idx)}" for what, idx in groups.items() if idx]
-        lines.append(f"{a} is " + "; ".join(parts) + f" (|Δ| < {LEVEL_DB} dB: level); "
-                     f"last event Δ {deltas[-1][1]:+.2f} dB")
-    for line in lines:
-        console.print(line, soft_wrap=True)
-    return "\n".join(md + [""] + lines) + "\n"
-
-
-def plot(results: dict[str, Any], path: Path) -> Path:
-    """PSNR against views for both methods, saved as a PNG."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    colors = {"agile_plus": "#d62728", "random": "#7f7f7f"}
-    names = dict(METHODS)
-    fig, ax = plt.subplots(figsize=(5.2, 3.6))
-    for k, r in results["methods"].items():
-        x = [c["views"] for c in r["curve"]]
-        y = [c["psnr"] for c in r["curve"]]
-        ax.plot(x, y, marker="o", ms=3, color=colors.get(k), label=names.get(k, k))
-    ax.set_xlabel("views")
-    ax.set_ylabel("test PSNR (dB)")
-    ax.set_title(f"agilegs demo: {results.get('scene', '')}")
-    ax.grid(alpha=0.3)
-    ax.legend(frameon=False)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path

@@ -33,9 +33,8 @@ from agilegs.service.bench.protocol import run_progressive
 from agilegs.service.bench.redundancy import angles_to_nearest, pool_directions
 from agilegs.service.bench.scenes import load_bench_scene
 from agilegs.service.bench.variants import parse_variant
-from agilegs.service.nbv.gaussians import GaussianMap
-from agilegs.service.nbv.selectors import SelectConfig, select
-from agilegs.service.nbv.upkeep import information_of_views
+from agilegs.service.nbv import GaussianMap, information_of_views, select
+from agilegs.service.nbv.selectors import SelectConfig
 
 FIELDS = ("means", "log_scales", "quats", "opacity_logits", "sh")
 OVERRIDES = ("pool_size", "resolution", "max_gaussians", "initial_views", "interval", "steps",

@@ -33,11 +33,10 @@ from agilegs.service.bench.profiles import resolve_profile
 from agilegs.service.bench.protocol import run_progressive
 from agilegs.service.bench.scenes import load_bench_scene
 from agilegs.service.bench.variants import parse_variant
+from agilegs.service.nbv import GaussianMap, information_of_views, select
 from agilegs.service.nbv.anchor import proxy as proxy_mod
 from agilegs.service.nbv.candidates import scene_center_radius
-from agilegs.service.nbv.gaussians import GaussianMap
-from agilegs.service.nbv.selectors import SelectConfig, select
-from agilegs.service.nbv.upkeep import information_of_views
+from agilegs.service.nbv.selectors import SelectConfig
 
 FIELDS = ("means", "log_scales", "quats", "opacity_logits", "sh")
 

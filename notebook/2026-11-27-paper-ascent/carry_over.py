@@ -14,9 +14,7 @@ import torch
 from agilegs.config.selection import AnchorConfig, SelectConfig
 from agilegs.service.bench import latency
 from agilegs.service.bench.options import add_latency_arguments
-from agilegs.service.nbv.camera import Camera
-from agilegs.service.nbv.information import accumulate_information, eig_scores, fisher_diag
-from agilegs.service.nbv.selectors import select
+from agilegs.service.nbv import Camera, accumulate_information, eig_scores, fisher_diag, select
 
 parser = argparse.ArgumentParser()
 add_latency_arguments(parser)

@@ -24,7 +24,7 @@ import torch
 from torch import Tensor
 
 from agilegs.schemas.geometry import matrix_to_quaternion_xyzw, quaternion_xyzw_to_matrix
-from agilegs.service.nbv.camera import Camera, Intrinsics
+from agilegs.service.nbv import Camera, Intrinsics
 
 from .distortion import Distortion, colmap_distortion, pinhole_for
 from .images import PathLike, View, load_capture_image, target_size

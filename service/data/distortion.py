@@ -29,7 +29,7 @@ from typing import Literal
 
 import numpy as np
 
-from agilegs.service.nbv.camera import Intrinsics
+from agilegs.service.nbv import Intrinsics
 
 __all__ = [
     "Distortion",

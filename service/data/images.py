@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from agilegs.service.nbv.camera import Camera, Intrinsics
+from agilegs.service.nbv import Camera, Intrinsics
 
 from .distortion import Distortion
 

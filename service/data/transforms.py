@@ -10,8 +10,8 @@ nerfstudio (ns-process-data) dialects.
 - ``transform_matrix`` is camera-to-world in OpenGL axes (x right, y up, z backward); it is
   converted to the project's OpenCV axes (x right, y down, z forward) by flipping the camera's
   y and z axes (negating columns 1 and 2 of the rotation).
-- Frames whose image file is missing are skipped, with one warning that counts them
-  (colmap2nerf users delete blurred frames).
+- Frames whose image file, or named depth file, is missing are skipped, with one warning that
+  counts them (colmap2nerf users delete blurred frames).
 - ``mask_path`` (nerfstudio; 0 = not the scene) and an image's alpha channel make
   ``View.alpha``; the image is composited on ``background`` by it.
 - ``depth_file_path``: a depth map per frame; ``ply_file_path``: the capture's
@@ -29,7 +29,7 @@ import json
 import logging
 import math
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -38,7 +38,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from agilegs.service.nbv.camera import Camera, Intrinsics
+from agilegs.service.nbv import Camera, Intrinsics
 
 from .distortion import NO_DISTORTION, Distortion, pinhole_for
 from .images import PathLike, View, image_size, load_capture_image, load_depth, target_size
@@ -164,6 +164,72 @@ def _norm_name(name: str) -> str:
     return os.path.normpath(name.removeprefix("./"))
 
 
+def _split_names(meta: dict[str, Any], p: Path) -> dict[str, Split]:
+    """The split of each file named by the file's ``*_filenames`` lists (nerfstudio's): a
+    named test split wins over the validation one."""
+    out: dict[str, Split] = {}
+    for key, tag in (("train_filenames", "train"), ("val_filenames", "test"),
+                     ("test_filenames", "test")):
+        names = meta.get(key)
+        if names is None:
+            continue
+        if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+            raise ValueError(f"{p}: {key} must be a list of file paths")
+        if key == "val_filenames" and meta.get("test_filenames"):
+            continue
+        for n in names:
+            out[_norm_name(n)] = tag  # type: ignore[assignment]
+    return out
+
+
+def _frame_pose(matrix: Any, where: str) -> Tensor:
+    """A frame's ``transform_matrix`` (3x4 or 4x4, OpenGL axes) as a camera-to-world pose in
+    OpenCV axes [4, 4] (float32)."""
+    try:
+        m = np.asarray(matrix, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{where}: transform_matrix is not numeric") from None
+    if m.shape == (3, 4):
+        m = np.vstack([m, [0.0, 0.0, 0.0, 1.0]])
+    if m.shape != (4, 4):
+        raise ValueError(f"{where}: transform_matrix must be 4x4, got shape {list(m.shape)}")
+    if not np.isfinite(m).all():
+        raise ValueError(f"{where}: transform_matrix has non-finite values")
+    return opengl_to_opencv_c2w(torch.from_numpy(m)).float()
+
+
+def _frame_intrinsics(get: Callable[[str], Any], where: str, img_path: Path) -> Intrinsics:
+    """A frame's intrinsics as the file gives them (``get``: the frame's key, else the
+    file's): the size from ``w``/``h`` or the image, the focal length from ``fl_x``/``fl_y``
+    or the field of view, the principal point from ``cx``/``cy`` or the centre."""
+    w, h = get("w"), get("h")
+    if w is None or h is None:
+        width, height = image_size(img_path)
+    else:
+        width, height = int(_num(w, "w", where)), int(_num(h, "h", where))
+    if get("fl_x") is not None:
+        fx = _num(get("fl_x"), "fl_x", where)
+        fy = _num(get("fl_y") if get("fl_y") is not None else fx, "fl_y", where)
+    elif get("camera_angle_x") is not None:
+        ax = _num(get("camera_angle_x"), "camera_angle_x", where)
+        if not 0 < ax < math.pi:
+            raise ValueError(f"{where}: camera_angle_x must be in (0, pi) radians, got {ax}")
+        fx = 0.5 * width / math.tan(0.5 * ax)
+        if get("camera_angle_y") is not None:
+            ay = _num(get("camera_angle_y"), "camera_angle_y", where)
+            fy = 0.5 * height / math.tan(0.5 * ay)
+        else:
+            fy = fx
+    else:
+        raise ValueError(f"{where}: no 'camera_angle_x' (or 'fl_x') for the focal length")
+    cx = _num(get("cx"), "cx", where) if get("cx") is not None else width / 2.0
+    cy = _num(get("cy"), "cy", where) if get("cy") is not None else height / 2.0
+    try:
+        return Intrinsics(fx, fy, cx, cy, width, height)
+    except ValueError as exc:
+        raise ValueError(f"{where}: {exc}") from exc
+
+
 def load_transforms(
     path: PathLike,
     *,
@@ -190,7 +256,8 @@ def load_transforms(
     Raises:
         ValueError: malformed JSON, missing keys, a non-4x4 or non-rigid transform, an
             unsupported camera model (naming the file and frame index).
-        FileNotFoundError: no frame has its image; a named mask, depth or ply file is missing.
+        FileNotFoundError: no frame has its image (and depth); a named mask or ply file is
+            missing.
     """
     p = Path(path)
     try:
@@ -200,18 +267,7 @@ def load_transforms(
     if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list):
         raise ValueError(f"{p}: expected an object with a 'frames' list")
     base = p.parent
-    split_names: dict[str, Split] = {}
-    for key, tag in (("train_filenames", "train"), ("val_filenames", "test"),
-                     ("test_filenames", "test")):
-        names = meta.get(key)
-        if names is None:
-            continue
-        if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
-            raise ValueError(f"{p}: {key} must be a list of file paths")
-        if key == "val_filenames" and meta.get("test_filenames"):
-            continue  # a named test split wins over the validation one
-        for n in names:
-            split_names[_norm_name(n)] = tag  # type: ignore[assignment]
+    split_names = _split_names(meta, p)
     views: list[View] = []
     split: list[Split | None] = []
     skipped: list[str] = []
@@ -226,46 +282,16 @@ def load_transforms(
         def get(key: str, fr: dict[str, Any] = fr) -> Any:
             return fr.get(key, meta.get(key))
 
-        try:
-            m = np.asarray(fr["transform_matrix"], dtype=np.float64)
-        except (TypeError, ValueError):
-            raise ValueError(f"{where}: transform_matrix is not numeric") from None
-        if m.shape == (3, 4):
-            m = np.vstack([m, [0.0, 0.0, 0.0, 1.0]])
-        if m.shape != (4, 4):
-            raise ValueError(f"{where}: transform_matrix must be 4x4, got shape {list(m.shape)}")
-        if not np.isfinite(m).all():
-            raise ValueError(f"{where}: transform_matrix has non-finite values")
-        c2w = opengl_to_opencv_c2w(torch.from_numpy(m)).float()
+        c2w = _frame_pose(fr["transform_matrix"], where)
         dist = _distortion(get, where)
         img_path = _find_frame_image(base, str(fr["file_path"]))
-        if img_path is None:
-            skipped.append(str(fr["file_path"]))
+        dpath = base / str(fr["depth_file_path"]) if fr.get("depth_file_path") else None
+        if img_path is None or (dpath is not None and not dpath.is_file()):
+            skipped.append(str(fr["file_path"]) if img_path is None else str(dpath))
             continue
-        w, h = get("w"), get("h")
-        if w is None or h is None:
-            width, height = image_size(img_path)
-        else:
-            width, height = int(_num(w, "w", where)), int(_num(h, "h", where))
-        if get("fl_x") is not None:
-            fx = _num(get("fl_x"), "fl_x", where)
-            fy = _num(get("fl_y") if get("fl_y") is not None else fx, "fl_y", where)
-        elif get("camera_angle_x") is not None:
-            ax = _num(get("camera_angle_x"), "camera_angle_x", where)
-            if not 0 < ax < math.pi:
-                raise ValueError(f"{where}: camera_angle_x must be in (0, pi) radians, got {ax}")
-            fx = 0.5 * width / math.tan(0.5 * ax)
-            if get("camera_angle_y") is not None:
-                ay = _num(get("camera_angle_y"), "camera_angle_y", where)
-                fy = 0.5 * height / math.tan(0.5 * ay)
-            else:
-                fy = fx
-        else:
-            raise ValueError(f"{where}: no 'camera_angle_x' (or 'fl_x') for the focal length")
-        cx = _num(get("cx"), "cx", where) if get("cx") is not None else width / 2.0
-        cy = _num(get("cy"), "cy", where) if get("cy") is not None else height / 2.0
+        raw = _frame_intrinsics(get, where, img_path)
+        width, height = raw.width, raw.height
         try:
-            raw = Intrinsics(fx, fy, cx, cy, width, height)
             cam = Camera.from_intrinsics(c2w, pinhole_for(raw, dist))
         except ValueError as exc:
             raise ValueError(f"{where}: {exc}") from exc
@@ -284,10 +310,7 @@ def load_transforms(
             image, alpha = load_capture_image(img_path, raw, dist, (tw, th),
                                               background=background, mask_path=mask_path)
         depth = None
-        if fr.get("depth_file_path"):
-            dpath = base / str(fr["depth_file_path"])
-            if not dpath.is_file():
-                raise FileNotFoundError(f"{where}: depth file {dpath} not found")
+        if dpath is not None:
             if not dist.is_identity:
                 raise ValueError(f"{where}: depth maps of a distorted camera are not supported "
                                  "(undistort the capture first)")
@@ -296,11 +319,12 @@ def load_transforms(
         views.append(View(name=name, camera=cam, image=image, depth=depth, alpha=alpha))
         split.append(split_names.get(_norm_name(name)) if split_names else None)
     if skipped and not quiet:
-        log.warning("%s: %d of %d frames have no image and were skipped (first: %s)", p,
-                    len(skipped), len(meta["frames"]), skipped[0])
+        log.warning("%s: %d of %d frames have no image (or no depth file, where they name one) "
+                    "and were skipped (first missing: %s)", p, len(skipped), len(meta["frames"]),
+                    skipped[0])
     if not views and skipped:
-        raise FileNotFoundError(f"{p}: none of the {len(skipped)} frames has its image "
-                                f"(first: {skipped[0]!r}, under {base})")
+        raise FileNotFoundError(f"{p}: none of the {len(skipped)} frames has its image (and "
+                                f"depth) (first missing: {skipped[0]!r}, under {base})")
     points = colors = None
     if meta.get("ply_file_path"):
         ply = base / str(meta["ply_file_path"])

@@ -27,9 +27,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from agilegs.service.nbv.camera import Camera
-from agilegs.service.nbv.gaussians import GaussianMap
-from agilegs.service.nbv.rasterize import RenderResult
+from agilegs.service.nbv import Camera, GaussianMap, RenderResult
 
 log = logging.getLogger(__name__)
 

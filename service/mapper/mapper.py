@@ -53,9 +53,7 @@ from torch import Tensor
 from agilegs.config.mapper import MapperConfig
 from agilegs.service.data.images import View
 from agilegs.service.mapper.quality import ssim_loss
-from agilegs.service.nbv.camera import Camera
-from agilegs.service.nbv.gaussians import GaussianMap
-from agilegs.service.nbv.rasterize import render
+from agilegs.service.nbv import Camera, GaussianMap, render
 
 from .densify import plan_densification
 from .gsplat_render import render_gsplat, resolve_rasterizer

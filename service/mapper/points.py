@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from agilegs.service.nbv.camera import Camera
+from agilegs.service.nbv import Camera
 
 __all__ = ["backproject_depth", "nearest_neighbour_scales"]
 

@@ -1,69 +1,68 @@
 """agilegs.service.nbv: the maths of AGILE-GS (tensors in, tensors out; no I/O, no state).
 
-Public surface (imported lazily, so ``import agilegs.service.nbv`` stays cheap):
+The public face; every name below is defined in the module named beside it, and the code of
+this project imports it from there:
 
-- Gaussian maps and cameras: ``GaussianMap``, ``Camera``, ``Intrinsics``, ``look_at``.
-- Rendering: ``render`` -> ``RenderResult`` (rgb [H,W,3], alpha [H,W], depth [H,W]).
-- Information: ``fisher_diag``, ``init_information``, ``accumulate_information``,
-  ``expected_information_gain``, ``trace_surrogate``; Hhat of a set of views
-  ``information_of_views`` and one view's ``view_information``.
-- Poses: ``se3_exp``, ``se3_log``, ``hat``, ``vee``.
-- Selection: ``select`` -> ``Selection`` (``select_validated`` for inputs validated already),
-  ``SelectConfig`` (with ``AnchorConfig``,
-  ``ScoringConfig``), ``eig_scores``, ``greedy_ridge_leverage``; the methods are registered
-  by name in :mod:`agilegs.service.nbv.methods`.
+- Gaussian maps and cameras: ``GaussianMap``, ``load_scene`` (:mod:`.gaussians`); ``Camera``,
+  ``Intrinsics``, ``look_at``, ``check_pose`` (:mod:`.camera`).
+- Rendering: ``render`` -> ``RenderResult`` (rgb [H,W,3], alpha [H,W], depth [H,W])
+  (:mod:`.rasterize`); ``project_gaussians`` (:mod:`.projection`).
+- Information (:mod:`.information`): ``fisher_diag``, ``fisher_diag_bruteforce``,
+  ``init_information``, ``accumulate_information``, ``expected_information_gain``,
+  ``trace_surrogate``, ``eig_scores``; Ĥ of a set of views ``information_of_views`` and one
+  view's ``view_information`` (:mod:`.upkeep`).
+- Poses (:mod:`.se3`): ``se3_exp``, ``se3_log``, ``hat``, ``vee``.
+- Selection: ``select`` -> ``Selection``, ``METHODS`` (:mod:`.selectors`; the methods are
+  registered by name in :mod:`.methods`), ``greedy_ridge_leverage`` (:mod:`.leverage`). Its
+  settings, ``SelectConfig`` with ``AnchorConfig`` and ``ScoringConfig``, are
+  :mod:`agilegs.config`'s.
 """
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from .camera import Camera, Intrinsics, check_pose, look_at
+from .gaussians import GaussianMap, load_scene
+from .information import (
+    accumulate_information,
+    eig_scores,
+    expected_information_gain,
+    fisher_diag,
+    fisher_diag_bruteforce,
+    init_information,
+    trace_surrogate,
+)
+from .leverage import greedy_ridge_leverage
+from .projection import project_gaussians
+from .rasterize import RenderResult, render
+from .se3 import hat, se3_exp, se3_log, vee
+from .selectors import METHODS, Selection, select
+from .upkeep import information_of_views, view_information
 
-_EXPORTS: dict[str, str] = {
-    "GaussianMap": "gaussians",
-    "FIELD_NAMES": "gaussians",
-    "load_scene": "gaussians",
-    "Camera": "camera",
-    "Intrinsics": "camera",
-    "look_at": "camera",
-    "check_pose": "camera",
-    "render": "rasterize",
-    "RenderResult": "rasterize",
-    "project_gaussians": "projection",
-    "fisher_diag": "information",
-    "fisher_diag_bruteforce": "information",
-    "init_information": "information",
-    "accumulate_information": "information",
-    "expected_information_gain": "information",
-    "trace_surrogate": "information",
-    "information_of_views": "upkeep",
-    "view_information": "upkeep",
-    "se3_exp": "se3",
-    "se3_log": "se3",
-    "hat": "se3",
-    "vee": "se3",
-    "greedy_ridge_leverage": "leverage",
-    "select": "selectors",
-    "select_validated": "selectors",
-    "Selection": "selectors",
-    "SelectConfig": "selectors",
-    "AnchorConfig": "selectors",
-    "ScoringConfig": "selectors",
-    "METHODS": "selectors",
-    "eig_scores": "information",
-}
-
-__all__ = sorted(_EXPORTS)
-
-
-def __getattr__(name: str) -> Any:
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return __all__
+__all__ = [
+    "METHODS",
+    "Camera",
+    "GaussianMap",
+    "Intrinsics",
+    "RenderResult",
+    "Selection",
+    "accumulate_information",
+    "check_pose",
+    "eig_scores",
+    "expected_information_gain",
+    "fisher_diag",
+    "fisher_diag_bruteforce",
+    "greedy_ridge_leverage",
+    "hat",
+    "information_of_views",
+    "init_information",
+    "load_scene",
+    "look_at",
+    "project_gaussians",
+    "render",
+    "se3_exp",
+    "se3_log",
+    "select",
+    "trace_surrogate",
+    "vee",
+    "view_information",
+]

@@ -70,6 +70,7 @@ __all__ = [
     "PASS_FRACTION",
     "TORCH_PAIR_BYTES",
     "Estimate",
+    "EstimateInputs",
     "Kind",
     "estimate",
     "footprint_area",
@@ -153,17 +154,6 @@ def footprint_area(gaussians: int, pixels: int) -> float:
     return min(side * side, float(pixels))
 
 
-def _check(gaussians: int, pixels: int, pool: int, shortlist: int, acquired: int,
-           sh_coeffs: int, dtype_bytes: int) -> None:
-    for name, v, lo in (("gaussians", gaussians, 0), ("pixels", pixels, 1), ("pool", pool, 0),
-                        ("shortlist", shortlist, 0), ("acquired", acquired, 0),
-                        ("sh_coeffs", sh_coeffs, 1)):
-        if not isinstance(v, int) or isinstance(v, bool) or v < lo:
-            raise ValueError(f"{name} must be an integer >= {lo}, got {v!r}")
-    if dtype_bytes not in (4, 8):
-        raise ValueError(f"dtype_bytes must be 4 or 8, got {dtype_bytes!r}")
-
-
 def _pass(kind: str, n: int, p: int, area: float, f: int, k: int, channels: int,
           backend: str) -> tuple[dict[str, int], float]:
     """Memory terms and seconds of one render ("render", "render_grad") or Fisher pass."""
@@ -198,55 +188,73 @@ def _pass(kind: str, n: int, p: int, area: float, f: int, k: int, channels: int,
     return parts, sec
 
 
-def _model(
-    kind: Kind,
-    gaussians: int,
-    pixels: int,
-    *,
-    pool: int = 0,
-    shortlist: int = 10,
-    acquired: int = 5,
-    sh_coeffs: int = 16,
-    dtype_bytes: int = 4,
-    footprint: float | None = None,
-    backend: Literal["numba", "torch"] = "numba",
-) -> Estimate:
-    """The model alone, without the margin (the arguments of :func:`estimate`)."""
-    if kind not in KINDS:
-        raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
-    if backend not in ("numba", "torch"):
-        raise ValueError(f"backend must be 'numba' or 'torch', got {backend!r}")
-    _check(gaussians, pixels, pool, shortlist, acquired, sh_coeffs, dtype_bytes)
-    n, p, f, k = gaussians, pixels, dtype_bytes, sh_coeffs
-    if footprint is not None and not (footprint >= 0 and math.isfinite(footprint)):
-        raise ValueError(f"footprint must be a finite area >= 0, got {footprint!r}")
-    area = footprint_area(n, p) if footprint is None else min(float(footprint), float(p))
+@dataclass(frozen=True)
+class EstimateInputs:
+    """What :func:`estimate` sizes (its arguments), checked once when built: a
+    ``ValueError`` naming the argument for an unknown kind or backend or a bad size."""
+
+    kind: Kind
+    gaussians: int
+    pixels: int
+    pool: int = 0
+    shortlist: int = 10
+    acquired: int = 5
+    sh_coeffs: int = 16
+    dtype_bytes: int = 4
+    footprint: float | None = None
+    backend: Literal["numba", "torch"] = "numba"
+    threads: int = 1
+
+    def __post_init__(self) -> None:
+        if self.kind not in KINDS:
+            raise ValueError(f"kind must be one of {KINDS}, got {self.kind!r}")
+        if self.backend not in ("numba", "torch"):
+            raise ValueError(f"backend must be 'numba' or 'torch', got {self.backend!r}")
+        for name, lo in (("gaussians", 0), ("pixels", 1), ("pool", 0), ("shortlist", 0),
+                         ("acquired", 0), ("sh_coeffs", 1)):
+            v = getattr(self, name)
+            if not isinstance(v, int) or isinstance(v, bool) or v < lo:
+                raise ValueError(f"{name} must be an integer >= {lo}, got {v!r}")
+        if self.dtype_bytes not in (4, 8):
+            raise ValueError(f"dtype_bytes must be 4 or 8, got {self.dtype_bytes!r}")
+        fp = self.footprint
+        if fp is not None and not (fp >= 0 and math.isfinite(fp)):
+            raise ValueError(f"footprint must be a finite area >= 0, got {fp!r}")
+        t = self.threads
+        if not isinstance(t, int) or isinstance(t, bool) or t < 1:
+            raise ValueError(f"threads must be an integer >= 1, got {t!r}")
+
+
+def _model(x: EstimateInputs) -> Estimate:
+    """The model alone, without the margin."""
+    n, p, f, k, kind = x.gaussians, x.pixels, x.dtype_bytes, x.sh_coeffs, x.kind
+    area = footprint_area(n, p) if x.footprint is None else min(float(x.footprint), float(p))
     if kind in ("render", "render_grad", "fisher"):
-        parts, sec = _pass(kind, n, p, area, f, k, 3, backend)
+        parts, sec = _pass(kind, n, p, area, f, k, 3, x.backend)
         return Estimate(sum(parts.values()), sec, parts)
-    fisher_parts, fisher_sec = _pass("fisher", n, p, area, f, k, 3, backend)
+    fisher_parts, fisher_sec = _pass("fisher", n, p, area, f, k, 3, x.backend)
     fisher_peak = sum(fisher_parts.values())
     if kind == "random":
         return Estimate(1 << 20, 1e-3, {"scores": 1 << 20})
     if kind == "full_eig":
-        return Estimate(fisher_peak, pool * fisher_sec, {"fisher": fisher_peak})
+        return Estimate(fisher_peak, x.pool * fisher_sec, {"fisher": fisher_peak})
     if kind == "fisherrf":
         h_train = 2 * n * (7 + 3 * k) * f  # H_train and its inverse, four blocks
-        return Estimate(fisher_peak + h_train, (pool + acquired) * fisher_sec,
+        return Estimate(fisher_peak + h_train, (x.pool + x.acquired) * fisher_sec,
                         {"fisher": fisher_peak, "h_train": h_train})
     if kind == "cover":
-        r_parts, r_sec = _pass("render", n, p, area, f, k, 4, backend)
+        r_parts, r_sec = _pass("render", n, p, area, f, k, 4, x.backend)
         render_peak = sum(r_parts.values())
         bins = n * COVER_BINS + min(n, COVER_CHUNK) * COVER_BINS * 3 * f + n * (2 * f + 8)
         projection = n * (16 * f + 8)  # the acquired views' projections (the bins)
         return Estimate(render_peak + bins + projection,
-                        pool * (r_sec + _T_COVER * n) + acquired * 0.4e-6 * n,
+                        x.pool * (r_sec + _T_COVER * n) + x.acquired * 0.4e-6 * n,
                         {"render": render_peak, "bins": bins, "projection": projection})
     agile = AGILE_BYTES + AGILE_BYTES_PER_GAUSSIAN * n
     sec = _T_AGILE * n + 0.05
     if kind == "agile":
         return Estimate(agile, sec, {"anchor_and_scoring": agile})
-    return Estimate(agile + fisher_peak, sec + min(shortlist, max(pool, 1)) * fisher_sec,
+    return Estimate(agile + fisher_peak, sec + min(x.shortlist, max(x.pool, 1)) * fisher_sec,
                     {"anchor_and_scoring": agile, "fisher": fisher_peak})
 
 
@@ -287,11 +295,10 @@ def estimate(
     Raises:
         ValueError: naming the argument, for an unknown kind or backend or a bad size.
     """
-    model = _model(kind, gaussians, pixels, pool=pool, shortlist=shortlist,
-                   acquired=acquired, sh_coeffs=sh_coeffs, dtype_bytes=dtype_bytes,
-                   footprint=footprint, backend=backend)
-    if not isinstance(threads, int) or isinstance(threads, bool) or threads < 1:
-        raise ValueError(f"threads must be an integer >= 1, got {threads!r}")
+    x = EstimateInputs(kind, gaussians, pixels, pool=pool, shortlist=shortlist,
+                       acquired=acquired, sh_coeffs=sh_coeffs, dtype_bytes=dtype_bytes,
+                       footprint=footprint, backend=backend, threads=threads)
+    model = _model(x)
     margin = (math.ceil(model.peak_bytes * (MEMORY_MARGIN - 1.0)) + ALLOCATOR_BYTES
               + (threads - 1) * THREAD_ARENA_BYTES)
     return Estimate(model.peak_bytes + margin, model.seconds,

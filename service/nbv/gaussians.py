@@ -197,14 +197,7 @@ class GaussianMap:
             ValueError: unknown suffix, an empty map, or NaN / infinite parameters.
         """
         p = Path(path)
-        fmt = _format_of(p)
-        if self.num_gaussians == 0:
-            raise ValueError(f"{p}: refusing to save an empty map (0 Gaussians)")
-        for name, t in self.items():
-            bad = int((~torch.isfinite(t.detach())).sum())
-            if bad:
-                raise ValueError(f"cannot save {p}: {name} has {bad} NaN or infinite values")
-        data = _ply_bytes(self) if fmt == "ply" else _splat_bytes(self)
+        data = self.to_bytes(_format_of(p), what=str(p))
         tmp = p.with_name(f".{p.name}.tmp{os.getpid()}")
         try:
             tmp.write_bytes(data)
@@ -212,6 +205,23 @@ class GaussianMap:
         finally:
             if tmp.exists():
                 tmp.unlink()
+
+    def to_bytes(self, fmt: str, *, what: str = "the map") -> bytes:
+        """The bytes :meth:`save` writes for format ``fmt`` (``"ply"`` or ``"splat"``).
+
+        Raises:
+            ValueError: an unknown format, an empty map, or NaN / infinite parameters
+                (``what`` names the map in the message).
+        """
+        if fmt not in ("ply", "splat"):
+            raise ValueError(f"unknown Gaussian map format {fmt!r}; supported: ply, splat")
+        if self.num_gaussians == 0:
+            raise ValueError(f"{what}: refusing to save an empty map (0 Gaussians)")
+        for name, t in self.items():
+            bad = int((~torch.isfinite(t.detach())).sum())
+            if bad:
+                raise ValueError(f"cannot save {what}: {name} has {bad} NaN or infinite values")
+        return _ply_bytes(self) if fmt == "ply" else _splat_bytes(self)
 
     @classmethod
     def from_points(

@@ -2,8 +2,9 @@
 
 The methods (paper sections 3-5 and its baselines) are registered by name in
 :mod:`agilegs.service.nbv.methods`, one module each; all select on the same map, Hhat and
-pool. ``select`` validates its inputs (``select_validated`` is the same for a caller that
-validated them already, as the service does once per setting), works out what every method
+pool. ``select`` validates its inputs into one :class:`SelectInputs` (a caller that
+validated them already, as the service does once per setting, builds the
+:class:`SelectInputs` itself and selects through ``select_from``), works out what every method
 shares (the eligible candidates, the pool's radius, the event counter of the warm state),
 runs the method and times it.
 
@@ -21,6 +22,7 @@ on the seed only: it is fixed across events.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Mapping
@@ -54,11 +56,12 @@ __all__ = [
     "AnchorConfig",
     "ScoringConfig",
     "SelectConfig",
+    "SelectInputs",
     "Selection",
     "eig_scores",
     "eligible_candidates",
     "select",
-    "select_validated",
+    "select_from",
     "state_to",
 ]
 
@@ -124,10 +127,11 @@ def _validate(
     current_pose: Tensor | None,
     config: SelectConfig,
     fields: tuple[str, ...],
+    uses_map: bool = True,
 ) -> None:
     if not isinstance(gmap, GaussianMap):
         raise TypeError(f"gmap must be a GaussianMap, got {type(gmap).__name__}")
-    if gmap.num_gaussians == 0:
+    if gmap.num_gaussians == 0 and uses_map:
         raise InputError("gmap", "gmap has no Gaussians")
     if not isinstance(intrinsics, Intrinsics):
         raise TypeError(f"intrinsics must be an Intrinsics, got {type(intrinsics).__name__}")
@@ -213,6 +217,57 @@ def eligible_candidates(
 
 
 # ----------------------------------------------------------------------------- select
+@dataclass(frozen=True, eq=False)
+class SelectInputs:
+    """What one selection selects on: :func:`select`'s arguments of the same names but the
+    warm state (``config`` not None).
+
+    :meth:`checked` validates every field (what :func:`select` does); without it the fields
+    are taken as valid: ``config`` a validated :class:`SelectConfig` and everything
+    :meth:`checked` checks (a non-empty map, Hhat positive and of the map's shapes, a
+    non-empty pool of proper poses, ``current`` an index into it, a current view in embodied
+    mode, ``lam`` > 0), as the service does once per setting (a pool when it arrives, Hhat as
+    it is kept up).
+    """
+
+    method: str
+    gmap: GaussianMap
+    h_acc: Mapping[str, Tensor]
+    candidates: Tensor
+    intrinsics: Intrinsics
+    config: SelectConfig
+    acquired: Tensor | None = None
+    current: int | None = None
+    current_pose: Tensor | None = None
+    lam: float | None = None
+    targets: Tensor | None = None
+
+    @property
+    def fields(self) -> tuple[str, ...]:
+        """The parameter blocks selected on (``config.fields``, else all)."""
+        return tuple(self.config.fields) if self.config.fields is not None else FIELD_NAMES
+
+    def checked(self) -> SelectInputs:
+        """These inputs validated (:func:`select`'s checks and errors), ``config`` as its
+        validated copy."""
+        impl = get_method(self.method)
+        config = validate_config(SelectConfig, self.config)
+        fields = tuple(config.fields) if config.fields is not None else FIELD_NAMES
+        _validate(self.gmap, self.h_acc, self.candidates, self.intrinsics, self.acquired,
+                  self.current, self.current_pose, config, fields,
+                  getattr(impl, "uses_map", True))
+        lam = self.lam
+        if lam is not None and not (isinstance(lam, int | float) and math.isfinite(lam)
+                                    and lam > 0):
+            raise InputError("lam", f"lam must be a positive finite number, got {lam!r}")
+        t = self.targets
+        if t is not None:
+            if not isinstance(t, Tensor) or t.ndim != 3 or t.shape[1:] != (4, 4) or not len(t):
+                raise InputError("targets", "targets must be a tensor of poses [T, 4, 4], T >= 1")
+            check_pose(t, "targets")
+        return dataclasses.replace(self, config=config)
+
+
 def select(
     method: str,
     gmap: GaussianMap,
@@ -226,6 +281,7 @@ def select(
     current_pose: Tensor | None = None,
     state: dict[str, Any] | None = None,
     lam: float | None = None,
+    targets: Tensor | None = None,
 ) -> Selection:
     """Choose the next view among ``candidates`` with ``method``.
 
@@ -245,77 +301,47 @@ def select(
             the anchor's proxy separates the views' information from it. None: estimated
             as each parameter slot's minimum over Gaussians (exact only when some Gaussian
             is seen by no acquired view).
+        targets: the target views [T, 4, 4] of ``config.objective = "target"`` (None: the
+            pool); ignored by the ``eig`` objective.
 
     Raises:
         ValueError: naming the argument, for an unknown method, an empty pool, a budget < 1,
             NaN poses, non-orthonormal rotations, h_acc not matching the map, embodied_k < 1.
     """
-    t_start = time.perf_counter()
-    get_method(method)
-    config = validate_config(SelectConfig, config if config is not None else SelectConfig())
-    fields = tuple(config.fields) if config.fields is not None else FIELD_NAMES
-    _validate(gmap, h_acc, candidates, intrinsics, acquired, current, current_pose, config,
-              fields)
-    if lam is not None and not (isinstance(lam, int | float) and math.isfinite(lam) and lam > 0):
-        raise InputError("lam", f"lam must be a positive finite number, got {lam!r}")
-    return _select(method, gmap, h_acc, candidates, intrinsics, config, acquired, current,
-                   current_pose, state, lam, t_start)
+    started = time.perf_counter()
+    inputs = SelectInputs(method, gmap, h_acc, candidates, intrinsics,
+                          config if config is not None else SelectConfig(), acquired, current,
+                          current_pose, lam, targets)
+    return select_from(inputs.checked(), state=state, started=started)
 
 
-def select_validated(
-    method: str,
-    gmap: GaussianMap,
-    h_acc: Mapping[str, Tensor],
-    candidates: Tensor,
-    intrinsics: Intrinsics,
-    *,
-    config: SelectConfig,
-    acquired: Tensor | None = None,
-    current: int | None = None,
-    current_pose: Tensor | None = None,
-    state: dict[str, Any] | None = None,
-    lam: float | None = None,
-) -> Selection:
-    """:func:`select` on inputs its caller validated already: ``config`` a validated
-    :class:`SelectConfig`, and everything :func:`select` checks (a non-empty map, Hhat
-    positive and of the map's shapes, a non-empty pool of proper poses, ``current`` an index
-    into it, a current view in embodied mode, ``lam`` > 0). The service validates each of
-    them once, when it is set (a pool when it arrives, Hhat as it is kept up), and selects
-    through here. Raises :class:`~agilegs.service.nbv.errors.InputError` only when no
-    candidate is eligible."""
-    return _select(method, gmap, h_acc, candidates, intrinsics, config, acquired, current,
-                   current_pose, state, lam, time.perf_counter())
+def select_from(inputs: SelectInputs, *, state: dict[str, Any] | None = None,
+                started: float | None = None) -> Selection:
+    """Choose the next view with ``inputs`` (taken as valid: see :class:`SelectInputs`).
 
-
-def _select(
-    method: str,
-    gmap: GaussianMap,
-    h_acc: Mapping[str, Tensor],
-    candidates: Tensor,
-    intrinsics: Intrinsics,
-    config: SelectConfig,
-    acquired: Tensor | None,
-    current: int | None,
-    current_pose: Tensor | None,
-    state: dict[str, Any] | None,
-    lam: float | None,
-    t_start: float,
-) -> Selection:
-    impl = get_method(method)
-    fields = tuple(config.fields) if config.fields is not None else FIELD_NAMES
+    ``state``: the previous ``Selection.state`` (warm start), or None. ``started``: the
+    ``time.perf_counter()`` the call's total latency counts from (None: now). Raises
+    :class:`~agilegs.service.nbv.errors.InputError` only when no candidate is eligible.
+    """
+    t_start = time.perf_counter() if started is None else started
+    impl = get_method(inputs.method)
+    config = inputs.config
     state = dict(state or {})
     event = int(state.get("event", 0))
+    gmap = inputs.gmap
     dt = gmap.dtype
-    pool = candidates.detach().to(dt)
-    aim, _ = scene_center_radius(gmap.means)
+    pool = inputs.candidates.detach().to(dt)
+    # a method that reads no map (spread) may select before the map has a Gaussian
+    aim = (scene_center_radius(gmap.means)[0] if gmap.num_gaussians
+           else pool[:, :3, 3].mean(0))
     radius = pool_radius(pool, aim)
     sc = config.scoring
     rot_weight = sc.rot_weight if sc.rot_weight is not None else radius
     eligible = eligible_candidates(
         pool,
         embodied_k=config.embodied_k,
-        current=current,
-        current_pose=current_pose,
+        current=inputs.current,
+        current_pose=inputs.current_pose,
         rot_weight=rot_weight,
         metric=config.embodied_metric,
     )
@@ -328,16 +354,19 @@ def _select(
         else torch.tensor(config.fisher_background, dtype=dt)
     )
     ctx = SelectionContext(
-        gmap=gmap, h_acc=h_acc, pool=pool, intrinsics=intrinsics, config=config, fields=fields,
-        eligible=eligible, acquired=acquired, state=state, event=event, aim=aim, radius=radius,
-        rot_weight=rot_weight, background=bg, lam=lam,
+        gmap=gmap, h_acc=inputs.h_acc, pool=pool, intrinsics=inputs.intrinsics, config=config,
+        fields=inputs.fields, eligible=eligible, acquired=inputs.acquired, state=state,
+        event=event, aim=aim, radius=radius, rot_weight=rot_weight, background=bg,
+        lam=inputs.lam,
+        targets=(None if inputs.targets is None
+                 else inputs.targets.detach().to(device=pool.device, dtype=dt)),
     )
     res = impl(ctx)
     lat = {k: 0.0 for k in STAGES}
     lat.update(res.latency_ms)
     lat["total"] = (time.perf_counter() - t_start) * 1e3
     return Selection(
-        method=method,
+        method=inputs.method,
         index=int(res.index),
         shortlist=res.shortlist,
         anchor_c2w=res.anchor_c2w,

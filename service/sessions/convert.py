@@ -26,10 +26,9 @@ from agilegs.schemas import Intrinsics as WireIntrinsics
 from agilegs.schemas import Pose
 from agilegs.schemas.geometry import PoseArrayList
 
-from ..errors import ServiceError, invalid, too_large
+from ..errors import ServiceError, conflict, invalid, too_large
 from ..mapper.points import backproject_depth, nearest_neighbour_scales
-from ..nbv.camera import Camera, Intrinsics
-from ..nbv.gaussians import GaussianMap
+from ..nbv import Camera, GaussianMap, Intrinsics
 from ..store.records import SessionRecord, ViewRecord
 
 __all__ = [
@@ -38,6 +37,7 @@ __all__ = [
     "finite_float",
     "gaussians_from_arrays",
     "gaussians_from_depth",
+    "gaussians_file",
     "information_summary",
     "nbv_intrinsics",
     "parse_frame",
@@ -120,6 +120,17 @@ def gaussians_from_arrays(a: m.GaussianArrays, field: str) -> GaussianMap:
         return GaussianMap(**tensors)
     except ValueError as exc:
         raise invalid(field, str(exc)) from None
+
+
+def gaussians_file(out: m.GaussiansOut, fmt: str) -> bytes:
+    """The Gaussians of a ``get_gaussians`` answer as the file :meth:`GaussianMap.save`
+    writes: the Inria 3DGS ``.ply`` (``fmt="ply"``: the float32 parameters as they are) or
+    the antimatter15 ``.splat``; 409 while the map has no Gaussians."""
+    if out.count == 0:
+        raise conflict("gaussians", "the session's map has no Gaussians yet: there is no "
+                                    f".{fmt} file to give")
+    arrays = {k: torch.from_numpy(np.array(v, dtype=np.float32)) for k, v in out.to_numpy().items()}
+    return GaussianMap(**arrays).to_bytes(fmt)
 
 
 def random_gaussians(bounds: m.Bounds, count: int, seed: int) -> GaussianMap:

@@ -25,7 +25,7 @@ import torch
 from pydantic import BaseModel, ValidationError
 
 from agilegs import schemas as m
-from agilegs.schemas import OPERATIONS, DecisionsOut, DecisionsRequest
+from agilegs.schemas import DecisionsOut, DecisionsRequest
 from agilegs.schemas.config import patch_dict
 
 from ..errors import (
@@ -62,7 +62,7 @@ from .session import Session, SessionEnv, store_unavailable
 from .trainer import Trainer
 from .transitions import Limits, integrate_frames, new_record, set_pool
 
-__all__ = ["HANDLERS", "Handler", "QueryParams", "SessionRegistry", "parse_request"]
+__all__ = ["HANDLERS", "Handler", "SessionRegistry"]
 
 log = logging.getLogger(__name__)
 
@@ -70,29 +70,6 @@ _SESSION_RE = re.compile(m.SESSION_ID_PATTERN)
 
 Handler = Callable[["SessionRegistry", "str | None", Any], BaseModel]
 """``handler(registry, session id, validated request or None) -> response model``."""
-
-
-class QueryParams(dict[str, str]):
-    """A request's fields as they came in HTTP query parameters (strings)."""
-
-
-def parse_request(op: str, payload: Any) -> BaseModel | None:
-    """The request model of operation ``op`` from decoded data, or from
-    :class:`QueryParams` (None for bodiless ones); a 422 naming every bad field."""
-    spec = OPERATIONS.get(op)
-    if spec is None:
-        raise not_found("op", f"unknown operation {op!r}")
-    if spec.request is None:
-        return None
-    if payload is None:
-        raise invalid("body", "body: a request body is required")
-    try:
-        if isinstance(payload, QueryParams):
-            return spec.request.model_validate_strings(dict(payload))
-        return spec.request.model_validate(payload)
-    except ValidationError as exc:
-        raise _validation_error(exc, "query" if isinstance(payload, QueryParams) else "body"
-                                ) from None
 
 
 class SessionRegistry:
@@ -189,10 +166,6 @@ class SessionRegistry:
         with cancel.scope(check):
             return handler(self, session, req)
 
-    def call(self, op: str, session: str | None, payload: Any) -> BaseModel:
-        """:meth:`execute` with decoded request data (for in-process callers)."""
-        return self.execute(op, session, parse_request(op, payload))
-
     def session(self, sid: str | None) -> Session:
         sid = self._checked_id(sid)
         s = self.sessions.get(sid)
@@ -254,7 +227,7 @@ class SessionRegistry:
     def fleet(self) -> bool:
         """Whether this instance is one of a fleet: its sessions are in an object store and
         it joins Zenoh, where the instances hand the sessions over by lease
-        (:mod:`agilegs.service.transports.fleet`)."""
+        (:mod:`agilegs.service.transports.zenoh.fleet`)."""
         return isinstance(self.store, ObjectSessionStore) and self.settings.zenoh
 
     def in_store(self, sid: str) -> bool:
@@ -527,6 +500,7 @@ HANDLERS: dict[str, Handler] = {
     "get_gaussians": _on_session(lambda s, req: s.get_gaussians()),
     "add_observations": _on_session(Session.add_observations),
     "list_views": _on_session(lambda s, req: s.list_views()),
+    "get_frames": _on_session(lambda s, req: s.get_frames(req)),
     "commit": _on_session(Session.commit),
     "set_pool": _on_session(Session.set_pool),
     "extend_pool": _on_session(Session.extend_pool),

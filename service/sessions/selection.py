@@ -25,10 +25,12 @@ from agilegs.schemas.config import patch_dict
 from agilegs.schemas.errors import ErrorCode
 
 from ..errors import ServiceError, conflict, invalid, too_large, validation_error
+from ..nbv import Selection
 from ..nbv.budget import KINDS, Estimate, SpeedCalibration, estimate
 from ..nbv.errors import InputError
 from ..nbv.kernels.backend import default_backend, kernels_available
-from ..nbv.selectors import Selection, select_validated, state_to
+from ..nbv.methods.base import get_method
+from ..nbv.selectors import SelectInputs, select_from, state_to
 from ..store.records import SessionRecord, ViewRecord
 from .convert import finite_float, pose_out, poses_array, view_out
 from .transitions import (
@@ -96,7 +98,8 @@ def resolve_config(defaults: dict[str, Any], req: m.SelectRequest, top: dict[str
 def select_estimate(rec: SessionRecord, method: str, config: SelectConfig) -> Estimate:
     """The up-front estimate (:func:`agilegs.service.nbv.budget.estimate`) of a select of
     ``method`` on ``rec``: its Gaussians, its pool (the ``embodied_k`` nearest in embodied
-    mode), its views, the session's image size (COVER: ``cover_resolution``)."""
+    mode), its views, the session's image size (COVER: ``cover_resolution``); with the
+    ``target`` objective, plus ``target_views`` Fisher passes."""
     g = rec.gmap
     intr = rec.intrinsics
     w, h = int(intr["width"]), int(intr["height"])
@@ -106,10 +109,16 @@ def select_estimate(rec: SessionRecord, method: str, config: SelectConfig) -> Es
     if config.embodied_k is not None:
         pool = min(pool, config.embodied_k)
     kernels = default_backend() in ("auto", "numba") and kernels_available()
-    return estimate(method, len(g), w * h, pool=pool,  # type: ignore[arg-type]
-                    shortlist=config.shortlist_size, acquired=len(rec.views),
-                    sh_coeffs=int(g.sh.shape[1]), dtype_bytes=g.means.element_size(),
-                    backend="numba" if kernels else "torch", threads=torch.get_num_threads())
+    sizes: dict[str, Any] = dict(
+        sh_coeffs=int(g.sh.shape[1]), dtype_bytes=g.means.element_size(),
+        backend="numba" if kernels else "torch", threads=torch.get_num_threads())
+    est = estimate(method, len(g), w * h, pool=pool,  # type: ignore[arg-type]
+                   shortlist=config.shortlist_size, acquired=len(rec.views), **sizes)
+    if config.objective == "target" and method in ("full_eig", "agile_plus"):
+        # the targets' Fisher T: one pass per target view, once per selection
+        one = estimate("fisher", len(g), w * h, **sizes)
+        est = dataclasses.replace(est, seconds=est.seconds + config.target_views * one.seconds)
+    return est
 
 
 def check_cost(rec: SessionRecord, method: str, config: SelectConfig, limits: Limits,
@@ -192,8 +201,9 @@ def select_step(rec: SessionRecord, req: m.SelectRequest, limits: Limits, *,
                       f"must be <= {limits.max_shortlist} (max_shortlist)")
     if len(rec.pool_ids) == 0:
         raise conflict("pool", "the candidate pool is empty: set it first", ErrorCode.EMPTY_POOL)
-    if len(rec.gmap) == 0:
-        raise conflict("gaussians", "the session has no Gaussians yet", ErrorCode.MAP_EMPTY)
+    if len(rec.gmap) == 0 and getattr(get_method(method), "uses_map", True):
+        raise conflict("gaussians", f"the session has no Gaussians yet ({method} needs a map; "
+                       "spread does not)", ErrorCode.MAP_EMPTY)
     check_render_widths(patch_dict(req.config), "body.config", limits.max_image_pixels)
     config = resolve_config(d, req, {
         "shortlist_size": size,
@@ -204,6 +214,13 @@ def select_step(rec: SessionRecord, req: m.SelectRequest, limits: Limits, *,
     })
     est = check_cost(rec, method, config, limits)
     dt = rec.gmap.dtype
+    targets = None
+    if req.targets is not None:
+        if config.objective != "target":
+            raise invalid("body.targets", "targets are the views of interest of "
+                          "config.objective 'target'; this select's objective is "
+                          f"{config.objective!r}")
+        targets = torch.from_numpy(poses_array(req.targets)).to(dt)
     current = None
     current_pose = None
     if req.current_id is not None:
@@ -223,14 +240,16 @@ def select_step(rec: SessionRecord, req: m.SelectRequest, limits: Limits, *,
     if dev.type != "cpu":
         gmap, h_acc = gmap.to(device=dev), state_to(dev, h_acc)
     try:
-        sel = select_validated(
+        inputs = SelectInputs(
             method, gmap, h_acc,
             torch.from_numpy(rec.pool_poses).to(device=dev, dtype=dt),
             intrinsics_of(rec), config=config,
             acquired=None if acquired is None else acquired.to(dev), current=current,
             current_pose=None if current_pose is None else current_pose.to(dev),
-            state=state_to(dev, rec.warm_state), lam=float(rec.information_config["lambda"]),
+            lam=float(rec.information_config["lambda"]),
+            targets=None if targets is None else targets.to(dev),
         )
+        sel = select_from(inputs, state=state_to(dev, rec.warm_state))
     except InputError as exc:
         raise invalid(_ARGUMENT_FIELDS.get(exc.argument, "body"), str(exc)) from None
     if dev.type != "cpu":  # the record keeps host tensors

@@ -36,8 +36,8 @@ from agilegs import schemas as m
 from agilegs.schemas import Intrinsics as WireIntrinsics
 
 from ..errors import ServiceError, not_found, session_damaged
+from ..nbv import GaussianMap
 from ..nbv.cancel import checkpoint
-from ..nbv.gaussians import GaussianMap
 from ..settings import Settings
 from ..store.blobs import BlobError
 from ..store.integrity import DamagedFile, FileProblem
@@ -247,6 +247,24 @@ class Session:
                   for k, v in rec.h_acc.items()}
         return m.InformationOut(fields=fields, summary=self.information_summary(rec),
                                 version=rec.version)
+
+    def get_frames(self, req: m.FramesRequest) -> m.FramesOut:
+        """Acquired views with their frames as stored (one view, or all)."""
+        rec = self.record
+        views = rec.views if req.view_id is None else (self._find_view(rec, req.view_id),)
+        out = []
+        for v in views:
+            image = depth = None
+            if v.image_file is not None:
+                data = self._read_frame_file(v.image_file)
+                image = (m.ImageData.from_numpy(np.load(io.BytesIO(data), allow_pickle=False))
+                         if v.image_encoding == "raw" else m.ImageData(
+                             encoding="jpeg" if v.image_encoding == "jpeg" else "png", data=data))
+            if req.depth and v.depth_file is not None:
+                depth = m.NDArray.from_numpy(np.load(io.BytesIO(
+                    self._read_frame_file(v.depth_file)), allow_pickle=False).astype("<f4"))
+            out.append(m.Frame(view=view_out(v), image=image, depth=depth))
+        return m.FramesOut(frames=out, version=rec.version)
 
     def view_image(self, view_id: int) -> np.ndarray | None:
         """The stored image of a view as RGB [H, W, 3] (uint8 or float32), or None."""

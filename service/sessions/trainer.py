@@ -62,8 +62,7 @@ from agilegs.schemas.mapper import MapperState
 from ..errors import is_disk_full
 from ..mapper.mapper import Mapper
 from ..mapper.topology import TopologyChange
-from ..nbv.camera import Camera
-from ..nbv.gaussians import GaussianMap
+from ..nbv import Camera, GaussianMap
 from ..settings import Settings
 from ..store.records import SessionRecord
 from .convert import nbv_intrinsics

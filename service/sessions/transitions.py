@@ -31,10 +31,14 @@ from torch import Tensor
 
 from ..errors import conflict, too_large, too_many
 from ..mapper.topology import remap_per_gaussian
-from ..nbv.camera import Intrinsics
-from ..nbv.gaussians import GaussianMap
-from ..nbv.information import accumulate_information, init_information
-from ..nbv.upkeep import information_of_views, view_information
+from ..nbv import (
+    GaussianMap,
+    Intrinsics,
+    accumulate_information,
+    information_of_views,
+    init_information,
+    view_information,
+)
 from ..settings import Settings
 from ..store.records import SessionRecord, ViewRecord
 from .convert import Frame, nbv_intrinsics, storable_state

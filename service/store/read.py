@@ -22,7 +22,7 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 
-from ..nbv.gaussians import GaussianMap
+from ..nbv import GaussianMap
 from .integrity import Damage, FileProblem, ManifestError, checksum, decode_manifest, read_checked
 from .records import MANIFEST, PREVIOUS, REQUIRED, VIEWS, SessionRecord, ViewRecord, view_id
 

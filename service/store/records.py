@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 from torch import Tensor
 
-from ..nbv.gaussians import GaussianMap
+from ..nbv import GaussianMap
 from .integrity import FORMAT
 
 __all__ = ["MANIFEST", "PREVIOUS", "REQUIRED", "ROLES", "ROLE_FILE", "SESSION_NAME", "VIEWS",

@@ -59,7 +59,7 @@ __all__ = ["CLIENT_CLOSED", "CLIENT_GONE", "READ_OPS", "Admission", "Ticket", "c
 log = logging.getLogger(__name__)
 
 READ_OPS = frozenset({"health", "list_sessions", "get_session", "get_gaussians",
-                      "list_views", "get_pool", "get_information", "get_decisions"})
+                      "list_views", "get_frames", "get_pool", "get_information", "get_decisions"})
 """Operations that only read: they run on the read threads and never queue behind compute."""
 
 CLIENT_GONE = "the client disconnected"

@@ -16,7 +16,8 @@ which does, once for every transport:
    :attr:`Gateway.router` to the instance that owns the session,
 6. encoding of the answer or of the error body, in the type the request accepts (once per
    request and type: a decision's reply and its Zenoh publication share the bytes,
-   :meth:`Gateway.encode`),
+   :meth:`Gateway.encode`; ``get_gaussians`` also answers the ``.ply`` or ``.splat`` file
+   that Accept prefers, :data:`~agilegs.schemas.codec.GAUSSIAN_FILE_TYPES`),
 7. metrics, and the decision hooks after a selection made here.
 
 A session operation whose session another instance of a cluster owns skips steps 3-5 when its
@@ -51,11 +52,13 @@ from typing import Any, Protocol
 
 from pydantic import BaseModel, ValidationError
 
-from agilegs.schemas import OPERATIONS, ErrorBody, SelectResponse, codec
+from agilegs.schemas import OPERATIONS, ErrorBody, GaussiansOut, SelectResponse, codec
+from agilegs.schemas.codec import GAUSSIAN_FILE_TYPES
 from agilegs.schemas.errors import ErrorCode
 
 from ..errors import ServiceError, insufficient_storage, invalid, is_disk_full
-from ..sessions.registry import QueryParams, SessionRegistry, parse_request
+from ..sessions.convert import gaussians_file
+from ..sessions.registry import SessionRegistry
 from ..settings import Settings
 from .admission import (
     CLIENT_CLOSED,
@@ -67,8 +70,9 @@ from .admission import (
     request_decoded_bytes,
 )
 from .metrics import Metrics
+from .requests import QueryParams, parse_request
 
-__all__ = ["RAW_TYPES", "Forwarded", "Gateway", "Reply", "Request", "Router",
+__all__ = ["RAW_TYPES", "Forwarded", "Gateway", "Reply", "Request", "Router", "file_format",
            "request_media_types"]
 
 log = logging.getLogger(__name__)
@@ -81,6 +85,12 @@ def request_media_types(op: str) -> list[str]:
     """The body media types operation ``op`` reads (JSON, msgpack; raw files for
     ``set_gaussians``)."""
     return [codec.JSON, codec.MSGPACK] + (list(RAW_TYPES) if op == "set_gaussians" else [])
+
+
+def file_format(op: str, accept: str | None) -> str | None:
+    """The file (``ply`` / ``splat``) that ``accept`` prefers for ``op``, where ``op`` answers
+    one (``get_gaussians``); None: JSON or msgpack."""
+    return codec.preferred_file(accept, GAUSSIAN_FILE_TYPES) if op == "get_gaussians" else None
 
 
 @dataclass
@@ -171,7 +181,7 @@ class Forwarded:
 
 class Router(Protocol):
     """Where an operation runs in a cluster
-    (:class:`agilegs.service.transports.cluster.ClusterNode`)."""
+    (:class:`agilegs.service.transports.zenoh.cluster.ClusterNode`)."""
 
     def route(self, op: str, session: str | None, req: BaseModel | None, *,
               run_local: Callable[[], BaseModel], instance: str | None, local: bool
@@ -300,13 +310,19 @@ class Gateway:
                            field)
 
     @staticmethod
-    def negotiate(accept: str | None) -> str:
-        """The response media type for ``accept``; 406 if it names neither kind."""
+    def negotiate(accept: str | None, op: str | None = None) -> str:
+        """The media type of ``op``'s answers and errors for ``accept`` (JSON or msgpack; JSON
+        when ``accept`` names only a file ``op`` answers); 406 if it names none of them."""
         kind = codec.negotiate(accept)
+        if kind is None and op is not None and file_format(op, accept) is not None:
+            return codec.JSON
         if kind is None:
+            files = list(GAUSSIAN_FILE_TYPES.values()) if op == "get_gaussians" else []
+            supported = [codec.JSON, codec.MSGPACK, *files]
             raise ServiceError(406, ErrorCode.NOT_ACCEPTABLE,
-                               f"Accept names neither {codec.JSON} nor {codec.MSGPACK}",
-                               "header.accept", supported=[codec.JSON, codec.MSGPACK])
+                               f"Accept names neither {codec.JSON} nor {codec.MSGPACK}"
+                               + (f" nor {' nor '.join(files)}" if files else ""),
+                               "header.accept", supported=supported)
         return kind
 
     def check_size(self, size: int) -> None:
@@ -371,7 +387,8 @@ class Gateway:
                                    else f"unknown operation {req.op!r}", "key")
             if not req.authenticated:
                 self.authenticate(req.credentials, req.credentials_field)
-            kind = self.negotiate(req.accept)
+            kind = self.negotiate(req.accept, req.op)
+            fmt = file_format(req.op, req.accept)
             if req.body is not None:
                 self.check_size(len(req.body))
                 if req.body and not (req.op == "set_gaussians" and _base_type(
@@ -379,7 +396,7 @@ class Gateway:
                     count_values(req.body, codec.media_type(req.content_type) or codec.JSON,
                                  self.settings.max_body_items)
             local = req.local
-            as_it_came = self._as_it_came(req, kind)
+            as_it_came = None if fmt is not None else self._as_it_came(req, kind)
             if as_it_came is not None:
                 assert self.router is not None and req.session is not None
                 got = self.router.forward_bytes(req.op, req.session, req.body or None,
@@ -394,7 +411,11 @@ class Gateway:
             with self.admission.decoded(request_decoded_bytes(req.op, model)):
                 result = self.dispatch(req.op, req.session, model, t0=req.t0,
                                        instance=req.params.get("instance"), local=local)
-            body = self.encode(result, kind)
+            if fmt is not None:  # the owner of the session answers the arrays, made a file here
+                assert isinstance(result, GaussiansOut)
+                body, kind = gaussians_file(result, fmt), GAUSSIAN_FILE_TYPES[fmt]
+            else:
+                body = self.encode(result, kind)
         except ServiceError as err:
             if ticket.reason == CLIENT_GONE:
                 return self.gone_reply(err, kind, req.transport, req.op)

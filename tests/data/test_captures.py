@@ -26,10 +26,8 @@ from agilegs.service.data.distortion import (
 from agilegs.service.data.images import load_capture_image
 from agilegs.service.data.transforms import load_transforms
 from agilegs.service.mapper.quality import psnr
-from agilegs.service.nbv.camera import Camera, Intrinsics
+from agilegs.service.nbv import Camera, Intrinsics, load_scene, render
 from agilegs.service.nbv.candidates import scene_center_radius
-from agilegs.service.nbv.gaussians import load_scene
-from agilegs.service.nbv.rasterize import render
 
 cv2 = pytest.importorskip("cv2")
 

@@ -392,6 +392,25 @@ def test_transforms_json_downscale_and_no_images(tmp_path: Path) -> None:
     assert all(v.image is None for v in lazy) and lazy[0].camera.width == 16
 
 
+def test_a_missing_depth_file_is_skipped_like_a_missing_image(tmp_path: Path, caplog) -> None:
+    path, _, _, _ = _write_synthetic(tmp_path)
+    meta = json.loads(path.read_text())
+    for i, fr in enumerate(meta["frames"]):
+        fr["depth_file_path"] = f"train/d_{i}.png"
+        if i != 1:  # frame 1's depth file is missing
+            Image.fromarray(np.full((12, 16), 1500, dtype=np.uint16)).save(
+                tmp_path / "train" / f"d_{i}.png")
+    meta["frames"].append({"file_path": "./train/gone", "transform_matrix":
+                           meta["frames"][0]["transform_matrix"]})  # its image is missing
+    path.write_text(json.dumps(meta))
+    with caplog.at_level("WARNING"):
+        views = load_transforms_json(path)
+    assert [v.name for v in views] == ["./train/r_0", "./train/r_2"]
+    assert all(float(v.depth[0, 0]) == pytest.approx(1.5) for v in views)
+    warned = [r.getMessage() for r in caplog.records if "skipped" in r.getMessage()]
+    assert len(warned) == 1 and "2 of 4 frames" in warned[0] and "d_1.png" in warned[0]
+
+
 def test_transforms_json_errors(tmp_path: Path) -> None:
     path, _, _, _ = _write_synthetic(tmp_path)
     meta = json.loads(path.read_text())

@@ -72,14 +72,21 @@ def test_the_table_test_sees_a_missing_row() -> None:
 
 def test_the_tests_mirror_the_tree() -> None:
     """A folder of tests/ is a folder of service/ (or client, schemas, config, lab), or one of
-    service (the top-level modules), docs, e2e; a folder of tests/lab/ is a folder of lab/."""
+    service (the top-level modules), docs, e2e; a folder inside one of them is a subfolder of
+    what it tests (``tests/nbv/anchor/`` tests ``service/nbv/anchor/``)."""
     rooms = {p.name for p in (ROOT / "service").iterdir() if (p / "__init__.py").exists()}
     allowed = rooms | {"client", "schemas", "config", "lab", "service", "docs", "e2e"}
     folders = {p.name for p in (ROOT / "tests").iterdir()
                if p.is_dir() and not re.match(r"^(__pycache__|\.)", p.name)}
     assert folders <= allowed, folders - allowed
-    lab = {p.name for p in (ROOT / "lab").iterdir() if (p / "__init__.py").exists()}
-    inside = {p.name for p in (ROOT / "tests" / "lab").iterdir()
-              if p.is_dir() and not re.match(r"^(__pycache__|\.)", p.name)}
-    assert inside <= lab, inside - lab
+    for tests, package in [(ROOT / "tests" / "lab", ROOT / "lab")] + [
+            (ROOT / "tests" / room, ROOT / "service" / room) for room in sorted(rooms)]:
+        if not tests.is_dir():
+            continue
+        inside = {p.name for p in tests.iterdir()
+                  if p.is_dir() and not re.match(r"^(__pycache__|\.)", p.name)}
+        subfolders = {p.name for p in package.iterdir() if (p / "__init__.py").exists()}
+        assert inside <= subfolders, (tests, inside - subfolders)
+    assert {"anchor", "kernels", "methods"} <= {
+        p.name for p in (ROOT / "tests" / "nbv").iterdir() if p.is_dir()}
     assert {"sessions", "store", "transports", "mapper", "data", "viewer", "nbv"} <= folders

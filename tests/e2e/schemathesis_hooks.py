@@ -9,7 +9,8 @@
   orthonormal (the generated block is replaced by its nearest rotation) and a quaternion unit;
   bounds have ``min < max``; an array's bytes match its dtype and shape; an image or depth map
   matches its intrinsics and decodes; uploaded Gaussians (in a body or as the raw body of
-  ``set_gaussians``) are a readable file or consistent arrays; a pool's ``ids`` name one id per pose; width x height stays within the pixel limit
+  ``set_gaussians``) are a readable file or consistent arrays; a pool's ``ids`` name one id per pose; a
+  select's ``targets`` come with ``config.objective = "target"``; width x height stays within the pixel limit
   (here at most :data:`SIDE` per side, which also keeps the fuzzed selections cheap).
   Positive cases create sessions on the server under test, with Gaussians: they drop
   ``?instance=``, whose valid values are the ids of a cluster's live instances, and a creation
@@ -181,7 +182,7 @@ def _fix_gaussians(g: dict[str, Any]) -> None:
     import tempfile
     from pathlib import Path
 
-    from agilegs.service.nbv.gaussians import GaussianMap
+    from agilegs.service.nbv import GaussianMap
 
     gmap = GaussianMap(**_decoded(_gaussian_arrays(n)))
     with tempfile.TemporaryDirectory() as tmp:
@@ -235,6 +236,10 @@ def repair(value: Any) -> None:
         _fix_pool(value)
     if keys & {"pose", "candidate_id", "view_id"} or "depth" in keys or "image" in keys:
         _fix_observation(value)
+    if isinstance(value.get("targets"), list):  # a select's targets need the target objective
+        if not isinstance(value.get("config"), dict):
+            value["config"] = {}
+        value["config"]["objective"] = "target"
 
 
 _CREATED = itertools.count()

@@ -1,4 +1,4 @@
-"""Several ``agilegs serve`` instances joined over Zenoh (service/transports/cluster.py).
+"""Several ``agilegs serve`` instances joined over Zenoh (service/transports/zenoh/cluster.py).
 
 Two real server processes with their own state folders, joined on loopback endpoints with scouting off (B connects to A's
 listener), are driven by one Zenoh client that knows only A's endpoint and by one HTTP client
@@ -12,6 +12,7 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -178,6 +179,22 @@ def test_sessions_created_on_each_are_found_and_selected_through_either(pair: Pa
             zc.get_session(s5)
         with pytest.raises(SessionUnavailableError):
             ca.get_session(s5)
+
+
+def test_the_map_and_frames_of_another_instance_s_session_leave_as_files(
+        pair: Pair, tmp_path: Path) -> None:
+    with Client(pair.a.url) as ca, Client(pair.b.url) as cb:
+        sid = _new(ca, instance="b")
+        img = np.arange(32 * 32 * 3, dtype=np.uint8).reshape(32, 32, 3)
+        cb.add_observations(sid, ObservationIn.from_numpy(ring_poses(3)[1], image=img))
+        cb.save_gaussians(sid, tmp_path / "owner.ply")
+        ca.save_gaussians(sid, tmp_path / "through-a.ply")  # forwarded, made a file on a
+        pair.zc.save_gaussians(sid, tmp_path / "zenoh.ply")
+        frames = ca.get_frames(sid)
+    owner = (tmp_path / "owner.ply").read_bytes()
+    assert owner.startswith(b"ply\n") and owner == (tmp_path / "through-a.ply").read_bytes()
+    assert owner == (tmp_path / "zenoh.ply").read_bytes()
+    assert np.array_equal(frames.frames[-1].image.to_numpy(), img)
 
 
 def test_the_decisions_feed_is_read_through_any_instance(pair: Pair) -> None:

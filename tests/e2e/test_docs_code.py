@@ -80,10 +80,11 @@ HOW: dict[tuple[str, str], How] = {
         How("ci", "the suite itself, as .ci/run runs it"),
     ("README.md", "agilegs serve --host 127.0.0.1 --port 8000 --state-dir ./agilegs-state   "
      "# HTTP + Zenoh"): How("server", "the server the README's clients talk to"),
-    ("README.md", "from dataclasses import asdict"): How("server"),
-    ("docs/your-data.md", "import json"): How("server"),
-    ("README.md", "curl -s -w '\\n' -X POST http://127.0.0.1:8000/v1/sessions -H "
-     "'content-type: application/json' -d '{"): How("server"),
+    ("README.md", "import json"): How("server"),
+    ("docs/your-data.md", "agilegs export room room.ply --server http://127.0.0.1:8000       "
+     "# the map"): How("server", "exports the session the block before made"),
+    ("README.md", "curl -s -o /dev/null -X DELETE http://127.0.0.1:8000/v1/sessions/box     "
+     "# a fresh session"): How("server"),
     ("docs/viewer.md", "from agilegs.client import Client"): How("server"),
     ("docs/viewer.md", "pip install \"agilegs[viewer]\"          # viser, and no torch (the dev "
      "extra includes it)"):
@@ -162,6 +163,10 @@ HOW: dict[tuple[str, str], How] = {
      "1000000 --width 512 \\"): BENCH,
     ("docs/benchmarks.md", "agilegs bench render --scene $S/plant/plant.splat --sizes 128,256 "
      "--gaussians 20000,100000 \\"): BENCH,
+    ("docs/benchmarks.md", "agilegs bench firstcall --fresh-cache     # an empty numba cache: "
+     "a fresh machine"):
+        How("parse", "minutes of compiling on a fresh cache (the command runs in "
+                     "tests/e2e/test_bench_firstcall.py)"),
     ("docs/benchmarks.md", "agilegs bench service --pool 300"):
         How("parse", "a benchmark of minutes (its small run: tests/e2e/test_bench_service.py)"),
     ("docs/benchmarks.md", "OMP_NUM_THREADS=1 agilegs bench service --phases neighbour"):
@@ -352,6 +357,8 @@ def test_the_block_runs_against_the_readme_server(block: Block, readme_server: P
         assert isinstance(docs[-1], dict) and "chosen" in docs[-1], out
         lines = out.strip().splitlines()  # one body a line
         assert len(lines) == len(docs) == 3 and all(json.loads(x) for x in lines), out
+        again = _json_documents(_check_run(block, readme_server, timeout=360))  # runs again
+        assert not [d for d in again if isinstance(d, dict) and "error" in d], again
     if "asdict(robot.intrinsics)" in block.text:  # the README's loop: its four selections
         assert len(re.findall(r"^view \d+: \d+ ms$", out, re.M)) == 4, out
         again = _check_run(block, readme_server, timeout=360)  # and it runs again
@@ -439,7 +446,7 @@ def test_the_set_up_is_the_one_ci_runs(block: Block) -> None:
 def test_the_long_fuzzing_config_is_the_heavy_lanes() -> None:
     """docs/benchmarks.md's schemathesis.toml is the one the heavy lane writes."""
     sys.path.insert(0, str(Path(__file__).parent))
-    from test_schemathesis import FULL, stateful_toml
+    from conftest import FULL, stateful_toml
 
     toml = next(b for b in BLOCKS if b.page == "docs/benchmarks.md" and b.lang == "toml")
     assert toml.text == stateful_toml(FULL)

@@ -22,12 +22,11 @@ import shutil
 import subprocess
 import sys
 from collections import Counter
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import ServerProcess
+from conftest import CI, FULL, Fuzz, ServerProcess, stateful_toml
 
 HERE = Path(__file__).resolve().parent
 
@@ -39,24 +38,6 @@ FUZZ_ENV = {
     "AGILEGS_MAX_POLL_WAIT": "0.2",  # decisions polls and streams end quickly
 }
 
-
-@dataclass(frozen=True)
-class Fuzz:
-    """One schemathesis run's size: its phases, cases per operation, the stateful phase's
-    scenarios and steps, the fewest cases it must generate, its time limit (s)."""
-
-    phases: str
-    max_examples: int
-    scenarios: int
-    steps: int
-    min_cases: int
-    timeout: float
-
-
-CI = Fuzz("examples,fuzzing,stateful", max_examples=15, scenarios=60, steps=12, min_cases=400,
-          timeout=240)
-FULL = Fuzz("examples,coverage,fuzzing,stateful", max_examples=10, scenarios=80, steps=12,
-            min_cases=500, timeout=1500)
 
 #: operations that must have answered 200 (on a live session, as only those do)
 REACHED = {
@@ -74,12 +55,6 @@ def _route(url: str) -> str:
     if len(parts) > 3 and parts[1:3] == ["v1", "sessions"]:
         parts[3] = "{session}"
     return "/".join(parts)
-
-
-def stateful_toml(size: Fuzz) -> str:
-    """The schemathesis config file that sizes the stateful phase."""
-    return (f"[phases.stateful]\nmax-steps = {size.steps}\n\n"
-            f"[phases.stateful.generation]\nmax-examples = {size.scenarios}\n")
 
 
 #: the robot's loop, whose operations a second, stateful-only run follows alone: among all
@@ -177,6 +152,11 @@ def test_the_hooks_repair_exactly_what_json_schema_cannot_state() -> None:
     hooks.repair(body)
     m.SessionCreate.model_validate(body)  # every rule met
     assert body["intrinsics"]["width"] <= hooks.SIDE and body["pool"]["ids"][0] == 4
+    # a select's targets come with the target objective
+    select = {"targets": [{"matrix": [[1.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 1.0, 0],
+                                      [0, 0, 0, 1.0]]}], "config": None}
+    hooks.repair(select)
+    assert m.SelectRequest.model_validate(select).config.objective == "target"
 
 
 def test_a_body_given_by_a_link_gets_a_media_type(tmp_path: Path) -> None:

@@ -85,8 +85,9 @@ def expected_information(poses: list[np.ndarray]) -> dict:
     import torch
 
     from agilegs.schemas import Bounds
-    from agilegs.service.nbv.camera import Camera, Intrinsics
-    from agilegs.service.nbv.information import (
+    from agilegs.service.nbv import (
+        Camera,
+        Intrinsics,
         accumulate_information,
         fisher_diag,
         init_information,

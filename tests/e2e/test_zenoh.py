@@ -45,14 +45,20 @@ def _comparable(r: SelectResponse) -> dict:
     return d
 
 
-@pytest.mark.parametrize("method", ["random", "agile", "agile_plus", "cover"])
+@pytest.mark.parametrize("method", ["random", "spread", "agile", "agile_plus", "cover",
+                                    "agile_plus@target"])
 def test_zenoh_and_http_give_the_same_selection(server: ServerProcess, zc: ZenohClient,
                                                 method: str) -> None:
+    method, _, objective = method.partition("@")
+    extra: dict = {}
+    if objective:  # the target objective, with the request's own targets
+        extra = {"config": {"objective": objective, "target_views": 2},
+                 "targets": ring_poses(5)[[0, 2]]}
     with Client(server.url) as c:
         sid = _session(c)
         c.commit(sid, 3)
-        via_http = c.select(sid, method=method)
-    via_zenoh = zc.select(sid, method=method)
+        via_http = c.select(sid, method=method, **extra)
+    via_zenoh = zc.select(sid, method=method, **extra)
     assert _comparable(via_zenoh) == _comparable(via_http)
     assert set(via_zenoh.latency_ms) == set(via_http.latency_ms)
 
@@ -135,6 +141,18 @@ def test_no_server_is_a_transport_error() -> None:
 
     with pytest.raises(TransportError):
         ZenohClient([f"tcp/127.0.0.1:{free_port()}"], wait=0.5)
+
+
+def test_no_peer_is_told_within_the_timeout_with_what_is_likely_wrong() -> None:
+    from conftest import free_port
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    t0 = time.monotonic()
+    with pytest.raises(TransportError) as exc:
+        ZenohClient([endpoint], timeout=1.5)  # wait (10 s by default) stays within timeout
+    assert time.monotonic() - t0 < 3.0
+    msg = str(exc.value)
+    assert f"no Zenoh peer reached at {endpoint}" in msg and "credentials" in msg
 
 
 def test_zenoh_queries_need_the_token(server_factory: object) -> None:
@@ -247,3 +265,22 @@ def test_zenoh_refusals_match_http_and_change_nothing(server_factory: object) ->
         z.close()
         http.close()
         c.close()
+
+
+def test_zenoh_saves_the_map_as_http_does(server: ServerProcess, zc: ZenohClient,
+                                          tmp_path) -> None:
+    from agilegs.client.zenoh_rpc import first_answer
+    from agilegs.schemas import keys
+
+    with Client(server.url) as c:
+        sid = _session(c)
+        for suffix in ("ply", "splat"):
+            c.save_gaussians(sid, tmp_path / f"http.{suffix}")
+            zc.save_gaussians(sid, tmp_path / f"zenoh.{suffix}")
+            assert (tmp_path / f"zenoh.{suffix}").read_bytes() == (
+                tmp_path / f"http.{suffix}").read_bytes()
+    assert (tmp_path / "zenoh.ply").read_bytes().startswith(b"ply\n")
+    ans, _ = first_answer(zc._session, keys.session_key(sid, "get_gaussians"),
+                          parameters="format=obj", timeout=30)
+    assert ans is not None and not ans.ok
+    assert ErrorBody.model_validate(ans.load()).error.field == "query.format"

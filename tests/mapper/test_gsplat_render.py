@@ -16,9 +16,7 @@ from agilegs.service.mapper.gsplat_render import (
     resolve_rasterizer,
 )
 from agilegs.service.mapper.mapper import Mapper
-from agilegs.service.nbv.camera import Camera, look_at
-from agilegs.service.nbv.gaussians import GaussianMap
-from agilegs.service.nbv.rasterize import render
+from agilegs.service.nbv import Camera, GaussianMap, look_at, render
 
 # The two rasterizers agree up to the reach of a Gaussian's footprint (see
 # agilegs.service.mapper.gsplat_render): on these maps, over the image,

@@ -14,9 +14,8 @@ from agilegs.service.data.images import View
 from agilegs.service.mapper.mapper import Mapper
 from agilegs.service.mapper.points import backproject_depth, nearest_neighbour_scales
 from agilegs.service.mapper.topology import TopologyChange, remap_per_gaussian
-from agilegs.service.nbv.camera import Camera, Intrinsics, look_at
-from agilegs.service.nbv.gaussians import SH_C0, GaussianMap
-from agilegs.service.nbv.rasterize import render
+from agilegs.service.nbv import Camera, GaussianMap, Intrinsics, look_at, render
+from agilegs.service.nbv.gaussians import SH_C0
 
 SIZE = 32
 
@@ -427,9 +426,8 @@ def test_opacity_reset_and_sh_schedule() -> None:
 
 def test_rgbd_views_of_a_real_scene_build_and_train_a_map() -> None:
     """Teapot splat: RGB-D views grow the map, training lowers the loss, Ĥ stays aligned."""
+    from agilegs.service.nbv import init_information, load_scene
     from agilegs.service.nbv.candidates import capture_pool, scene_center_radius
-    from agilegs.service.nbv.gaussians import load_scene
-    from agilegs.service.nbv.information import init_information
 
     gt = load_scene(SCENES / "teapot", max_gaussians=2000)
     center, radius = scene_center_radius(gt.means)

@@ -76,17 +76,18 @@ def _measure(q: Any, kind: str, n: int, res: int, pool: int, threads: int = 1) -
         from agilegs.config.selection import SelectConfig
         from agilegs.lab.bench.latency import PeakRSS, densified
         from agilegs.lab.scenes import bundled_scene
-        from agilegs.service.nbv.camera import Camera, Intrinsics
-        from agilegs.service.nbv.candidates import capture_pool, scene_center_radius
-        from agilegs.service.nbv.gaussians import GaussianMap
-        from agilegs.service.nbv.information import (
+        from agilegs.service.nbv import (
+            Camera,
+            GaussianMap,
+            Intrinsics,
             accumulate_information,
             fisher_diag,
             init_information,
+            render,
+            select,
         )
+        from agilegs.service.nbv.candidates import capture_pool, scene_center_radius
         from agilegs.service.nbv.kernels import backend
-        from agilegs.service.nbv.rasterize import render
-        from agilegs.service.nbv.selectors import select
 
         g0 = GaussianMap.load(bundled_scene("spot"))
         gm = densified(g0, n) if n > len(g0) else g0.subset(torch.arange(n))

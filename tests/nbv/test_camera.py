@@ -7,8 +7,7 @@ import math
 import pytest
 import torch
 
-from agilegs.service.nbv.camera import Camera, Intrinsics, check_pose, look_at
-from agilegs.service.nbv.se3 import se3_exp
+from agilegs.service.nbv import Camera, Intrinsics, check_pose, look_at, se3_exp
 
 DTYPES = [torch.float32, torch.float64]
 WORLD_UP = torch.tensor([0.0, -1.0, 0.0])  # Inria / COLMAP convention: up is -y

@@ -1,5 +1,5 @@
 """What a selection hands on to the acquisition: the chosen view's Fisher, kept from scoring,
-equals a fresh pass; ``select_validated`` selects as ``select`` does; Hhat of a set of views."""
+equals a fresh pass; Hhat of a set of views."""
 
 from __future__ import annotations
 
@@ -7,18 +7,20 @@ import pytest
 import torch
 
 from agilegs.config.selection import FIELD_NAMES, SelectConfig
-from agilegs.service.nbv.camera import Camera, Intrinsics
-from agilegs.service.nbv.candidates import capture_pool
-from agilegs.service.nbv.gaussians import GaussianMap
-from agilegs.service.nbv.information import (
+from agilegs.service.nbv import (
+    Camera,
+    GaussianMap,
+    Intrinsics,
     accumulate_information,
     eig_scores,
     fisher_diag,
+    information_of_views,
     init_information,
+    select,
+    view_information,
 )
+from agilegs.service.nbv.candidates import capture_pool
 from agilegs.service.nbv.methods.common import argmax_first, eig_scores_keeping_best
-from agilegs.service.nbv.selectors import select, select_validated
-from agilegs.service.nbv.upkeep import information_of_views, view_information
 
 INTR = Intrinsics.from_fov(55.0, 24, 24)
 
@@ -82,19 +84,6 @@ def test_methods_that_do_not_score_by_eig_hand_on_nothing(method) -> None:
     gmap, h, pool, acq = world()
     sel = select(method, gmap, h, pool, INTR, acquired=acq, config=SelectConfig(shortlist_size=4))
     assert sel.chosen_information is None
-
-
-@pytest.mark.parametrize("method", ["random", "agile_plus", "full_eig"])
-def test_select_validated_selects_as_select(method) -> None:
-    gmap, h, pool, acq = world()
-    cfg = SelectConfig(shortlist_size=4, seed=5)
-    state = {"event": 2}
-    a = select(method, gmap, h, pool, INTR, config=cfg, acquired=acq, state=state, lam=1e-6)
-    b = select_validated(method, gmap, h, pool, INTR, config=cfg, acquired=acq, state=state,
-                         lam=1e-6)
-    assert (a.index, a.shortlist, a.scores, a.eligible) == (b.index, b.shortlist, b.scores,
-                                                            b.eligible)
-    assert a.state.keys() == b.state.keys() and a.state["event"] == b.state["event"] == 3
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])

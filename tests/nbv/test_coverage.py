@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from agilegs.service.nbv.camera import Intrinsics, look_at
+from agilegs.service.nbv import Intrinsics, look_at
 from agilegs.service.nbv.candidates import capture_pool
 from agilegs.service.nbv.coverage import (
     coverage_matrix,

@@ -6,13 +6,17 @@ import pytest
 import torch
 
 from agilegs.config.selection import FIELD_NAMES
-from agilegs.service.nbv.camera import Camera, look_at
+from agilegs.service.nbv import (
+    Camera,
+    GaussianMap,
+    fisher_diag,
+    init_information,
+    look_at,
+    render,
+    select,
+)
 from agilegs.service.nbv.candidates import capture_pool
-from agilegs.service.nbv.gaussians import GaussianMap
-from agilegs.service.nbv.information import fisher_diag, init_information
 from agilegs.service.nbv.methods.fisherrf import fisherrf_hessian
-from agilegs.service.nbv.rasterize import render
-from agilegs.service.nbv.selectors import select
 
 pytestmark = [pytest.mark.cuda,
               pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")]

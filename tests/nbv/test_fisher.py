@@ -6,14 +6,15 @@ import pytest
 import torch
 
 from agilegs.config.selection import FIELD_NAMES
-from agilegs.service.nbv.camera import Camera, look_at
-from agilegs.service.nbv.gaussians import GaussianMap
-from agilegs.service.nbv.information import (
+from agilegs.service.nbv import (
+    Camera,
+    GaussianMap,
     accumulate_information,
     expected_information_gain,
     fisher_diag,
     fisher_diag_bruteforce,
     init_information,
+    look_at,
     trace_surrogate,
 )
 

@@ -11,7 +11,8 @@ import torch
 from conftest import SCENES
 from plyfile import PlyData, PlyElement
 
-from agilegs.service.nbv.gaussians import SH_C0, GaussianMap, load_scene
+from agilegs.service.nbv import GaussianMap, load_scene
+from agilegs.service.nbv.gaussians import SH_C0
 
 TEAPOT = SCENES / "teapot" / "teapot_10k.splat"
 PLANT = SCENES / "plant" / "plant.splat"

@@ -7,8 +7,8 @@ import math
 import pytest
 import torch
 
+from agilegs.service.nbv import greedy_ridge_leverage
 from agilegs.service.nbv.leverage import (
-    greedy_ridge_leverage,
     logdet_objective,
     naive_logdet_greedy,
     online_ridge_leverage,

@@ -7,10 +7,8 @@ import math
 import pytest
 import torch
 
-from agilegs.service.nbv.camera import Camera, look_at
-from agilegs.service.nbv.gaussians import GaussianMap
-from agilegs.service.nbv.projection import project_gaussians
-from agilegs.service.nbv.rasterize import ALPHA_MAX, ALPHA_MIN, T_MIN, render
+from agilegs.service.nbv import Camera, GaussianMap, look_at, project_gaussians, render
+from agilegs.service.nbv.rasterize import ALPHA_MAX, ALPHA_MIN, T_MIN
 from agilegs.service.nbv.rotations import quat_to_rotmat
 from agilegs.service.nbv.sh import eval_sh_colors
 

@@ -7,19 +7,16 @@ import math
 import pytest
 import torch
 
+from agilegs.service.nbv import hat, se3_exp, se3_log, vee
 from agilegs.service.nbv.se3 import (
-    hat,
     pose_distance,
     project_to_se3,
     rotation_angle,
-    se3_exp,
     se3_inverse,
-    se3_log,
     so3_exp,
     so3_hat,
     so3_log,
     so3_vee,
-    vee,
 )
 
 DTYPES = [torch.float32, torch.float64]

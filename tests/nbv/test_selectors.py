@@ -15,19 +15,21 @@ from agilegs.config.selection import (
     SelectConfig,
 )
 from agilegs.lab.bench.stages import ANCHOR_STAGES
-from agilegs.service.nbv.camera import Camera, Intrinsics
-from agilegs.service.nbv.candidates import capture_pool
-from agilegs.service.nbv.gaussians import GaussianMap
-from agilegs.service.nbv.information import (
+from agilegs.service.nbv import (
+    METHODS,
+    Camera,
+    GaussianMap,
+    Intrinsics,
     accumulate_information,
     eig_scores,
     expected_information_gain,
     fisher_diag,
     init_information,
+    select,
 )
+from agilegs.service.nbv.candidates import capture_pool
 from agilegs.service.nbv.methods.base import STAGES
 from agilegs.service.nbv.se3 import pose_distance
-from agilegs.service.nbv.selectors import METHODS, select
 
 INTR = Intrinsics.from_fov(55.0, 32, 32)
 
@@ -218,7 +220,7 @@ def test_embodied_mode_never_picks_outside_the_k_nearest(world, method: str) -> 
 
 
 def test_embodied_metrics_differ_where_orientation_matters() -> None:
-    from agilegs.service.nbv.camera import look_at
+    from agilegs.service.nbv import look_at
     from agilegs.service.nbv.selectors import eligible_candidates
 
     z = torch.zeros(3)
@@ -402,12 +404,12 @@ def test_paper_preset() -> None:
 
 def test_the_anchor_gets_hhat_s_lambda_and_background(world, monkeypatch) -> None:
     """``select`` hands the anchor the lambda inside Hhat and the Fisher background."""
-    from agilegs.service.nbv.anchor import ascent
+    from agilegs.service.nbv.anchor import assembly
 
     seen: dict[str, object] = {}
 
     def spying(name: str):
-        real = getattr(ascent, name)
+        real = getattr(assembly, name)
 
         def spy(*args, **kwargs):
             seen[name] = kwargs.get("lam")
@@ -415,7 +417,7 @@ def test_the_anchor_gets_hhat_s_lambda_and_background(world, monkeypatch) -> Non
         return spy
 
     for name in ("observation_rates", "directional_rates"):
-        monkeypatch.setattr(ascent, name, spying(name))
+        monkeypatch.setattr(assembly, name, spying(name))
     gmap, h, pool, acq, _ = world
     select("agile", gmap, h, pool, INTR, acquired=acq, lam=1e-6)
     assert seen == {"directional_rates": 1e-6}
@@ -423,7 +425,7 @@ def test_the_anchor_gets_hhat_s_lambda_and_background(world, monkeypatch) -> Non
            config=SelectConfig(anchor=AnchorConfig(model="fitted")))
     assert seen["observation_rates"] == 1e-6
     # the exact psi renders on the background the config gives
-    from agilegs.service.nbv.information import trace_surrogate
+    from agilegs.service.nbv import trace_surrogate
 
     bg = (0.9, 0.8, 0.7)
     cfg = SelectConfig(fisher_background=bg, anchor=AnchorConfig(
@@ -438,3 +440,59 @@ def test_the_anchor_gets_hhat_s_lambda_and_background(world, monkeypatch) -> Non
     # psi at the anchor is the render on the given background, not on black
     assert abs(with_bg - black) > 1e-4 * abs(black)
     assert abs(sel.psi_trace[-1] - with_bg) < 0.01 * abs(with_bg - black)
+
+
+def test_the_anchor_reports_under_the_wire_s_names(world) -> None:
+    """The anchor's typed diagnostics reach a selection as the same named entries, in the
+    same order (the HTTP response and the benchmark's JSON are built from them), with the
+    numbers of the anchor found on the same inputs."""
+    from agilegs.service.nbv.anchor.ascent import find_anchor
+    from agilegs.service.nbv.anchor.envelope import PoolEnvelope
+    from agilegs.service.nbv.anchor.records import AnchorInputs
+    from agilegs.service.nbv.candidates import scene_center_radius
+
+    gmap, h, pool, acq, _ = world
+    cfg = SelectConfig(anchor=AnchorConfig(carry_over_tolerance=0.01))
+    sel = select("agile", gmap, h, pool, INTR, acquired=acq, config=cfg, lam=1e-6)
+    assert [k for k in sel.latency_ms if k.startswith("anchor.")] == [
+        "anchor.envelope", "anchor.visibility", "anchor.rates", "anchor.unexplored",
+        "anchor.starts", "anchor.ascent", "anchor.ascent.gradients", "anchor.ascent.values"]
+    anchor_keys = ["ascent_evaluations", "anchor_modes", "anchor_psi", "best_candidate_psi",
+                   "psi_evaluations", "anchor_starts", "proxy_samples", "anchor_carried",
+                   "pool_proxy_psi"]
+    assert list(sel.details)[:len(anchor_keys)] == anchor_keys
+    # the same anchor, found directly: its diagnostics are the selection's entries
+    aim, _ = scene_center_radius(gmap.means)
+    env = PoolEnvelope.from_pool(pool.to(gmap.dtype), aim, cfg.anchor.envelope_margin)
+    gen = torch.Generator().manual_seed(0)
+    res = find_anchor(AnchorInputs(
+        gmap, dict(h), pool.to(gmap.dtype), INTR, cfg.anchor, num_acquired=acq.shape[0],
+        envelope=env, generator=gen, acquired=acq.to(gmap.dtype), lam=1e-6))
+    stages, details = res.report(list(range(len(pool))), cfg.anchor)
+    assert list(stages) == [k for k in sel.latency_ms if k.startswith("anchor.")][1:]
+    assert list(details) == anchor_keys
+    d = res.diagnostics
+    assert details["ascent_evaluations"] == {"gradient": d.ascent.gradient_evaluations,
+                                             "value": d.ascent.value_evaluations}
+    assert details["anchor_starts"] == d.start_indices
+    assert details["proxy_samples"] == d.proxy_samples
+    assert details["anchor_carried"] is d.carried is False
+    assert details["psi_evaluations"] == res.evaluations
+    assert stages["anchor.ascent.values"] == d.ascent.value_s * 1e3
+
+
+@pytest.mark.parametrize("method", ["random", "agile_plus"])
+def test_select_from_inputs_selects_as_select(world, method) -> None:
+    """A caller that validated its inputs builds a SelectInputs and selects through
+    select_from: the selection of select on the same inputs."""
+    from agilegs.service.nbv.selectors import SelectInputs, select_from
+
+    gmap, h, pool, acq, _ = world
+    cfg = SelectConfig(shortlist_size=4, seed=5)
+    state = {"event": 2}
+    a = select(method, gmap, h, pool, INTR, config=cfg, acquired=acq, state=state, lam=1e-6)
+    b = select_from(SelectInputs(method, gmap, h, pool, INTR, cfg, acquired=acq, lam=1e-6),
+                    state=state)
+    assert (a.index, a.shortlist, a.scores, a.eligible, a.details.keys()) == (
+        b.index, b.shortlist, b.scores, b.eligible, b.details.keys())
+    assert a.state.keys() == b.state.keys() and a.state["event"] == b.state["event"] == 3

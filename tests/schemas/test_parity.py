@@ -19,9 +19,8 @@ from agilegs.config.selection import (
 from agilegs.config.types import validate_config
 from agilegs.schemas import OPERATIONS, keys
 from agilegs.schemas import config as cfg
-from agilegs.service.nbv.gaussians import GaussianMap
+from agilegs.service.nbv import METHODS, GaussianMap
 from agilegs.service.nbv.methods.base import get_method, method_names
-from agilegs.service.nbv.selectors import METHODS
 from agilegs.service.sessions.registry import HANDLERS
 
 

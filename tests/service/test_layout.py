@@ -123,7 +123,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("sessions", ("sessions",)),
     ("transports", ("transports",)),
     ("server", ("server",)),
-    ("commands", ("serve", "cli", "launch", "store_tool", "viewer")),
+    ("commands", ("serve", "cli", "launch", "store_tool", "export", "viewer")),
 )
 """The service's layers, bottom up: the folders (or top-level modules) of ``service/`` in each.
 A module imports from its own layer and the layers below only."""
@@ -214,6 +214,15 @@ def test_the_maths_has_no_transport_and_the_transports_no_maths() -> None:
         assert not {d for d in GRAPH[name] if d.startswith("agilegs.service.nbv")}, name
 
 
+def test_the_settings_depend_on_nothing_of_ours_and_no_torch() -> None:
+    """The settings are read by every part (the viewer too, which has no torch): they import
+    nothing of ours (at any depth of their code, type-only imports included) and no torch;
+    what needs the machine or the client is checked by ``agilegs serve``."""
+    name = "agilegs.service.settings"
+    assert not TYPED_GRAPH[name], sorted(TYPED_GRAPH[name])
+    assert not _third_party(MODULES[name]) & {"torch", "numba", "agilegs"}, name
+
+
 def test_the_contract_and_the_client_need_no_torch() -> None:
     for name, path in MODULES.items():
         if name.startswith(("agilegs.schemas", "agilegs.client")):
@@ -228,6 +237,32 @@ def test_files_stay_small() -> None:
         if name.startswith(("agilegs.service", "agilegs.lab")) and name not in allowed:
             n = len(path.read_text().splitlines())
             assert n <= 580, f"{name}: {n} lines"
+
+
+def _long_functions(tree: ast.Module, limit: int) -> list[tuple[str, int, bool]]:
+    """(name, lines, compiled) of each function of over ``limit`` lines; ``compiled``: a
+    kernel (a decorator of the module's numba or Triton ``jit``)."""
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+            n = node.end_lineno - node.lineno + 1 if node.end_lineno else 0
+            if n > limit:
+                compiled = any("jit" in ast.unparse(d) for d in node.decorator_list)
+                out.append((node.name, n, compiled))
+    return out
+
+
+def test_no_function_is_longer_than_a_screenful_but_the_kernels_walks() -> None:
+    """A function over 120 lines is a compiled kernel's walk (numba or Triton: the loops over
+    tiles, pixels and samples that cannot call back into Python), in ``nbv/kernels``."""
+    assert _long_functions(ast.parse("def f():\n" + "    x = 1\n" * 130), 120) == [
+        ("f", 131, False)]
+    bad = []
+    for name, tree in TREES.items():
+        for fn, n, compiled in _long_functions(tree, 120):
+            if not (compiled and name.startswith("agilegs.service.nbv.kernels.")):
+                bad.append(f"{name}.{fn}: {n} lines")
+    assert not bad, bad
 
 
 def test_the_viewer_is_a_client_of_the_service() -> None:
@@ -266,7 +301,7 @@ def test_environment_variables_are_read_by_the_settings_only() -> None:
 
 # The public faces: a package whose ``__init__`` gathers the names its users import (the wire
 # contract, the client SDK and its ROS 2 part). Every other module defines what it exports.
-FACES = ("agilegs.schemas", "agilegs.client", "agilegs.client.ros2")
+FACES = ("agilegs.schemas", "agilegs.client", "agilegs.client.ros2", "agilegs.service.nbv")
 TREES = {name: ast.parse(path.read_text()) for name, path in MODULES.items()}
 
 

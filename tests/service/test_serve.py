@@ -65,3 +65,25 @@ def test_a_bad_setting_is_one_line_naming_its_flag_and_variable(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("agilegs serve: --port (AGILEGS_PORT): ")
     assert not (tmp_path / "s").exists()  # nothing was started or created
+
+
+@pytest.mark.parametrize("content", [None, "", "\n"])
+def test_the_tls_command_without_its_users_file_is_one_line_and_status_2(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], content: str | None) -> None:
+    """docs/server.md's TLS command, its users.txt missing (or empty)."""
+    from conftest import free_port
+
+    from agilegs.service.cli import main
+
+    users = tmp_path / "users.txt"
+    if content is not None:
+        users.write_text(content)
+    code = main(["serve", "--no-http", "--zenoh-listen", f"tls/127.0.0.1:{free_port()}",
+                 "--zenoh-dev-certs", str(tmp_path / "certs"), "--zenoh-users-file", str(users),
+                 "--state-dir", str(tmp_path / "state")])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    lines = [ln for ln in err.splitlines() if ln.startswith("agilegs serve:")]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    assert str(users) in lines[0] and "user:password" in lines[0]
+    assert "create it" in lines[0]

@@ -8,9 +8,10 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import call, create, make_core, wait_idle
 from pydantic import ValidationError
-from test_trainer import create, make_core, wait_idle
 
+from agilegs.service.serve import SettingError, check_settings
 from agilegs.service.settings import Settings
 
 
@@ -25,8 +26,8 @@ def test_a_device_is_cpu_or_a_cuda_device() -> None:
 def test_cuda_on_a_machine_without_it_is_refused() -> None:
     if torch.cuda.is_available():
         pytest.skip("this machine has CUDA")
-    with pytest.raises(ValidationError, match=r"device[\s\S]*CUDA is not available"):
-        Settings(device="cuda")
+    with pytest.raises(SettingError, match=r"^device: 'cuda': CUDA is not available"):
+        check_settings(Settings(device="cuda"))
 
 
 @pytest.mark.cuda
@@ -38,7 +39,7 @@ def test_a_session_trains_and_selects_on_the_gpu(tmp_path: Path) -> None:
         st = wait_idle(core)
         assert st.mapper.state == "idle" and st.mapper.steps == 60
         for method in ("agile", "agile_plus", "full_eig"):
-            out = core.call("select", "s", {"method": method, "commit": True})
+            out = call(core, "select", "s", {"method": method, "commit": True})
             assert out.chosen.id >= 0
         rec = core.sessions["s"].record
         assert rec.gmap.means.device.type == "cpu"

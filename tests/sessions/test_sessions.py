@@ -8,13 +8,18 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
-from conftest import SMALL_INTRINSICS, ring_poses
+from conftest import SMALL_INTRINSICS, TRAIN_POSES, call, ring_poses
 
 from agilegs.schemas import NDArray, ObservationIn, codec
 from agilegs.service.errors import ServiceError
-from agilegs.service.nbv.camera import Camera, Intrinsics
-from agilegs.service.nbv.gaussians import GaussianMap
-from agilegs.service.nbv.information import accumulate_information, fisher_diag, init_information
+from agilegs.service.nbv import (
+    Camera,
+    GaussianMap,
+    Intrinsics,
+    accumulate_information,
+    fisher_diag,
+    init_information,
+)
 from agilegs.service.sessions.registry import SessionRegistry
 from agilegs.service.settings import Settings
 
@@ -32,13 +37,13 @@ def make_core(path: Path, **settings: Any) -> SessionRegistry:
 def create(core: SessionRegistry, sid: str = "s", **extra: Any) -> None:
     body = {"id": sid, "intrinsics": SMALL_INTRINSICS, "bounds": BOUNDS, "init_gaussians": 200,
             "pool": {"poses": [{"matrix": p.tolist()} for p in POOL]}, **extra}
-    core.call("create_session", None, body)
+    call(core, "create_session", None, body)
 
 
 def snapshot(core: SessionRegistry, sid: str = "s") -> tuple:
-    info = core.call("get_session", sid, None)
-    pool = core.call("get_pool", sid, None)
-    views = core.call("list_views", sid, None)
+    info = call(core, "get_session", sid, None)
+    pool = call(core, "get_pool", sid, None)
+    views = call(core, "list_views", sid, None)
     return (info.version, info.information.digest, pool.model_dump_json(),
             views.model_dump_json(), info.gaussians.count)
 
@@ -120,7 +125,7 @@ def test_bad_input_is_refused_naming_the_field_and_changes_nothing(
         core: SessionRegistry, op: str, body: Any, status: int, field: str) -> None:
     before = snapshot(core)
     with pytest.raises(ServiceError) as exc:
-        core.call(op, "s", body)
+        call(core, op, "s", body)
     assert exc.value.status == status, exc.value
     assert exc.value.field == field, exc.value
     assert snapshot(core) == before
@@ -128,10 +133,10 @@ def test_bad_input_is_refused_naming_the_field_and_changes_nothing(
 
 def test_unknown_session_and_bad_ids(core: SessionRegistry) -> None:
     with pytest.raises(ServiceError) as exc:
-        core.call("get_session", "missing", None)
+        call(core, "get_session", "missing", None)
     assert (exc.value.status, exc.value.field) == (404, "session")
     with pytest.raises(ServiceError) as exc:
-        core.call("select", "../etc", {})
+        call(core, "select", "../etc", {})
     assert (exc.value.status, exc.value.field) == (422, "session")
     with pytest.raises(ServiceError) as exc:
         create(core)  # the id is taken
@@ -139,20 +144,51 @@ def test_unknown_session_and_bad_ids(core: SessionRegistry) -> None:
 
 
 def test_empty_pool_and_empty_map_are_conflicts(core: SessionRegistry) -> None:
-    core.call("set_pool", "s", {"poses": []})
+    call(core, "set_pool", "s", {"poses": []})
     with pytest.raises(ServiceError) as exc:
-        core.call("select", "s", {"method": "random"})
+        call(core, "select", "s", {"method": "random"})
     assert (exc.value.status, exc.value.code, exc.value.field) == (409, "empty_pool", "pool")
     create(core, "empty", init_gaussians=0)
     with pytest.raises(ServiceError) as exc:
-        core.call("select", "empty", {"method": "random"})
+        call(core, "select", "empty", {"method": "random"})
     assert (exc.value.status, exc.value.code) == (409, "map_empty")
+
+
+def test_spread_selects_and_commits_without_a_map(core: SessionRegistry) -> None:
+    create(core, "empty", init_gaussians=0)
+    first = call(core, "select", "empty", {"method": "spread", "commit": True})
+    second = call(core, "select", "empty", {"method": "spread"})
+    assert first.committed is not None and second.chosen.id != first.chosen.id
+    assert second.chosen.id in second.eligible and first.chosen.id not in second.eligible
+
+
+def test_select_carries_the_objective_and_the_targets(core: SessionRegistry) -> None:
+    targets = [{"matrix": p.tolist()} for p in TRAIN_POSES[[1, 5]]]
+    cfg = {"objective": "target", "target_views": 2}
+    a = call(core, "select", "s", {"method": "full_eig", "config": cfg, "targets": targets})
+    assert a.latency_ms["scoring.targets"] > 0 and a.chosen.id in a.eligible
+    b = call(core, "select", "s", {"method": "full_eig", "config": cfg})  # the pool's
+    assert b.latency_ms["scoring.targets"] > 0
+    with pytest.raises(ServiceError) as exc:  # the eig objective takes no targets
+        call(core, "select", "s", {"method": "full_eig", "targets": targets})
+    assert (exc.value.status, exc.value.field) == (422, "body.targets")
+    bad = [{"matrix": (2.0 * TRAIN_POSES[0]).tolist()}]
+    with pytest.raises(ServiceError) as exc:
+        call(core, "select", "s", {"method": "full_eig", "config": cfg, "targets": bad})
+    assert exc.value.status == 422 and "targets" in str(exc.value.field)
+    with pytest.raises(ServiceError) as exc:
+        call(core, "select", "s", {"method": "full_eig", "config": cfg,
+                                   "targets": targets * 600})
+    assert exc.value.status == 422 and "targets" in str(exc.value.field)
+    with pytest.raises(ServiceError) as exc:
+        call(core, "select", "s", {"method": "full_eig", "config": {"objective": "best"}})
+    assert exc.value.status == 422 and "objective" in str(exc.value.field)
 
 
 def test_select_without_commit_changes_nothing_and_repeats(core: SessionRegistry) -> None:
     before = snapshot(core)
-    a = core.call("select", "s", {"method": "agile", "shortlist_size": 4})
-    b = core.call("select", "s", {"method": "agile", "shortlist_size": 4})
+    a = call(core, "select", "s", {"method": "agile", "shortlist_size": 4})
+    b = call(core, "select", "s", {"method": "agile", "shortlist_size": 4})
     assert snapshot(core) == before
     assert a.chosen.id == b.chosen.id and [x.id for x in a.shortlist] == [x.id for x in b.shortlist]
     assert len(a.shortlist) == 4 and a.anchor is not None
@@ -162,14 +198,14 @@ def test_select_without_commit_changes_nothing_and_repeats(core: SessionRegistry
 
 def test_commit_updates_information_exactly_and_consumes_the_candidate(core: SessionRegistry) -> None:
     gmap = core.sessions["s"].record.gmap
-    r = core.call("select", "s", {"method": "random", "commit": True})
+    r = call(core, "select", "s", {"method": "random", "commit": True})
     assert r.committed is not None and r.committed.candidate_id == r.chosen.id
-    pool_ids = core.call("get_pool", "s", None).ids()
+    pool_ids = call(core, "get_pool", "s", None).ids()
     assert r.chosen.id not in pool_ids and len(pool_ids) == len(POOL) - 1
-    v = core.call("commit", "s", {"candidate_id": pool_ids[0], "keep_in_pool": True})
-    assert pool_ids[0] in core.call("get_pool", "s", None).ids()
+    v = call(core, "commit", "s", {"candidate_id": pool_ids[0], "keep_in_pool": True})
+    assert pool_ids[0] in call(core, "get_pool", "s", None).ids()
     want = expected_information(gmap, [POOL[r.chosen.id], POOL[pool_ids[0]]])
-    got = core.call("get_information", "s", None).arrays()
+    got = call(core, "get_information", "s", None).arrays()
     for k, t in want.items():
         np.testing.assert_allclose(got[k], t.numpy(), rtol=1e-5, atol=1e-9)
     assert v.id == r.committed.id + 1
@@ -189,25 +225,25 @@ def test_observations_store_frames_and_update_information(core: SessionRegistry)
     ]
     body = codec.load(codec.dump({"observations": [o.model_dump() for o in obs]},
                                  codec.MSGPACK), codec.MSGPACK)
-    out = core.call("add_observations", "s", body)
+    out = call(core, "add_observations", "s", body)
     assert [v.has_image for v in out.views] == [True, True]
     assert out.views[1].candidate_id == 5 and out.views[1].has_depth
-    assert 5 not in core.call("get_pool", "s", None).ids()
+    assert 5 not in call(core, "get_pool", "s", None).ids()
     s = core.sessions["s"]
     np.testing.assert_array_equal(s.view_image(out.views[0].id), img)
     np.testing.assert_array_equal(s.view_image(out.views[1].id), img)
     np.testing.assert_array_equal(s.view_depth(out.views[1].id), depth)
     want = expected_information(gmap, [POOL[3], POOL[5]])
-    got = core.call("get_information", "s", None).arrays()
+    got = call(core, "get_information", "s", None).arrays()
     np.testing.assert_allclose(got["means"], want["means"].numpy(), rtol=1e-5, atol=1e-9)
     # attaching a frame to a committed view adds no information twice
-    v = core.call("commit", "s", {"candidate_id": 7})
-    before = core.call("get_session", "s", None).information.digest
-    core.call("add_observations", "s", {"observations": [{"view_id": v.id, "image":
+    v = call(core, "commit", "s", {"candidate_id": 7})
+    before = call(core, "get_session", "s", None).information.digest
+    call(core, "add_observations", "s", {"observations": [{"view_id": v.id, "image":
                                                           obs[0].image.model_dump()}]})
-    assert core.call("get_session", "s", None).information.digest == before
+    assert call(core, "get_session", "s", None).information.digest == before
     with pytest.raises(ServiceError) as exc:  # a view takes one frame
-        core.call("add_observations", "s", {"observations": [{"view_id": v.id, "image":
+        call(core, "add_observations", "s", {"observations": [{"view_id": v.id, "image":
                                                               obs[0].image.model_dump()}]})
     assert exc.value.status == 409
 
@@ -220,18 +256,18 @@ def test_mapper_hook_sees_new_views(core: SessionRegistry) -> None:
             seen.append([v.id for v in views])
 
     core.sessions["s"].mapper = Mapper()
-    core.call("add_observations", "s", {"observations": [{"pose": {"matrix": POOL[1].tolist()}}]})
+    call(core, "add_observations", "s", {"observations": [{"pose": {"matrix": POOL[1].tolist()}}]})
     assert seen == [[0]]
 
 
 def test_replacing_the_map_recomputes_information(core: SessionRegistry) -> None:
-    core.call("commit", "s", {"candidate_id": 2})
+    call(core, "commit", "s", {"candidate_id": 2})
     g = GaussianMap.from_points(torch.rand(50, 3) - 0.5, torch.rand(50, 3), scale=0.05)
     arrays = {k: NDArray.from_numpy(v.numpy()).model_dump() for k, v in g.items()}
-    info = core.call("set_gaussians", "s", {"format": "arrays", "arrays": arrays})
+    info = call(core, "set_gaussians", "s", {"format": "arrays", "arrays": arrays})
     assert info.gaussians.count == 50
     want = expected_information(g, [POOL[2]])
-    got = core.call("get_information", "s", None).arrays()
+    got = call(core, "get_information", "s", None).arrays()
     for k, t in want.items():
         np.testing.assert_allclose(got[k], t.numpy(), rtol=1e-5, atol=1e-9)
 
@@ -240,18 +276,18 @@ def test_splat_upload_and_rgbd_creation(core: SessionRegistry, tmp_path: Path) -
     g = GaussianMap.from_points(torch.rand(40, 3) - 0.5, torch.rand(40, 3), scale=0.05)
     path = tmp_path / "m.splat"
     g.save(path)
-    info = core.call("set_gaussians", "s", {"format": "splat", "data": path.read_bytes()})
+    info = call(core, "set_gaussians", "s", {"format": "splat", "data": path.read_bytes()})
     assert info.gaussians.count == 40
     depth = np.full((32, 32), 2.0, np.float32)
     depth[:4] = 0  # missing values
     frames = [ObservationIn.from_numpy(POOL[i], depth=depth,
                                        image=np.full((32, 32, 3), 200, np.uint8)).model_dump()
               for i in (0, 6)]
-    info = core.call("create_session", None, {"id": "rgbd", "intrinsics": SMALL_INTRINSICS,
+    info = call(core, "create_session", None, {"id": "rgbd", "intrinsics": SMALL_INTRINSICS,
                                                "frames": frames, "init_gaussians": 150})
     assert info.gaussians.count == 150 and info.num_views == 2
     # RGB only and no bounds: no Gaussians until some are set
-    info = core.call("create_session", None, {"id": "rgb", "intrinsics": SMALL_INTRINSICS,
+    info = call(core, "create_session", None, {"id": "rgb", "intrinsics": SMALL_INTRINSICS,
                                                "frames": [{"pose": {"matrix": POOL[0].tolist()}}]})
     assert info.gaussians.count == 0 and info.num_views == 1
 
@@ -267,9 +303,9 @@ def test_limits_are_settings(tmp_path: Path) -> None:
         create(c, "a")  # the 24-candidate pool exceeds max_pool_size
     assert exc.value.status == 422 and exc.value.field == "body.pool.poses"
     create(c, "a", pool=None)
-    c.call("set_pool", "a", {"poses": [{"matrix": np.eye(4).tolist()}] * 4})
+    call(c, "set_pool", "a", {"poses": [{"matrix": np.eye(4).tolist()}] * 4})
     with pytest.raises(ServiceError) as exc:  # extending past the limit: a count reached
-        c.call("extend_pool", "a", {"poses": [{"matrix": np.eye(4).tolist()}] * 2})
+        call(c, "extend_pool", "a", {"poses": [{"matrix": np.eye(4).tolist()}] * 2})
     assert exc.value.status == 429 and exc.value.field == "body.poses"
     with pytest.raises(ServiceError) as exc:
         create(c, "b", pool=None)
@@ -278,9 +314,9 @@ def test_limits_are_settings(tmp_path: Path) -> None:
 
 
 def test_everything_acknowledged_is_reloaded(core: SessionRegistry, tmp_path: Path) -> None:
-    core.call("select", "s", {"method": "agile", "commit": True})
-    core.call("extend_pool", "s", {"poses": [{"matrix": np.eye(4).tolist()}], "ids": [500]})
-    core.call("add_observations", "s", {"observations": [{
+    call(core, "select", "s", {"method": "agile", "commit": True})
+    call(core, "extend_pool", "s", {"poses": [{"matrix": np.eye(4).tolist()}], "ids": [500]})
+    call(core, "add_observations", "s", {"observations": [{
         "pose": {"position": [0, 0, -2], "orientation_xyzw": [0, 0, 0, 1]},
         "image": {"encoding": "raw", "dtype": "uint8", "shape": [32, 32, 3],
                   "data": bytes(32 * 32 * 3)}}]})
@@ -288,7 +324,7 @@ def test_everything_acknowledged_is_reloaded(core: SessionRegistry, tmp_path: Pa
     warm = core.sessions["s"].record.warm_state
     reloaded = make_core(tmp_path / "state")
     assert snapshot(reloaded) == before
-    assert reloaded.call("get_pool", "s", None).ids()[-1] == 500
+    assert call(reloaded, "get_pool", "s", None).ids()[-1] == 500
     assert set(reloaded.sessions["s"].record.warm_state or {}) == set(warm or {})
     assert reloaded.sessions["s"].view_image(1).shape == (32, 32, 3)
     reloaded.close()
@@ -312,15 +348,29 @@ def test_interrupted_writes_are_cleaned_up(core: SessionRegistry, tmp_path: Path
 
 
 def test_delete_removes_the_session_everywhere(core: SessionRegistry, tmp_path: Path) -> None:
-    assert core.call("delete_session", "s", None).deleted
+    assert call(core, "delete_session", "s", None).deleted
     assert not (tmp_path / "state" / "sessions" / "s").exists()
     with pytest.raises(ServiceError):
-        core.call("get_session", "s", None)
+        call(core, "get_session", "s", None)
     assert make_core(tmp_path / "state").sessions == {}
 
 
 def test_raw_images_round_trip_through_storage(core: SessionRegistry) -> None:
     img = np.random.default_rng(1).random((32, 32, 3)).astype(np.float32)
     o = ObservationIn.from_numpy(POOL[0], image=img)
-    out = core.call("add_observations", "s", {"observations": [o.model_dump()]})
+    out = call(core, "add_observations", "s", {"observations": [o.model_dump()]})
     np.testing.assert_array_equal(core.sessions["s"].view_image(out.views[0].id), img)
+
+
+def test_the_target_objective_adds_its_fisher_passes_to_the_estimate(core: SessionRegistry
+                                                                      ) -> None:
+    from agilegs.config.selection import SelectConfig
+    from agilegs.service.sessions.selection import select_estimate
+
+    rec = core.sessions["s"].record
+    base = select_estimate(rec, "full_eig", SelectConfig())
+    more = select_estimate(rec, "full_eig", SelectConfig(objective="target", target_views=8))
+    most = select_estimate(rec, "full_eig", SelectConfig(objective="target", target_views=16))
+    assert base.seconds < more.seconds < most.seconds
+    assert select_estimate(rec, "agile", SelectConfig(objective="target")).seconds == \
+        select_estimate(rec, "agile", SelectConfig()).seconds

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import functools
 import threading
 import time
 from pathlib import Path
@@ -11,77 +10,27 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
-from conftest import SMALL_INTRINSICS, ring_poses
+from conftest import SMALL_INTRINSICS, call, create, make_core, wait_idle
+from conftest import TRAIN_FAST as FAST
+from conftest import TRAIN_INTR as INTR
+from conftest import TRAIN_POSES as POSES
+from conftest import train_frame as frame
+from conftest import train_reference as reference
 from inprocess import serve_in_process
 
 from agilegs.schemas import NDArray, ObservationIn
 from agilegs.service.errors import ServiceError
 from agilegs.service.mapper.topology import remap_per_gaussian
-from agilegs.service.nbv.camera import Camera, Intrinsics
-from agilegs.service.nbv.gaussians import GaussianMap
-from agilegs.service.nbv.information import accumulate_information, fisher_diag, init_information
-from agilegs.service.nbv.rasterize import render
+from agilegs.service.nbv import (
+    Camera,
+    GaussianMap,
+    accumulate_information,
+    fisher_diag,
+    init_information,
+    render,
+)
 from agilegs.service.sessions.registry import SessionRegistry
 from agilegs.service.sessions.trainer import SessionTrainer, compose_src
-from agilegs.service.settings import Settings
-
-POSES = ring_poses(12, radius=2.0, height=-0.4)
-INTR = Intrinsics(**SMALL_INTRINSICS)
-FAST = {"sh_degree": 0, "densify_from": 10, "densify_every": 10, "densify_until": 40,
-        "max_gaussians": 400}
-
-
-def ground_truth() -> GaussianMap:
-    g = torch.Generator().manual_seed(0)
-    pts = (torch.rand(250, 3, generator=g) - 0.5) * 0.8
-    return GaussianMap.from_points(pts, torch.rand(250, 3, generator=g), scale=0.07, opacity=0.8)
-
-
-GT = ground_truth()
-
-
-@functools.cache
-def reference(i: int) -> tuple[np.ndarray, np.ndarray]:
-    """Ground-truth RGB [32, 32, 3] and depth [32, 32] (0: background) from ring pose ``i``."""
-    with torch.no_grad():
-        out = render(GT, Camera(torch.from_numpy(POSES[i]).float(), INTR))
-    d = torch.where(out.alpha > 0.5, out.depth, torch.zeros_like(out.depth))
-    return out.rgb.clamp(0, 1).numpy(), d.numpy()
-
-
-def frame(i: int, *, depth: bool = True, **where: Any) -> dict[str, Any]:
-    """An RGB(-D) observation of the ground truth from ring pose ``i`` (wire dict)."""
-    rgb, d = reference(i)
-    pose = None if where else POSES[i]
-    o = ObservationIn.from_numpy(pose, image=rgb, depth=d if depth else None, **where)
-    return o.model_dump()
-
-
-def make_core(path: Path, **settings: Any) -> SessionRegistry:
-    base: dict[str, Any] = {"state_dir": path, "zenoh": False, "workers": 2, "fsync": False,
-                            "mapper_steps_per_view": 20, "mapper_burst": 10}
-    core = SessionRegistry(Settings(**{**base, **settings}))
-    core.load()
-    return core
-
-
-def create(core: SessionRegistry, sid: str = "s", views: tuple[int, ...] = (0, 4, 8),
-           **extra: Any) -> Any:
-    body = {"id": sid, "intrinsics": SMALL_INTRINSICS, "init_gaussians": 100,
-            "frames": [frame(i) for i in views],
-            "pool": {"poses": [{"matrix": p.tolist()} for p in POSES]},
-            "mapper": {"config": FAST}, **extra}
-    return core.call("create_session", None, body)
-
-
-def wait_idle(core: SessionRegistry, sid: str = "s", timeout: float = 60.0) -> Any:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        info = core.call("get_session", sid, None)
-        if info.mapper.state in ("idle", "error", "off"):
-            return info
-        time.sleep(0.05)
-    raise AssertionError(f"the mapper did not finish in {timeout} s: {info.mapper}")
 
 
 def information_shapes_follow(info: Any) -> None:
@@ -104,7 +53,7 @@ def test_observations_are_trained_into_the_map(core: SessionRegistry) -> None:
     losses: list[float] = []
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:
-        st = core.call("get_session", "s", None)
+        st = call(core, "get_session", "s", None)
         if st.mapper.last_loss is not None and (not losses or st.mapper.last_loss != losses[-1]):
             losses.append(st.mapper.last_loss)
         if st.mapper.state == "idle":
@@ -117,12 +66,12 @@ def test_observations_are_trained_into_the_map(core: SessionRegistry) -> None:
     assert st.gaussians.count != 100 and st.mapper.num_gaussians == st.gaussians.count
     information_shapes_follow(st)
     assert st.version > info.version  # every publication is a persisted change
-    g = core.call("get_gaussians", "s", None)
+    g = call(core, "get_gaussians", "s", None)
     assert g.count == st.gaussians.count and g.mapper_steps == 60 and g.version == st.version
     assert g.to_numpy()["means"].shape == (g.count, 3)
 
     # a new view owes steps_per_view more steps, trained from the current map
-    out = core.call("add_observations", "s", {"observations": [frame(2)]})
+    out = call(core, "add_observations", "s", {"observations": [frame(2)]})
     assert out.views[0].has_image and out.views[0].has_depth
     st2 = wait_idle(core)
     assert st2.mapper.steps == 80 and st2.mapper.views == 4 and st2.mapper.state == "idle"
@@ -156,7 +105,7 @@ def psnr_of_map(g: GaussianMap) -> float:
 
 
 def psnr_of(core: SessionRegistry, sid: str) -> float:
-    a = core.call("get_gaussians", sid, None).to_numpy()
+    a = call(core, "get_gaussians", sid, None).to_numpy()
     return psnr_of_map(GaussianMap(**{k: torch.from_numpy(v.copy()) for k, v in a.items()}))
 
 
@@ -179,7 +128,7 @@ def test_information_is_carried_per_gaussian(core: SessionRegistry) -> None:
     assert s.record.mapper["steps"] == 7 and s.record.mapper["last_loss"] == 0.5
 
     # 'recompute': λ + Σ_v H_v on the new map from every acquired view
-    core.call("create_session", None, {"id": "r", "intrinsics": SMALL_INTRINSICS,
+    call(core, "create_session", None, {"id": "r", "intrinsics": SMALL_INTRINSICS,
                                         "init_gaussians": 100, "frames": [frame(0)],
                                         "mapper": {"enabled": False},
                                         "information": {"mapper_update": "recompute"}})
@@ -207,7 +156,7 @@ def test_select_and_commit_while_training(tmp_path: Path) -> None:
     try:
         create(core)
         deadline = time.monotonic() + 30
-        while core.call("get_session", "s", None).mapper.steps == 0:
+        while call(core, "get_session", "s", None).mapper.steps == 0:
             assert time.monotonic() < deadline
             time.sleep(0.05)
         results: list[Any] = []
@@ -215,15 +164,15 @@ def test_select_and_commit_while_training(tmp_path: Path) -> None:
 
         def pick() -> None:
             try:
-                results.append(core.call("select", "s", {"method": "agile", "commit": True,
+                results.append(call(core, "select", "s", {"method": "agile", "commit": True,
                                                          "shortlist_size": 3}))
-                results.append(core.call("select", "s", {"method": "random"}))
+                results.append(call(core, "select", "s", {"method": "random"}))
             except BaseException as exc:  # pragma: no cover - reported below
                 errors.append(exc)
 
         th = threading.Thread(target=pick)
         th.start()
-        mid = core.call("get_session", "s", None).mapper
+        mid = call(core, "get_session", "s", None).mapper
         th.join(timeout=60)
         assert not errors and len(results) == 2
         assert mid.state == "training"
@@ -234,7 +183,7 @@ def test_select_and_commit_while_training(tmp_path: Path) -> None:
         assert st.num_views == 4 and st.mapper.views == 3  # the committed view has no image
         information_shapes_follow(st)
         # the committed view's information survived the publications after it
-        assert d.committed.id in [v.id for v in core.call("list_views", "s", None).views]
+        assert d.committed.id in [v.id for v in call(core, "list_views", "s", None).views]
     finally:
         core.close()
 
@@ -243,7 +192,7 @@ def test_a_pushed_map_wins_over_the_burst(core: SessionRegistry) -> None:
     create(core, mapper={"steps_per_view": 40, "config": {**FAST, "densify": False}})
     g = GaussianMap.from_points((torch.rand(50, 3) - 0.5) * 0.8, torch.rand(50, 3), scale=0.05)
     arrays = {k: NDArray.from_numpy(v.numpy()).model_dump() for k, v in g.items()}
-    info = core.call("set_gaussians", "s", {"format": "arrays", "arrays": arrays})
+    info = call(core, "set_gaussians", "s", {"format": "arrays", "arrays": arrays})
     assert info.gaussians.count == 50
     st = wait_idle(core)
     assert st.mapper.state == "idle"
@@ -256,21 +205,21 @@ def test_restart_resumes_from_the_persisted_map(tmp_path: Path) -> None:
     c1 = make_core(state, mapper_steps_per_view=40, mapper_burst=5)
     create(c1)
     deadline = time.monotonic() + 30
-    while c1.call("get_session", "s", None).mapper.published_steps < 10:
+    while call(c1, "get_session", "s", None).mapper.published_steps < 10:
         assert time.monotonic() < deadline
         time.sleep(0.05)
     c1.close()  # stops after the current step; what was trained is published
-    before = c1.call("get_session", "s", None)
-    g_before = c1.call("get_gaussians", "s", None).to_numpy()
+    before = call(c1, "get_session", "s", None)
+    g_before = call(c1, "get_gaussians", "s", None).to_numpy()
     assert 10 <= before.mapper.published_steps < 120
     assert before.mapper.steps == before.mapper.published_steps
 
     c2 = make_core(state, mapper=False)  # reload without training: nothing is lost
-    again = c2.call("get_session", "s", None)
+    again = call(c2, "get_session", "s", None)
     assert again.version == before.version and again.mapper.state == "off"
     assert again.mapper.steps == before.mapper.steps
     assert again.information.digest == before.information.digest
-    g_again = c2.call("get_gaussians", "s", None).to_numpy()
+    g_again = call(c2, "get_gaussians", "s", None).to_numpy()
     for k in g_before:
         np.testing.assert_array_equal(g_again[k], g_before[k])
     c2.close()
@@ -290,7 +239,7 @@ def test_mapper_off_and_failures_are_reported(tmp_path: Path) -> None:
     info = create(off)
     assert info.mapper.state == "off" and info.mapper.pending_steps == 60
     time.sleep(0.3)
-    assert off.call("get_session", "s", None).version == info.version  # nothing trains
+    assert call(off, "get_session", "s", None).version == info.version  # nothing trains
     off.close()
 
     core = make_core(tmp_path / "on")
@@ -298,17 +247,17 @@ def test_mapper_off_and_failures_are_reported(tmp_path: Path) -> None:
         info = create(core, "quiet", mapper={"enabled": False})
         assert info.mapper.state == "off" and not info.mapper.enabled
         # an empty map and no depth: nothing to train, the error is in the state
-        core.call("create_session", None, {
+        call(core, "create_session", None, {
             "id": "empty", "intrinsics": SMALL_INTRINSICS, "init_gaussians": 0,
             "bounds": {"min": [-1] * 3, "max": [1] * 3}, "mapper": {"config": FAST}})
-        core.call("add_observations", "empty", {"observations": [frame(1, depth=False)]})
+        call(core, "add_observations", "empty", {"observations": [frame(1, depth=False)]})
         st = wait_idle(core, "empty")
         assert st.mapper.state == "error" and "no Gaussians" in (st.mapper.error or "")
         # a new RGB-D view retries: the map is initialised from its depth and trained
-        core.call("add_observations", "empty", {"observations": [frame(5)]})
+        call(core, "add_observations", "empty", {"observations": [frame(5)]})
         st = wait_idle(core, "empty")
         assert st.mapper.state == "idle" and st.gaussians.count > 0, st.mapper
-        assert core.call("get_session", "quiet", None).version == info.version
+        assert call(core, "get_session", "quiet", None).version == info.version
     finally:
         core.close()
 
@@ -327,7 +276,7 @@ def test_bad_mapper_options_are_refused(core: SessionRegistry) -> None:
 
 
 def test_session_trainer_is_the_observation_hook(core: SessionRegistry) -> None:
-    core.call("create_session", None, {"id": "s", "intrinsics": SMALL_INTRINSICS,
+    call(core, "create_session", None, {"id": "s", "intrinsics": SMALL_INTRINSICS,
                                         "bounds": {"min": [-1] * 3, "max": [1] * 3},
                                         "init_gaussians": 10})
     assert isinstance(core.sessions["s"].mapper, SessionTrainer)
@@ -365,10 +314,10 @@ def test_deleting_a_session_under_training_leaves_the_worker_running(core: Sessi
                                                                      tmp_path: Path) -> None:
     create(core, "gone", mapper={"steps_per_view": 200, "config": FAST})
     deadline = time.monotonic() + 30
-    while core.call("get_session", "gone", None).mapper.steps == 0:
+    while call(core, "get_session", "gone", None).mapper.steps == 0:
         assert time.monotonic() < deadline
         time.sleep(0.05)
-    core.call("delete_session", "gone", None)
+    call(core, "delete_session", "gone", None)
     assert not (tmp_path / "state" / "sessions" / "gone").exists()
     create(core, "next", views=(0, 6), mapper={"steps_per_view": 10, "config": FAST})
     st = wait_idle(core, "next")

@@ -12,14 +12,19 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
-from conftest import SMALL_INTRINSICS, ring_poses
+from conftest import SMALL_INTRINSICS, call, ring_poses
 
 from agilegs import schemas as m
 from agilegs.schemas import ObservationIn
 from agilegs.service.errors import ServiceError
-from agilegs.service.nbv.camera import Camera, Intrinsics
-from agilegs.service.nbv.gaussians import GaussianMap
-from agilegs.service.nbv.information import accumulate_information, fisher_diag, init_information
+from agilegs.service.nbv import (
+    Camera,
+    GaussianMap,
+    Intrinsics,
+    accumulate_information,
+    fisher_diag,
+    init_information,
+)
 from agilegs.service.sessions import transitions as tr
 from agilegs.service.sessions.convert import parse_frame
 from agilegs.service.sessions.registry import SessionRegistry
@@ -206,7 +211,7 @@ def test_the_chosen_fisher_kept_from_scoring_is_what_a_fresh_pass_gives() -> Non
 def make_core(path: Path) -> SessionRegistry:
     core = SessionRegistry(Settings(state_dir=path, zenoh=False, workers=2, mapper=False))
     core.load()
-    core.call("create_session", None, {
+    call(core, "create_session", None, {
         "id": "s", "intrinsics": SMALL_INTRINSICS, "init_gaussians": 200,
         "bounds": {"min": [-0.5] * 3, "max": [0.5] * 3},
         "pool": {"poses": [{"matrix": p.tolist()} for p in ring_poses(40)]},
@@ -235,19 +240,19 @@ def test_the_same_acquisitions_either_way_give_the_same_selections_state_and_fil
     one, two = make_core(tmp_path / "one"), make_core(tmp_path / "two")
     try:
         for _ in range(4):
-            a = one.call("select", "s", {"method": method, "commit": True})
-            b = two.call("select", "s", {"method": method})
-            two.call("commit", "s", {"candidate_id": b.chosen.id})
+            a = call(one, "select", "s", {"method": method, "commit": True})
+            b = call(two, "select", "s", {"method": method})
+            call(two, "commit", "s", {"candidate_id": b.chosen.id})
             assert a.chosen.id == b.chosen.id
             assert [c.id for c in a.shortlist] == [c.id for c in b.shortlist]
         ra, rb = one.sessions["s"].record, two.sessions["s"].record
         assert ra.warm_state is not None and rb.warm_state is not None
         assert ra.warm_state["event"] == rb.warm_state["event"] == 4
         assert torch.equal(ra.warm_state["anchor_c2w"], rb.warm_state["anchor_c2w"])
-        nxt_a = one.call("select", "s", {"method": method})
-        nxt_b = two.call("select", "s", {"method": method})
+        nxt_a = call(one, "select", "s", {"method": method})
+        nxt_b = call(two, "select", "s", {"method": method})
         assert (nxt_a.chosen.id, nxt_a.version) == (nxt_b.chosen.id, nxt_b.version)
-        assert one.call("get_session", "s", None).information.digest == two.call(
+        assert call(one, "get_session", "s", None).information.digest == call(two,
             "get_session", "s", None).information.digest
         assert files_of(one) == files_of(two)
     finally:
@@ -258,20 +263,20 @@ def test_the_same_acquisitions_either_way_give_the_same_selections_state_and_fil
 def test_a_selection_without_commit_is_taken_by_an_observation(tmp_path: Path) -> None:
     one, two = make_core(tmp_path / "one"), make_core(tmp_path / "two")
     try:
-        a = one.call("select", "s", {"method": "agile", "commit": True})
-        b = two.call("select", "s", {"method": "agile"})
-        two.call("add_observations", "s", {"observations": [
+        a = call(one, "select", "s", {"method": "agile", "commit": True})
+        b = call(two, "select", "s", {"method": "agile"})
+        call(two, "add_observations", "s", {"observations": [
             {"candidate_id": b.chosen.id}]})
         assert two.sessions["s"].record.warm_state["event"] == 1
-        assert one.call("select", "s", {"method": "agile"}).chosen.id == two.call(
+        assert call(one, "select", "s", {"method": "agile"}).chosen.id == call(two,
             "select", "s", {"method": "agile"}).chosen.id
         assert a.chosen.id == b.chosen.id
         # the commit after that selection takes its warm state; the next one, with no
         # selection since the last acquisition, leaves it
         s = two.sessions["s"]
-        two.call("commit", "s", {"candidate_id": int(s.record.pool_ids[0])})
+        call(two, "commit", "s", {"candidate_id": int(s.record.pool_ids[0])})
         assert s.record.warm_state["event"] == 2
-        two.call("commit", "s", {"candidate_id": int(s.record.pool_ids[0])})
+        call(two, "commit", "s", {"candidate_id": int(s.record.pool_ids[0])})
         assert s.record.warm_state["event"] == 2
     finally:
         one.close()
@@ -285,7 +290,7 @@ def test_decoded_frames_are_kept_for_the_mapper_only(tmp_path: Path) -> None:
         img = (np.random.default_rng(1).random((32, 32, 3)) * 255).astype(np.uint8)
         body = {"observations": [ObservationIn.from_numpy(ring_poses(40)[3], image=img,
                                                           image_encoding="png").model_dump()]}
-        core.call("add_observations", "s", body)
+        call(core, "add_observations", "s", body)
         assert s.take_frame(0) is None  # no mapper: nothing kept
 
         class Hook:
@@ -293,7 +298,7 @@ def test_decoded_frames_are_kept_for_the_mapper_only(tmp_path: Path) -> None:
                 pass
 
         s.mapper = Hook()  # type: ignore[assignment]
-        core.call("add_observations", "s", body)
+        call(core, "add_observations", "s", body)
         got = s.take_frame(1)
         assert got is not None and got[1] is None
         np.testing.assert_array_equal(got[0], img)

@@ -24,7 +24,7 @@ from typing import Any
 import httpx
 import numpy as np
 import pytest
-from conftest import SMALL_INTRINSICS, ring_poses
+from conftest import SMALL_INTRINSICS, call, ring_poses
 from inprocess import serve_in_process
 
 from agilegs.client import Client, InsufficientStorageError, SessionDamagedError
@@ -378,7 +378,7 @@ def test_a_full_disk_during_a_map_publication_is_retried(tmp_path: Path,
     refused: list[str] = []
     core.on_refused_write = lambda source, op: refused.append(f"{source}/{op}")
     core.load()
-    core.call("create_session", None, {
+    call(core, "create_session", None, {
         "id": "s", "intrinsics": SMALL_INTRINSICS, "init_gaussians": 60, "bounds": BOUNDS,
         "frames": [frame(0).model_dump()]})
     # the mapper's worker, its bursts driven from here
@@ -394,7 +394,7 @@ def test_a_full_disk_during_a_map_publication_is_retried(tmp_path: Path,
 
         mp.setattr(SessionStore, "save", full)
         assert trainer.burst(st) == 0
-        status = core.call("get_session", "s", None).mapper
+        status = call(core, "get_session", "s", None).mapper
         assert status.state == "error" and "full" in (status.error or "")
         assert refused == ["mapper/publish"] and st.steps == 4 and st.dirty  # kept
         assert not st.has_work()  # waits before the next try
@@ -402,7 +402,7 @@ def test_a_full_disk_during_a_map_publication_is_retried(tmp_path: Path,
     st.full_until = 0.0  # the wait is over
     assert st.has_work()
     trainer.burst(st)
-    info = core.call("get_session", "s", None)
+    info = call(core, "get_session", "s", None)
     assert info.version == version + 1 and info.mapper.published_steps == 4
     assert info.mapper.state == "idle"
     core.close()

@@ -13,6 +13,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
+from conftest import call
 from test_store import BOUNDS, POOL, SMALL_INTRINSICS, frame, snapshot
 
 from agilegs.service import store_tool
@@ -71,7 +72,7 @@ class Backend:
 
 
 def create(core: SessionRegistry, sid: str = "s") -> None:
-    core.call("create_session", None, {
+    call(core, "create_session", None, {
         "id": sid, "intrinsics": SMALL_INTRINSICS, "bounds": BOUNDS, "init_gaussians": 50,
         "pool": {"poses": [{"matrix": p.tolist()} for p in POOL]},
         "defaults": {"shortlist_size": 3}, "seed": 7})
@@ -94,9 +95,9 @@ def history(b: Backend) -> list[tuple]:
     core = b.core()
     create(core)
     out = [timeless(snapshot(core))]
-    core.call("add_observations", "s", {"observations": [frame(1)]})
+    call(core, "add_observations", "s", {"observations": [frame(1)]})
     out.append(timeless(snapshot(core)))
-    core.call("commit", "s", {"candidate_id": 2})
+    call(core, "commit", "s", {"candidate_id": 2})
     out.append(timeless(snapshot(core)))
     core.close()
     again = b.core()
@@ -116,8 +117,8 @@ def test_every_version_writes_fresh_keys_and_keeps_the_previous_one() -> None:
     b = Backend("objects", Path("/nonexistent"))
     core = b.core()
     create(core)
-    core.call("add_observations", "s", {"observations": [frame(1)]})
-    core.call("commit", "s", {"candidate_id": 2})
+    call(core, "add_observations", "s", {"observations": [frame(1)]})
+    call(core, "commit", "s", {"candidate_id": 2})
     m = b.manifest("s")
     assert all(name.count(".") == 3 for name in m["files"].values())  # role.<v>.<token>.pt
     image = m["views"][0]["image_file"]
@@ -139,22 +140,22 @@ def test_damage_is_reported_and_repaired_alike(tmp_path: Path, how: str) -> None
         core = b.core()
         create(core)
         create(core, "t")
-        core.call("commit", "s", {"candidate_id": 1})
+        call(core, "commit", "s", {"candidate_id": 1})
         intact = snapshot(core)
-        core.call("commit", "s", {"candidate_id": 2})
+        call(core, "commit", "s", {"candidate_id": 2})
         core.close()
         b.damage("s", MANIFEST, how)
         again = b.core()
-        listed = {e.id: e for e in again.call("list_sessions", None, None).sessions}
+        listed = {e.id: e for e in call(again, "list_sessions", None, None).sessions}
         assert listed["t"].state == "ok"
         damage = listed["s"].damage
         assert listed["s"].state == "damaged" and damage is not None
         with pytest.raises(ServiceError) as exc:
-            again.call("select", "s", {})
+            call(again, "select", "s", {})
         assert exc.value.code == "session_damaged"
-        done = again.call("repair_session", "s", None)
+        done = call(again, "repair_session", "s", None)
         after = timeless(snapshot(again))
-        again.call("commit", "s", {"candidate_id": 3})
+        call(again, "commit", "s", {"candidate_id": 3})
         again.close()
         assert after[1:] == timeless(intact)[1:]
         # the manifests differ in length alone (the objects' names hold a token)
@@ -169,7 +170,7 @@ def test_a_damaged_frame_is_dropped_alike(tmp_path: Path) -> None:
         b = Backend(kind, tmp_path / kind)
         core = b.core()
         create(core)
-        core.call("add_observations", "s", {"observations": [frame(1)]})
+        call(core, "add_observations", "s", {"observations": [frame(1)]})
         core.close()
         image = b.manifest("s")["views"][0]["image_file"]
         b.damage("s", f"views/{image}", "flip")
@@ -192,7 +193,7 @@ def test_store_check_and_repair_on_an_object_store(tmp_path: Path,
     core = b.core()
     create(core)
     create(core, "t")
-    core.call("commit", "s", {"candidate_id": 1})
+    call(core, "commit", "s", {"candidate_id": 1})
     core.close()
     b.damage("s", MANIFEST, "truncate")
     monkeypatch.setattr(objects, "open_store", lambda *a, **k: ObjectSessionStore(b.blobs))
@@ -246,11 +247,11 @@ def test_a_stale_owner_is_fenced_and_drops_the_session(caplog: pytest.LogCapture
     new = SessionRegistry(Settings(zenoh=False, workers=2, mapper=False),
                           store=ObjectSessionStore(blobs))
     new.load()  # takes the session over
-    new.call("commit", "s", {"candidate_id": 1})
+    call(new, "commit", "s", {"candidate_id": 1})
     taken = snapshot(new)
     before = dict(blobs.objects)
     with pytest.raises(ServiceError) as exc:
-        old.call("commit", "s", {"candidate_id": 2})
+        call(old, "commit", "s", {"candidate_id": 2})
     assert exc.value.code == "session_unavailable" and exc.value.status == 404
     assert "lost the lease" in caplog.text
     assert "s" not in old.sessions
@@ -280,6 +281,6 @@ def cores(backend: Backend) -> Iterator[SessionRegistry]:
 
 def test_a_deleted_session_can_be_created_again(cores: SessionRegistry) -> None:
     create(cores)
-    assert cores.call("delete_session", "s", None).deleted
+    assert call(cores, "delete_session", "s", None).deleted
     create(cores)
-    assert cores.call("get_session", "s", None).version == 1
+    assert call(cores, "get_session", "s", None).version == 1

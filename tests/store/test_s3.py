@@ -8,6 +8,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from conftest import call
 from s3api import S3Api, s3_api
 from test_objects import Backend, create, history
 
@@ -71,8 +72,8 @@ def test_damage_on_s3_is_found_and_repaired(s3env: S3Api, tmp_path: Path) -> Non
                                     workers=2, mapper=False))
     core.load()
     create(core)
-    core.call("commit", "s", {"candidate_id": 1})
-    core.call("commit", "s", {"candidate_id": 2})
+    call(core, "commit", "s", {"candidate_id": 1})
+    call(core, "commit", "s", {"candidate_id": 2})
     core.close()
     blobs = open_blobs(url)
     key = f"sessions/s/{MANIFEST}"
@@ -85,7 +86,7 @@ def test_damage_on_s3_is_found_and_repaired(s3env: S3Api, tmp_path: Path) -> Non
     again = SessionRegistry(Settings(state_dir=tmp_path, state_url=url, zenoh=False,
                                      workers=2, mapper=False))
     again.load()
-    assert again.call("get_session", "s", None).version == 4
+    assert call(again, "get_session", "s", None).version == 4
     with pytest.raises(ServiceError) as exc:  # the id is taken in the store
         create(again)
     assert exc.value.status == 409

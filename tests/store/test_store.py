@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from conftest import SMALL_INTRINSICS, ring_poses
+from conftest import SMALL_INTRINSICS, call, ring_poses
 
 from agilegs.schemas import ObservationIn
 from agilegs.service.errors import ServiceError
@@ -42,7 +42,7 @@ def make_core(path: Path) -> SessionRegistry:
 
 
 def create(core: SessionRegistry, sid: str = "s") -> None:
-    core.call("create_session", None, {
+    call(core, "create_session", None, {
         "id": sid, "intrinsics": SMALL_INTRINSICS, "bounds": BOUNDS, "init_gaussians": 50,
         "pool": {"poses": [{"matrix": p.tolist()} for p in POOL]},
         "defaults": {"shortlist_size": 3}})
@@ -53,10 +53,10 @@ def frame(i: int) -> dict[str, Any]:
 
 
 def snapshot(core: SessionRegistry, sid: str = "s") -> tuple:
-    info = core.call("get_session", sid, None)
+    info = call(core, "get_session", sid, None)
     return (info.version, info.information.digest, info.gaussians.count,
-            core.call("get_pool", sid, None).model_dump_json(exclude={"version"}),
-            core.call("list_views", sid, None).model_dump_json(exclude={"version"}))
+            call(core, "get_pool", sid, None).model_dump_json(exclude={"version"}),
+            call(core, "list_views", sid, None).model_dump_json(exclude={"version"}))
 
 
 def folder_bytes(folder: Path) -> dict[str, str]:
@@ -94,7 +94,7 @@ def test_the_manifest_checksum_catches_any_changed_byte() -> None:
 
 
 def test_a_frame_read_back_is_checked(core: SessionRegistry, tmp_path: Path) -> None:
-    out = core.call("add_observations", "s", {"observations": [frame(1)]})
+    out = call(core, "add_observations", "s", {"observations": [frame(1)]})
     vid = out.views[0].id
     s = core.sessions["s"]
     np.testing.assert_array_equal(s.view_image(vid), IMG)
@@ -108,35 +108,35 @@ def test_a_frame_read_back_is_checked(core: SessionRegistry, tmp_path: Path) -> 
     with pytest.raises(DamagedFile, match="checksum mismatch"):
         s.view_image(vid)
     # the session left service: listed as damaged, its operations refused with the reason
-    listed = {e.id: e for e in core.call("list_sessions", None, None).sessions}
+    listed = {e.id: e for e in call(core, "list_sessions", None, None).sessions}
     assert listed["s"].state == "damaged" and listed["s"].damage is not None
     assert listed["s"].damage.files[0].file == f"views/{name}"
     assert listed["s"].damage.drop_frames == [vid] and listed["s"].damage.repairable
     with pytest.raises(ServiceError) as exc:
-        core.call("select", "s", {})
+        call(core, "select", "s", {})
     assert exc.value.status == 409 and exc.value.code == "session_damaged"
     assert f"views/{name}" in exc.value.message
-    done = core.call("repair_session", "s", None)
+    done = call(core, "repair_session", "s", None)
     assert done.repaired and done.dropped_frames == [vid] and done.rolled_back_to is None
-    view = core.call("list_views", "s", None).views[-1]
+    view = call(core, "list_views", "s", None).views[-1]
     assert view.id == vid and not view.has_image and view.has_depth  # only the image was bad
-    core.call("select", "s", {"commit": True})
+    call(core, "select", "s", {"commit": True})
 
 
 # ---------------------------------------------------------------------------- versions
 def test_the_previous_version_and_its_files_are_kept(core: SessionRegistry,
                                                     tmp_path: Path) -> None:
     folder = tmp_path / "state" / "sessions" / "s"
-    core.call("commit", "s", {"candidate_id": 1})
+    call(core, "commit", "s", {"candidate_id": 1})
     first = decode_manifest((folder / MANIFEST).read_bytes())
-    core.call("commit", "s", {"candidate_id": 2})
+    call(core, "commit", "s", {"candidate_id": 2})
     cur = decode_manifest((folder / MANIFEST).read_bytes())
     prev = decode_manifest((folder / PREVIOUS).read_bytes())
     assert prev == first and prev["version"] == cur["version"] - 1
     for m in (cur, prev):  # both versions' files are there and check out
         for name in m["files"].values():
             assert checksum((folder / name).read_bytes()) == m["checksums"][name]
-    core.call("commit", "s", {"candidate_id": 3})
+    call(core, "commit", "s", {"candidate_id": 3})
     # the version before the previous one is gone
     info_files = sorted(p.name for p in folder.glob("information.*.pt"))
     assert first["files"]["information"] not in info_files and len(info_files) == 2
@@ -145,7 +145,7 @@ def test_the_previous_version_and_its_files_are_kept(core: SessionRegistry,
 def test_a_session_written_without_checksums_still_loads(core: SessionRegistry,
                                                          tmp_path: Path) -> None:
     folder = tmp_path / "state" / "sessions" / "s"
-    core.call("add_observations", "s", {"observations": [frame(2)]})
+    call(core, "add_observations", "s", {"observations": [frame(2)]})
     before = snapshot(core)
     core.close()
     m = decode_manifest((folder / MANIFEST).read_bytes())
@@ -154,7 +154,7 @@ def test_a_session_written_without_checksums_still_loads(core: SessionRegistry,
     (folder / MANIFEST).write_text(json.dumps(m))
     again = make_core(tmp_path / "state")
     assert snapshot(again) == before and not again.damaged
-    again.call("commit", "s", {"candidate_id": 0})  # written back with checksums
+    call(again, "commit", "s", {"candidate_id": 0})  # written back with checksums
     m2 = decode_manifest((folder / MANIFEST).read_bytes())
     assert m2["format"] == 2 and set(m2["checksums"]) >= set(m2["files"].values())
     again.close()
@@ -174,9 +174,9 @@ def _damage(path: Path, how: str) -> None:
 @pytest.mark.parametrize("how", ["truncate", "flip"])
 def test_a_damaged_manifest_rolls_back_to_the_previous_version(core: SessionRegistry,
                                                                tmp_path: Path, how: str) -> None:
-    core.call("commit", "s", {"candidate_id": 1})
+    call(core, "commit", "s", {"candidate_id": 1})
     intact = snapshot(core)
-    core.call("commit", "s", {"candidate_id": 2})
+    call(core, "commit", "s", {"candidate_id": 2})
     lost_version = snapshot(core)[0]
     core.close()
     folder = tmp_path / "state" / "sessions" / "s"
@@ -189,14 +189,14 @@ def test_a_damaged_manifest_rolls_back_to_the_previous_version(core: SessionRegi
     assert done.rolled_back_to == intact[0] and done.record.version == lost_version + 1
     again = make_core(tmp_path / "state")
     assert snapshot(again)[1:] == intact[1:] and snapshot(again)[0] == lost_version + 1
-    again.call("commit", "s", {"candidate_id": 3})  # and it goes on from there
+    call(again, "commit", "s", {"candidate_id": 3})  # and it goes on from there
     again.close()
     assert not isinstance(SessionStore(tmp_path / "state").inspect("s"), Damage)
 
 
 def test_a_file_both_versions_share_cannot_be_rolled_back(core: SessionRegistry,
                                                           tmp_path: Path) -> None:
-    core.call("commit", "s", {"candidate_id": 1})  # the Gaussians are not rewritten
+    call(core, "commit", "s", {"candidate_id": 1})  # the Gaussians are not rewritten
     core.close()
     folder = tmp_path / "state" / "sessions" / "s"
     name = decode_manifest((folder / MANIFEST).read_bytes())["files"]["gaussians"]
@@ -205,9 +205,9 @@ def test_a_file_both_versions_share_cannot_be_rolled_back(core: SessionRegistry,
     assert isinstance(got, Damage) and not got.repairable and got.files[0].file == name
     again = make_core(tmp_path / "state")
     with pytest.raises(ServiceError) as exc:
-        again.call("repair_session", "s", None)
+        call(again, "repair_session", "s", None)
     assert exc.value.code == "session_damaged" and "nothing intact" in exc.value.message
-    assert again.call("delete_session", "s", None).deleted
+    assert call(again, "delete_session", "s", None).deleted
     assert not folder.exists()
     create(again, "s")  # the id is free again
     again.close()
@@ -218,7 +218,7 @@ def test_store_check_and_repair_offline(core: SessionRegistry, tmp_path: Path,
     from agilegs.service import store_tool
 
     create(core, "t")
-    core.call("commit", "s", {"candidate_id": 1})
+    call(core, "commit", "s", {"candidate_id": 1})
     core.close()
     state = tmp_path / "state"
     _damage(state / "sessions" / "s" / MANIFEST, "truncate")

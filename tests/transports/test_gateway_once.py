@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import SMALL_INTRINSICS, ring_poses
+from conftest import SMALL_INTRINSICS, call, ring_poses
 
 from agilegs import schemas as m
 from agilegs.schemas import ErrorBody, ErrorInfo, codec
@@ -110,7 +110,7 @@ def test_what_cannot_go_as_it_came_is_validated_here(gateway: Gateway) -> None:
 
 
 def test_a_decision_and_its_publication_share_one_encoding(gateway: Gateway) -> None:
-    gateway.registry.call("create_session", None, {
+    call(gateway.registry, "create_session", None, {
         "id": "s", "intrinsics": SMALL_INTRINSICS, "init_gaussians": 50,
         "bounds": {"min": [-0.5] * 3, "max": [0.5] * 3},
         "pool": {"poses": [{"matrix": p.tolist()} for p in ring_poses(6)]}})

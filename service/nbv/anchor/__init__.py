@@ -13,5 +13,7 @@ pool's envelope (:mod:`.envelope`). Two psi behind one option (``AnchorConfig.ps
   the twist. Faithful, but a Fisher pass per value and rough (the rasterizer's hard
   cut-offs).
 
-The settings are :class:`~agilegs.config.selection.AnchorConfig`.
+The proxy of an event is assembled in :mod:`.assembly` (or carried over, :mod:`.carry`); a
+call's inputs and its typed diagnostics are the records of :mod:`.records`. The settings are
+:class:`~agilegs.config.selection.AnchorConfig`.
 """

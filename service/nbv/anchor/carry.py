@@ -26,13 +26,15 @@ from agilegs.config.selection import AnchorConfig
 from ..camera import Intrinsics
 from ..gaussians import GaussianMap
 from .proxy import ProxyPsi
+from .records import ModelDiagnostics
 from .visibility import OpacityMaps
 
 __all__ = ["fingerprint", "pack", "settings_key", "unpack"]
 
 KEPT_EXTRA = ("model", "typical_source", "typical_term", "unexplored_fraction",
               "unexplored_points")
-"""The anchor's diagnostics that describe the parts (carried with them)."""
+"""The diagnostics that describe the parts (:class:`.records.ModelDiagnostics`, carried
+with them by name)."""
 
 
 def fingerprint(gmap: GaussianMap, h_acc: Mapping[str, Tensor], fields: tuple[str, ...],
@@ -57,7 +59,8 @@ def settings_key(config: AnchorConfig, intrinsics: Intrinsics, fields: tuple[str
 def pack(proxy: ProxyPsi, extra: Mapping[str, Any], built: Mapping[str, Any],
          key: str) -> dict[str, Any]:
     """The parts as the warm state keeps them: ``proxy`` (its tensors and numbers), the
-    diagnostics of :data:`KEPT_EXTRA` in ``extra``, the fingerprint ``built`` and ``key``."""
+    diagnostics of :data:`KEPT_EXTRA` in ``extra`` (:meth:`.records.ModelDiagnostics.as_dict`),
+    the fingerprint ``built`` and ``key``."""
     p: dict[str, Any] = {
         "means": proxy.means, "cov": proxy.cov, "weight": proxy.weight, "near": proxy.near,
         "edge": proxy.edge, "occ_grid": proxy.occ_grid,
@@ -82,10 +85,12 @@ def _close(now: Tensor | float, then: Any, tol: float) -> bool:
 
 
 def unpack(parts: Any, *, now: Mapping[str, Any], key: str, tolerance: float,
-           intrinsics: Intrinsics, dtype: torch.dtype) -> tuple[ProxyPsi, dict[str, Any]] | None:
-    """The carried proxy and diagnostics when ``parts`` (from :func:`pack`, through the warm
-    state) may serve: the same ``key``, the fingerprint ``now`` within ``tolerance`` of the
-    one at the build, tensors of ``dtype`` and consistent shapes; else None (rebuild)."""
+           intrinsics: Intrinsics, dtype: torch.dtype
+           ) -> tuple[ProxyPsi, ModelDiagnostics] | None:
+    """The carried proxy and its model's diagnostics when ``parts`` (from :func:`pack`,
+    through the warm state) may serve: the same ``key``, the fingerprint ``now`` within
+    ``tolerance`` of the one at the build, tensors of ``dtype``, consistent shapes and the
+    model named; else None (rebuild)."""
     try:
         if not isinstance(parts, Mapping) or parts.get("key") != key:
             return None
@@ -118,6 +123,6 @@ def unpack(parts: Any, *, now: Mapping[str, Any], key: str, tolerance: float,
             occ_grid=int(p["occ_grid"]), rate=opt["rate"],
             occ_tests=tuple((int(c), float(t)) for c, t in p["occ_tests"]), grid=grid,
             slot_kinds=opt["slot_kinds"], axes=opt["axes"])
-        return proxy, dict(parts.get("extra", {}))
+        return proxy, ModelDiagnostics.from_dict(parts["extra"])
     except (KeyError, TypeError, ValueError, AttributeError, IndexError, RuntimeError):
         return None

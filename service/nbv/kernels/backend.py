@@ -60,7 +60,7 @@ BACKENDS: tuple[str, ...] = ("auto", "numba", "torch")
 ENV_VAR = env_var("kernels")
 
 _default: Backend | None = None
-_LOCK = threading.RLock()
+LOCK = threading.RLock()
 _kernels: Any = None
 _import_error: str | None = None
 _XY_CACHE: dict[tuple[int, str], np.ndarray] = {}
@@ -79,13 +79,24 @@ _COMPILED: dict[str, tuple[str, ...]] = {
 __all__ = [
     "BACKENDS",
     "ENV_VAR",
+    "LOCK",
+    "WORKSPACE",
     "Backend",
+    "Workspace",
+    "as_numpy",
+    "camera_vector",
     "default_backend",
     "kernel_module",
+    "kernel_threads",
     "kernels_available",
+    "load_kernels",
+    "map_arrays",
+    "parallel",
+    "pixel_centres",
     "release_workspace",
     "resolve",
     "run_in_parts",
+    "scalars",
     "set_default_backend",
     "set_kernel_threads",
 ]
@@ -111,7 +122,7 @@ def default_backend() -> Backend:
     return kernel_settings().kernels
 
 
-def _load() -> Any:
+def load_kernels() -> Any:
     global _kernels, _import_error
     if _kernels is None and _import_error is None:
         try:
@@ -126,7 +137,7 @@ def _load() -> Any:
 
 def kernels_available() -> bool:
     """Whether the compiled kernels import (numba present and working)."""
-    return _load() is not None
+    return load_kernels() is not None
 
 
 def resolve(backend: Backend | None, tensors: Iterable[Tensor], *,
@@ -164,7 +175,7 @@ def resolve(backend: Backend | None, tensors: Iterable[Tensor], *,
 
 
 # ----------------------------------------------------------------------------- helpers
-def _np(t: Tensor) -> np.ndarray:
+def as_numpy(t: Tensor) -> np.ndarray:
     return t.detach().contiguous().numpy()
 
 
@@ -183,7 +194,7 @@ def set_kernel_threads(n: int | None) -> None:
     _threads_default = n
 
 
-def _threads() -> int:
+def kernel_threads() -> int:
     """The number of parts (threads) a kernel runs in: :func:`set_kernel_threads`, else
     ``AGILEGS_KERNEL_THREADS``, else torch's thread count."""
     if _threads_default is not None:
@@ -192,7 +203,7 @@ def _threads() -> int:
     return n if n is not None else max(1, torch.get_num_threads())
 
 
-def _parallel(fn: Callable[[int], Any], parts: int) -> None:
+def parallel(fn: Callable[[int], Any], parts: int) -> None:
     """fn(0), ..., fn(parts - 1): the first on this thread, the others on the pool."""
     global _POOL
     if parts == 1:
@@ -207,7 +218,7 @@ def _parallel(fn: Callable[[int], Any], parts: int) -> None:
         f.result()
 
 
-def _centres(n: int, dtype: np.dtype) -> np.ndarray:
+def pixel_centres(n: int, dtype: np.dtype) -> np.ndarray:
     key = (n, str(dtype))
     arr = _XY_CACHE.get(key)
     if arr is None:
@@ -218,7 +229,7 @@ def _centres(n: int, dtype: np.dtype) -> np.ndarray:
     return arr
 
 
-def _camera_vector(camera: Camera, dtype: torch.dtype, near: float) -> np.ndarray:
+def camera_vector(camera: Camera, dtype: torch.dtype, near: float) -> np.ndarray:
     """The kernels' camera vector (see ``kernels.CAM``), the pose rounded to ``dtype`` as the
     torch projection rounds it."""
     w2c = camera.w2c.detach().to(dtype).to(torch.float64).cpu().numpy()
@@ -232,19 +243,19 @@ def _camera_vector(camera: Camera, dtype: torch.dtype, near: float) -> np.ndarra
     ])
 
 
-def _params(gmap: GaussianMap) -> tuple[np.ndarray, ...]:
-    return (_np(gmap.means), _np(gmap.log_scales), _np(gmap.quats), _np(gmap.opacity_logits),
-            _np(gmap.sh))
+def map_arrays(gmap: GaussianMap) -> tuple[np.ndarray, ...]:
+    return tuple(as_numpy(t) for t in (gmap.means, gmap.log_scales, gmap.quats,
+                                       gmap.opacity_logits, gmap.sh))
 
 
-def _scalars(np_dtype: np.dtype) -> tuple[Any, Any, Any]:
+def scalars(np_dtype: np.dtype) -> tuple[Any, Any, Any]:
     t = np_dtype.type
     return t(0.5), t(1.0 / 255.0), t(0.99)
 
 
 # ----------------------------------------------------------------------------- workspace
-class _Workspace:
-    """Scratch buffers reused from one kernel call to the next (only under ``_LOCK``, and
+class Workspace:
+    """Scratch buffers reused from one kernel call to the next (only under ``LOCK``, and
     never handed out of the call): fresh allocations of tens of MB cost page faults that
     rival the kernels' own work. Buffers above ``limit`` bytes are not kept."""
 
@@ -277,14 +288,14 @@ class _Workspace:
         return sum(b.nbytes for b in self._bufs.values())
 
 
-_WORKSPACE = _Workspace()
+WORKSPACE = Workspace()
 
 
 def release_workspace() -> int:
     """Free the kernels' cached scratch buffers; returns the bytes released."""
-    with _LOCK:
-        n = _WORKSPACE.nbytes
-        _WORKSPACE.clear()
+    with LOCK:
+        n = WORKSPACE.nbytes
+        WORKSPACE.clear()
     return n
 
 
@@ -292,12 +303,12 @@ def run_in_parts(fn: Callable[[int, int], Any], items: int) -> None:
     """``fn(start, stop)`` over ``items`` items split into contiguous ranges, one per kernel
     thread (:func:`set_kernel_threads`); the ranges run at once on Python threads (the
     kernels release the GIL)."""
-    parts = max(1, min(_threads(), items))
+    parts = max(1, min(kernel_threads(), items))
     bounds = [items * p // parts for p in range(parts + 1)]
-    _parallel(lambda p: fn(bounds[p], bounds[p + 1]), parts)
+    parallel(lambda p: fn(bounds[p], bounds[p + 1]), parts)
 
 
 def kernel_module() -> Any:
     """The compiled kernels: the functions and constants of :data:`_COMPILED` as attributes
     (None when numba does not import)."""
-    return _load()
+    return load_kernels()

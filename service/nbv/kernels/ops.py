@@ -20,16 +20,16 @@ from agilegs.config.selection import FIELD_NAMES
 from agilegs.service.nbv.camera import Camera
 from agilegs.service.nbv.gaussians import GaussianMap
 from agilegs.service.nbv.kernels.backend import (
-    _LOCK,
-    _WORKSPACE,
-    _camera_vector,
-    _centres,
-    _load,
-    _np,
-    _parallel,
-    _params,
-    _scalars,
-    _threads,
+    LOCK,
+    WORKSPACE,
+    as_numpy,
+    camera_vector,
+    kernel_threads,
+    load_kernels,
+    map_arrays,
+    parallel,
+    pixel_centres,
+    scalars,
 )
 from agilegs.service.nbv.projection import Projected
 
@@ -51,8 +51,8 @@ class _ProjectFn(torch.autograd.Function):
         ctx: Any, means: Tensor, log_scales: Tensor, quats: Tensor, logits: Tensor, sh: Tensor,
         cam: np.ndarray,
     ) -> tuple[Tensor, ...]:
-        k = _load()
-        arrs = tuple(_np(t) for t in (means, log_scales, quats, logits, sh))
+        k = load_kernels()
+        arrs = tuple(as_numpy(t) for t in (means, log_scales, quats, logits, sh))
         n = means.shape[0]
         dt = means.dtype
         m2 = torch.empty(n, 2, dtype=dt)
@@ -65,9 +65,9 @@ class _ProjectFn(torch.autograd.Function):
         if n:
             outs = (m2.numpy(), con.numpy(), z.numpy(), radii.numpy(), col.numpy(), op.numpy(),
                     cov.numpy())
-            with _LOCK:
-                nth = _threads()
-                _parallel(lambda part: k.project(*arrs, cam, part, nth, *outs), nth)
+            with LOCK:
+                nth = kernel_threads()
+                parallel(lambda part: k.project(*arrs, cam, part, nth, *outs), nth)
         ctx.arrs = arrs
         ctx.cam = cam
         ctx.mark_non_differentiable(radii, cov)
@@ -79,7 +79,7 @@ class _ProjectFn(torch.autograd.Function):
         ctx: Any, g_m2: Tensor | None, g_con: Tensor | None, g_z: Tensor | None,
         g_col: Tensor | None, g_op: Tensor | None, _g_radii: Any, _g_cov: Any,
     ) -> tuple[Tensor | None, ...]:
-        k = _load()
+        k = load_kernels()
         means, log_scales, quats, logits, sh = ctx.arrs
         n = means.shape[0]
         dt = torch.float32 if means.dtype == np.float32 else torch.float64
@@ -98,9 +98,9 @@ class _ProjectFn(torch.autograd.Function):
         if n:
             gsn = gs.numpy()
             outn = [o.numpy() for o in outs]
-            with _LOCK:
-                nth = _threads()
-                _parallel(lambda part: k.project_backward(*ctx.arrs, ctx.cam, part, nth, gsn,
+            with LOCK:
+                nth = kernel_threads()
+                parallel(lambda part: k.project_backward(*ctx.arrs, ctx.cam, part, nth, gsn,
                                                           *outn), nth)
         return (*outs, None)
 
@@ -108,7 +108,7 @@ class _ProjectFn(torch.autograd.Function):
 def kernel_project(gmap: GaussianMap, camera: Camera, *, near: float = 0.01) -> Projected:
     """:func:`~agilegs.service.nbv.projection.project_map` by the kernels (differentiable in
     the Gaussians; not in the pose)."""
-    cam = _camera_vector(camera, gmap.dtype, near)
+    cam = camera_vector(camera, gmap.dtype, near)
     m2, con, z, col, op, radii, cov = _ProjectFn.apply(
         gmap.means, gmap.log_scales, gmap.quats, gmap.opacity_logits, gmap.sh, cam)
     return Projected(means2d=m2, conics=con, depths=z, radii=radii, colors=col, opacities=op,
@@ -124,7 +124,7 @@ class _Tiles:
     def __init__(self, m2: np.ndarray, con: np.ndarray, op: np.ndarray, col: np.ndarray,
                  z: np.ndarray, radii: np.ndarray, cov: np.ndarray, width: int, height: int,
                  tile: int, *, scratch: bool = False) -> None:
-        k = _load()
+        k = load_kernels()
         dt = m2.dtype
         n = m2.shape[0]
         nc = col.shape[1]
@@ -132,7 +132,7 @@ class _Tiles:
         def buf(name: str, shape: tuple[int, ...], dtype: Any, zero: bool = False
                 ) -> np.ndarray:
             if scratch:
-                return _WORKSPACE.take("tiles." + name, shape, dtype, zero=zero)
+                return WORKSPACE.take("tiles." + name, shape, dtype, zero=zero)
             return np.zeros(shape, dtype) if zero else np.empty(shape, dtype)
 
         tiles_x = (width + tile - 1) // tile
@@ -157,8 +157,8 @@ class _Tiles:
         k.bin_fill(self.order, own, self.offsets, width, tile,
                    buf("sorted_own", (nvis, own.shape[1]), dt), self.rec, self.rbox, self.rg,
                    self.ent_off, self.ent)
-        self.xs = _centres(width, dt)
-        self.ys = _centres(height, dt)
+        self.xs = pixel_centres(width, dt)
+        self.ys = pixel_centres(height, dt)
         self.width, self.height, self.tile = width, height, tile
         self.channels = nc
         self.n = n
@@ -169,7 +169,7 @@ class _Tiles:
 
     def common(self) -> tuple[Any, ...]:
         return (self.offsets, self.rec, self.rbox, self.xs, self.ys, self.width, self.height,
-                self.tile, *_scalars(self.rec.dtype))
+                self.tile, *scalars(self.rec.dtype))
 
     def pair_buffers(self, record: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Slots for every tile's composited pairs (list position, tile pixel, α before the
@@ -185,7 +185,7 @@ class _Tiles:
         [V, K] in depth order."""
         if self.num_visible:
             target = np.arange(self.num_visible) if compact else self.order
-            _parallel(lambda part: k.reduce_entries(target, self.ent_off, self.ent, per_entry,
+            parallel(lambda part: k.reduce_entries(target, self.ent_off, self.ent, per_entry,
                                                     part, nth, out), nth)
         return out
 
@@ -200,14 +200,15 @@ class _CompositeFn(torch.autograd.Function):
         depths: Tensor, bg: Tensor, radii: Tensor, cov2d: Tensor, width: int, height: int,
         tile: int,
     ) -> tuple[Tensor, Tensor, Tensor]:
-        k = _load()
+        k = load_kernels()
         dt = colors.dtype
         hw = width * height
         nc = colors.shape[1]
-        with _LOCK:
-            nth = _threads()
-            tiles = _Tiles(_np(means2d), _np(conics), _np(opacities), _np(colors),
-                           _np(depths), _np(radii).astype(np.int64), _np(cov2d), width, height,
+        with LOCK:
+            nth = kernel_threads()
+            tiles = _Tiles(as_numpy(means2d), as_numpy(conics), as_numpy(opacities),
+                           as_numpy(colors), as_numpy(depths), as_numpy(radii).astype(np.int64),
+                           as_numpy(cov2d), width, height,
                            tile)
             acc = np.empty((hw, nc), dtype=tiles.rec.dtype)
             tf = np.empty(hw, dtype=np.float64)
@@ -216,7 +217,7 @@ class _CompositeFn(torch.autograd.Function):
             pairs = tiles.pair_buffers(record)
             npairs = np.zeros(tiles.offsets.shape[0] - 1, dtype=np.int64)
             common = tiles.common()
-            _parallel(lambda part: k.composite_forward(*common, part, nth, tiles.slots, record,
+            parallel(lambda part: k.composite_forward(*common, part, nth, tiles.slots, record,
                                                        *pairs, npairs, acc, tf, dacc), nth)
         t_final = torch.from_numpy(tf).to(dt)
         color = torch.from_numpy(acc) + t_final[:, None] * bg.detach()
@@ -233,7 +234,7 @@ class _CompositeFn(torch.autograd.Function):
     def backward(  # type: ignore[override]
         ctx: Any, g_color: Tensor, g_alpha: Tensor, g_depth: Tensor
     ) -> tuple[Tensor | None, ...]:
-        k = _load()
+        k = load_kernels()
         (bg,) = ctx.saved_tensors
         tiles: _Tiles = ctx.tiles
         dt = bg.dtype
@@ -242,13 +243,13 @@ class _CompositeFn(torch.autograd.Function):
         g_c = g_color.reshape(hw, nc).to(dt).contiguous()
         g_a = g_alpha.reshape(hw).to(dt).contiguous()
         g_d = g_depth.reshape(hw).to(dt).contiguous()
-        with _LOCK:
-            nth = _threads()
+        with LOCK:
+            nth = kernel_threads()
             per_entry = np.zeros((tiles.rec.shape[0], 7 + nc), dtype=np.float64)
             common = tiles.common()
-            args = (tiles.slots, *ctx.pairs, ctx.tf, _np(bg), g_c.numpy(), g_a.numpy(),
+            args = (tiles.slots, *ctx.pairs, ctx.tf, as_numpy(bg), g_c.numpy(), g_a.numpy(),
                     g_d.numpy(), per_entry)
-            _parallel(lambda part: k.composite_backward(*common, part, nth, *args), nth)
+            parallel(lambda part: k.composite_backward(*common, part, nth, *args), nth)
             red = tiles.reduce(k, per_entry, np.zeros((ctx.n, 7 + nc), np.float64), nth)
         full = torch.from_numpy(red).to(dt)
         tf = torch.from_numpy(ctx.tf).to(dt)
@@ -274,14 +275,14 @@ def _project_np(k: Any, arrs: tuple[np.ndarray, ...], cam: np.ndarray, nth: int,
     dt = arrs[0].dtype
 
     def buf(name: str, shape: tuple[int, ...], dtype: Any) -> np.ndarray:
-        return (_WORKSPACE.take("proj." + name, shape, dtype) if scratch
+        return (WORKSPACE.take("proj." + name, shape, dtype) if scratch
                 else np.empty(shape, dtype))
 
     out = (buf("m2", (n, 2), dt), buf("con", (n, 3), dt), buf("z", (n,), dt),
            buf("radii", (n,), np.int64), buf("col", (n, 3), dt), buf("op", (n,), dt),
            buf("cov", (n, 3), dt))
     if n:
-        _parallel(lambda part: k.project(*arrs, cam, part, nth, *out), nth)
+        parallel(lambda part: k.project(*arrs, cam, part, nth, *out), nth)
     return out
 
 
@@ -294,12 +295,12 @@ def _moments_np(k: Any, arrs: tuple[np.ndarray, ...], cam: np.ndarray, camera: C
     m2, con, z, radii, col, op, cov = _project_np(k, arrs, cam, nth, scratch=True)
     tiles = _Tiles(m2, con, op, col, z, radii, cov, camera.width, camera.height, tile,
                    scratch=True)
-    per_entry = _WORKSPACE.take("fisher.entries", (tiles.rec.shape[0], k.MOMENTS),
+    per_entry = WORKSPACE.take("fisher.entries", (tiles.rec.shape[0], k.MOMENTS),
                                 tiles.rec.dtype, zero=True)
-    mom = _WORKSPACE.take("fisher.moments", (arrs[0].shape[0], k.MOMENTS), np.float64)
+    mom = WORKSPACE.take("fisher.moments", (arrs[0].shape[0], k.MOMENTS), np.float64)
     if tiles.num_visible:
         common = tiles.common()
-        _parallel(lambda part: k.fisher_tiles(*common, part, nth, tiles.slots, bg, pixels,
+        parallel(lambda part: k.fisher_tiles(*common, part, nth, tiles.slots, bg, pixels,
                                               per_entry), nth)
         tiles.reduce(k, per_entry, mom, nth)
     return tiles.order, mom
@@ -318,14 +319,14 @@ def kernel_moments(gmap: GaussianMap, camera: Camera, *, background: Tensor | No
     """The Fisher's per-Gaussian moments by the kernels (float64; zero for Gaussians without a
     composited pair): Φ = Σ f4 φφᵀ [N, 6, 6], C2 = Σ f2 ⊗ φ [N, 3, 6] and Σ w² [N] (see
     ``kernels.fisher_tiles``)."""
-    k = _load()
-    arrs = _params(gmap)
+    k = load_kernels()
+    arrs = map_arrays(gmap)
     n = gmap.num_gaussians
-    cam = _camera_vector(camera, gmap.dtype, near)
+    cam = camera_vector(camera, gmap.dtype, near)
     full = torch.zeros(n, k.MOMENTS, dtype=torch.float64)
-    with _LOCK:
+    with LOCK:
         order, mom = _moments_np(k, arrs, cam, camera, _background(background, gmap.dtype),
-                                 tile_size, residuals == "pixels", _threads())
+                                 tile_size, residuals == "pixels", kernel_threads())
         idx = torch.from_numpy(order)
         full[idx] = torch.from_numpy(mom)[idx]
     phi = full[:, torch.from_numpy(k.PHI_INDEX).reshape(-1)].reshape(n, 6, 6)
@@ -347,21 +348,21 @@ def kernel_fisher(gmap: GaussianMap, camera: Camera, fields: Iterable[str], *,
     Returns:
         {field: the diagonal, the field's shape, the map's dtype}.
     """
-    k = _load()
+    k = load_kernels()
     want_names = tuple(fields)
-    arrs = _params(gmap)
+    arrs = map_arrays(gmap)
     dt = gmap.dtype
     want = np.array([f in want_names for f in FIELD_NAMES], dtype=np.bool_)
-    cam = _camera_vector(camera, dt, near)
+    cam = camera_vector(camera, dt, near)
     outs = {f: torch.zeros(getattr(gmap, f).shape, dtype=dt) for f in FIELD_NAMES}
-    with _LOCK:
-        nth = _threads()
+    with LOCK:
+        nth = kernel_threads()
         order, mom = _moments_np(k, arrs, cam, camera, _background(background, dt), tile_size,
                                  residuals == "pixels", nth)
         if order.shape[0]:
             hs = [outs[f].numpy() for f in FIELD_NAMES]
             pixels = residuals == "pixels"
-            _parallel(lambda part: k.fisher_chain(order, mom, *arrs, cam, part, nth, pixels,
+            parallel(lambda part: k.fisher_chain(order, mom, *arrs, cam, part, nth, pixels,
                                                   want, *hs), nth)
     return {f: outs[f] for f in want_names}
 
@@ -370,19 +371,19 @@ def kernel_jacobians(gmap: GaussianMap, camera: Camera, fields: Iterable[str], *
                      near: float = 0.01) -> dict[str, Tensor]:
     """∂s_i/∂θ_i of the 9 screen attributes by the kernels' analytic Jacobian: {field:
     [N, 9, P_f]} (the layout of :func:`~agilegs.service.nbv.information.projection_jacobians`)."""
-    k = _load()
-    arrs = _params(gmap)
+    k = load_kernels()
+    arrs = map_arrays(gmap)
     n = gmap.num_gaussians
     nk = gmap.sh.shape[1]
     dt = gmap.dtype
-    cam = _camera_vector(camera, dt, near)
+    cam = camera_vector(camera, dt, near)
     jac = np.zeros((n, 10, 11), dtype=np.float64)
     basis = np.zeros((n, max(nk, 1)), dtype=np.float64)
     mask = np.zeros((n, 3), dtype=np.float64)
     if n:
-        with _LOCK:
-            nth = _threads()
-            _parallel(lambda part: k.jacobians(*arrs, cam, part, nth, jac, basis, mask), nth)
+        with LOCK:
+            nth = kernel_threads()
+            parallel(lambda part: k.jacobians(*arrs, cam, part, nth, jac, basis, mask), nth)
     j = torch.from_numpy(jac).to(dt)
     out: dict[str, Tensor] = {}
     cols = {"means": (0, 3), "log_scales": (3, 6), "quats": (6, 10), "opacity_logits": (10, 11)}

@@ -101,6 +101,146 @@ JAC_ALL = 7
 
 
 @_jit
+def _jac_means(i: int, sh: np.ndarray, cam: np.ndarray, fwd: np.ndarray, jac: np.ndarray,
+               dbasis: np.ndarray, xz: float, yz: float, izs: float, in_front: bool,
+               cl_x: float, cl_y: float, ok: bool, idet: float, c00: float, c01: float,
+               c11: float, r00: float, r01: float, r02: float, r10: float, r11: float,
+               r12: float, r20: float, r21: float, r22: float, a0: float, a1: float, a2: float,
+               b0: float, b1: float, b2: float, e0: float, e1: float, e2: float, nrm: float,
+               inr: float) -> None:
+    """The Jacobian's mean columns of Gaussian i (:func:`_gaussian`'s names): through p, the
+    2D mean and the EWA Jacobian; the depth; the viewing direction."""
+    w0, w1, w2, w3, w4, w5, w6, w7, w8 = (cam[0], cam[1], cam[2], cam[3], cam[4], cam[5],
+                                          cam[6], cam[7], cam[8])
+    fx, fy = cam[15], cam[16]
+    lxlo, lxhi, lylo, lyhi = cam[22], cam[23], cam[24], cam[25]
+    j00 = fx * izs
+    j11 = fy * izs
+    nk = sh.shape[1]
+    # U_a = Σ T_aᵀ (Σ the 3D covariance): dc_ab = dT_a·U_b + dT_b·U_a
+    u00 = r00 * a0 + r01 * a1 + r02 * a2
+    u01 = r10 * a0 + r11 * a1 + r12 * a2
+    u02 = r20 * a0 + r21 * a1 + r22 * a2
+    u10 = r00 * b0 + r01 * b1 + r02 * b2
+    u11 = r10 * b0 + r11 * b1 + r12 * b2
+    u12 = r20 * b0 + r21 * b1 + r22 * b2
+    inx = lxlo <= xz <= lxhi
+    iny = lylo <= yz <= lyhi
+    _sh_basis_grad(e0, e1, e2, nk, dbasis)
+    g00 = g01 = g02 = g10 = g11 = g12 = g20 = g21 = g22 = 0.0
+    for k in range(nk):
+        s_r, s_g, s_b = float(sh[i, k, 0]), float(sh[i, k, 1]), float(sh[i, k, 2])
+        g00 += s_r * dbasis[k, 0]
+        g01 += s_r * dbasis[k, 1]
+        g02 += s_r * dbasis[k, 2]
+        g10 += s_g * dbasis[k, 0]
+        g11 += s_g * dbasis[k, 1]
+        g12 += s_g * dbasis[k, 2]
+        g20 += s_b * dbasis[k, 0]
+        g21 += s_b * dbasis[k, 1]
+        g22 += s_b * dbasis[k, 2]
+    # ∂dir/∂m = (I - dir dirᵀ) / |d| (I / 1e-12 below the norm's clamp)
+    big = 1.0 if nrm > 1e-12 else 0.0
+    gd0 = (g00 * e0 + g01 * e1 + g02 * e2) * big
+    gd1 = (g10 * e0 + g11 * e1 + g12 * e2) * big
+    gd2 = (g20 * e0 + g21 * e1 + g22 * e2) * big
+    mr = fwd[14] * inr
+    mg = fwd[15] * inr
+    mb = fwd[16] * inr
+    for j in range(3):
+        dpx = cam[j]
+        dpy = cam[3 + j]
+        dpz = cam[6 + j]
+        dzs = dpz if in_front else 0.0
+        dxz = (dpx - xz * dzs) * izs
+        dyz = (dpy - yz * dzs) * izs
+        jac[0, j] = fx * dxz
+        jac[1, j] = fy * dyz
+        dclx = dxz if inx else 0.0
+        dcly = dyz if iny else 0.0
+        # d(fx/z) and d(-fx X / z) with X the clamped x/z
+        dj00 = -j00 * dzs * izs
+        dj11 = -j11 * dzs * izs
+        dj02 = -fx * (dclx - cl_x * dzs * izs) * izs
+        dj12 = -fy * (dcly - cl_y * dzs * izs) * izs
+        dt00, dt01, dt02 = dj00 * w0 + dj02 * w6, dj00 * w1 + dj02 * w7, \
+            dj00 * w2 + dj02 * w8
+        dt10, dt11, dt12 = dj11 * w3 + dj12 * w6, dj11 * w4 + dj12 * w7, \
+            dj11 * w5 + dj12 * w8
+        dc00 = 2.0 * (dt00 * u00 + dt01 * u01 + dt02 * u02)
+        dc01 = (dt00 * u10 + dt01 * u11 + dt02 * u12) + (dt10 * u00 + dt11 * u01
+                                                         + dt12 * u02)
+        dc11 = 2.0 * (dt10 * u10 + dt11 * u11 + dt12 * u12)
+        da, db, dc = _conic_diff(ok, idet, c00, c01, c11, dc00, dc01, dc11)
+        jac[2, j] = da
+        jac[3, j] = db
+        jac[4, j] = dc
+        ej = e0 if j == 0 else (e1 if j == 1 else e2)
+        gj0 = g00 if j == 0 else (g01 if j == 1 else g02)
+        gj1 = g10 if j == 0 else (g11 if j == 1 else g12)
+        gj2 = g20 if j == 0 else (g21 if j == 1 else g22)
+        jac[6, j] = mr * (gj0 - ej * gd0)
+        jac[7, j] = mg * (gj1 - ej * gd1)
+        jac[8, j] = mb * (gj2 - ej * gd2)
+        jac[9, j] = dpz
+
+
+@_jit
+def _jac_scales(jac: np.ndarray, ok: bool, idet: float, c00: float, c01: float, c11: float,
+                q_0: float, q_1: float, q_2: float, v00: float, v01: float, v02: float,
+                v10: float, v11: float, v12: float) -> None:
+    """The Jacobian's log-scale columns (:func:`_gaussian`'s names)."""
+    # dΣ = 2 s_k² r_k r_kᵀ
+    for k in range(3):
+        qk = q_0 if k == 0 else (q_1 if k == 1 else q_2)
+        va = v00 if k == 0 else (v01 if k == 1 else v02)
+        vb = v10 if k == 0 else (v11 if k == 1 else v12)
+        da, db, dc = _conic_diff(ok, idet, c00, c01, c11, 2.0 * qk * va * va,
+                                 2.0 * qk * va * vb, 2.0 * qk * vb * vb)
+        jac[2, 3 + k] = da
+        jac[3, 3 + k] = db
+        jac[4, 3 + k] = dc
+
+
+@_jit
+def _jac_quats(jac: np.ndarray, ok: bool, idet: float, c00: float, c01: float, c11: float,
+               qw: float, qx: float, qy: float, qz: float, iqn: float, t00: float, t01: float,
+               t02: float, t10: float, t11: float, t12: float, a0: float, a1: float, a2: float,
+               b0: float, b1: float, b2: float) -> None:
+    """The Jacobian's quaternion columns (:func:`_gaussian`'s names)."""
+    # R(q / |q|); dc_ab = Σ_k s_k² (dV_ak V_bk + V_ak dV_bk), dV = T dR
+    for j in range(4):
+        # d(q/|q|)/dq_j = (e_j - q̂ q̂_j) / |q|
+        qj = qw if j == 0 else (qx if j == 1 else (qy if j == 2 else qz))
+        nw = ((1.0 if j == 0 else 0.0) - qw * qj) * iqn
+        nx = ((1.0 if j == 1 else 0.0) - qx * qj) * iqn
+        ny = ((1.0 if j == 2 else 0.0) - qy * qj) * iqn
+        nz = ((1.0 if j == 3 else 0.0) - qz * qj) * iqn
+        dr00 = -4.0 * (qy * ny + qz * nz)
+        dr01 = 2.0 * (qy * nx + qx * ny - qz * nw - qw * nz)
+        dr02 = 2.0 * (qz * nx + qx * nz + qy * nw + qw * ny)
+        dr10 = 2.0 * (qy * nx + qx * ny + qz * nw + qw * nz)
+        dr11 = -4.0 * (qx * nx + qz * nz)
+        dr12 = 2.0 * (qz * ny + qy * nz - qx * nw - qw * nx)
+        dr20 = 2.0 * (qz * nx + qx * nz - qy * nw - qw * ny)
+        dr21 = 2.0 * (qz * ny + qy * nz + qx * nw + qw * nx)
+        dr22 = -4.0 * (qx * nx + qy * ny)
+        dv00 = t00 * dr00 + t01 * dr10 + t02 * dr20
+        dv01 = t00 * dr01 + t01 * dr11 + t02 * dr21
+        dv02 = t00 * dr02 + t01 * dr12 + t02 * dr22
+        dv10 = t10 * dr00 + t11 * dr10 + t12 * dr20
+        dv11 = t10 * dr01 + t11 * dr11 + t12 * dr21
+        dv12 = t10 * dr02 + t11 * dr12 + t12 * dr22
+        dc00 = 2.0 * (dv00 * a0 + dv01 * a1 + dv02 * a2)
+        dc01 = dv00 * b0 + dv01 * b1 + dv02 * b2 + a0 * dv10 + a1 * dv11 + a2 * dv12
+        dc11 = 2.0 * (dv10 * b0 + dv11 * b1 + dv12 * b2)
+        da, db, dc = _conic_diff(ok, idet, c00, c01, c11, dc00, dc01, dc11)
+        jac[2, 6 + j] = da
+        jac[3, 6 + j] = db
+        jac[4, 6 + j] = dc
+
+
+@_jit
 def _gaussian(i: int, means: np.ndarray, log_scales: np.ndarray, quats: np.ndarray,
               logits: np.ndarray, sh: np.ndarray, cam: np.ndarray, blocks: int,
               fwd: np.ndarray, jac: np.ndarray, basis: np.ndarray, dbasis: np.ndarray) -> None:
@@ -209,115 +349,14 @@ def _gaussian(i: int, means: np.ndarray, log_scales: np.ndarray, quats: np.ndarr
     fwd[13] = rad if keep else 0.0
     jac[5, 10] = op * (1.0 - op)
     if blocks & JAC_MEANS:
-        # through p: mean2d and the EWA Jacobian; the depth; the viewing direction.
-        # U_a = Σ T_aᵀ (Σ the 3D covariance): dc_ab = dT_a·U_b + dT_b·U_a
-        u00 = r00 * a0 + r01 * a1 + r02 * a2
-        u01 = r10 * a0 + r11 * a1 + r12 * a2
-        u02 = r20 * a0 + r21 * a1 + r22 * a2
-        u10 = r00 * b0 + r01 * b1 + r02 * b2
-        u11 = r10 * b0 + r11 * b1 + r12 * b2
-        u12 = r20 * b0 + r21 * b1 + r22 * b2
-        inx = lxlo <= xz <= lxhi
-        iny = lylo <= yz <= lyhi
-        _sh_basis_grad(e0, e1, e2, nk, dbasis)
-        g00 = g01 = g02 = g10 = g11 = g12 = g20 = g21 = g22 = 0.0
-        for k in range(nk):
-            s_r, s_g, s_b = float(sh[i, k, 0]), float(sh[i, k, 1]), float(sh[i, k, 2])
-            g00 += s_r * dbasis[k, 0]
-            g01 += s_r * dbasis[k, 1]
-            g02 += s_r * dbasis[k, 2]
-            g10 += s_g * dbasis[k, 0]
-            g11 += s_g * dbasis[k, 1]
-            g12 += s_g * dbasis[k, 2]
-            g20 += s_b * dbasis[k, 0]
-            g21 += s_b * dbasis[k, 1]
-            g22 += s_b * dbasis[k, 2]
-        # ∂dir/∂m = (I - dir dirᵀ) / |d| (I / 1e-12 below the norm's clamp)
-        big = 1.0 if nrm > 1e-12 else 0.0
-        gd0 = (g00 * e0 + g01 * e1 + g02 * e2) * big
-        gd1 = (g10 * e0 + g11 * e1 + g12 * e2) * big
-        gd2 = (g20 * e0 + g21 * e1 + g22 * e2) * big
-        mr = fwd[14] * inr
-        mg = fwd[15] * inr
-        mb = fwd[16] * inr
-        for j in range(3):
-            dpx = cam[j]
-            dpy = cam[3 + j]
-            dpz = cam[6 + j]
-            dzs = dpz if in_front else 0.0
-            dxz = (dpx - xz * dzs) * izs
-            dyz = (dpy - yz * dzs) * izs
-            jac[0, j] = fx * dxz
-            jac[1, j] = fy * dyz
-            dclx = dxz if inx else 0.0
-            dcly = dyz if iny else 0.0
-            # d(fx/z) and d(-fx X / z) with X the clamped x/z
-            dj00 = -j00 * dzs * izs
-            dj11 = -j11 * dzs * izs
-            dj02 = -fx * (dclx - cl_x * dzs * izs) * izs
-            dj12 = -fy * (dcly - cl_y * dzs * izs) * izs
-            dt00, dt01, dt02 = dj00 * w0 + dj02 * w6, dj00 * w1 + dj02 * w7, \
-                dj00 * w2 + dj02 * w8
-            dt10, dt11, dt12 = dj11 * w3 + dj12 * w6, dj11 * w4 + dj12 * w7, \
-                dj11 * w5 + dj12 * w8
-            dc00 = 2.0 * (dt00 * u00 + dt01 * u01 + dt02 * u02)
-            dc01 = (dt00 * u10 + dt01 * u11 + dt02 * u12) + (dt10 * u00 + dt11 * u01
-                                                             + dt12 * u02)
-            dc11 = 2.0 * (dt10 * u10 + dt11 * u11 + dt12 * u12)
-            da, db, dc = _conic_diff(ok, idet, c00, c01, c11, dc00, dc01, dc11)
-            jac[2, j] = da
-            jac[3, j] = db
-            jac[4, j] = dc
-            ej = e0 if j == 0 else (e1 if j == 1 else e2)
-            gj0 = g00 if j == 0 else (g01 if j == 1 else g02)
-            gj1 = g10 if j == 0 else (g11 if j == 1 else g12)
-            gj2 = g20 if j == 0 else (g21 if j == 1 else g22)
-            jac[6, j] = mr * (gj0 - ej * gd0)
-            jac[7, j] = mg * (gj1 - ej * gd1)
-            jac[8, j] = mb * (gj2 - ej * gd2)
-            jac[9, j] = dpz
+        _jac_means(i, sh, cam, fwd, jac, dbasis, xz, yz, izs, in_front, cl_x, cl_y, ok, idet,
+                   c00, c01, c11, r00, r01, r02, r10, r11, r12, r20, r21, r22, a0, a1, a2, b0,
+                   b1, b2, e0, e1, e2, nrm, inr)
     if blocks & JAC_SCALES:
-        # dΣ = 2 s_k² r_k r_kᵀ
-        for k in range(3):
-            qk = q_0 if k == 0 else (q_1 if k == 1 else q_2)
-            va = v00 if k == 0 else (v01 if k == 1 else v02)
-            vb = v10 if k == 0 else (v11 if k == 1 else v12)
-            da, db, dc = _conic_diff(ok, idet, c00, c01, c11, 2.0 * qk * va * va,
-                                     2.0 * qk * va * vb, 2.0 * qk * vb * vb)
-            jac[2, 3 + k] = da
-            jac[3, 3 + k] = db
-            jac[4, 3 + k] = dc
+        _jac_scales(jac, ok, idet, c00, c01, c11, q_0, q_1, q_2, v00, v01, v02, v10, v11, v12)
     if blocks & JAC_QUATS:
-        # R(q / |q|); dc_ab = Σ_k s_k² (dV_ak V_bk + V_ak dV_bk), dV = T dR
-        for j in range(4):
-            # d(q/|q|)/dq_j = (e_j - q̂ q̂_j) / |q|
-            qj = qw if j == 0 else (qx if j == 1 else (qy if j == 2 else qz))
-            nw = ((1.0 if j == 0 else 0.0) - qw * qj) * iqn
-            nx = ((1.0 if j == 1 else 0.0) - qx * qj) * iqn
-            ny = ((1.0 if j == 2 else 0.0) - qy * qj) * iqn
-            nz = ((1.0 if j == 3 else 0.0) - qz * qj) * iqn
-            dr00 = -4.0 * (qy * ny + qz * nz)
-            dr01 = 2.0 * (qy * nx + qx * ny - qz * nw - qw * nz)
-            dr02 = 2.0 * (qz * nx + qx * nz + qy * nw + qw * ny)
-            dr10 = 2.0 * (qy * nx + qx * ny + qz * nw + qw * nz)
-            dr11 = -4.0 * (qx * nx + qz * nz)
-            dr12 = 2.0 * (qz * ny + qy * nz - qx * nw - qw * nx)
-            dr20 = 2.0 * (qz * nx + qx * nz - qy * nw - qw * ny)
-            dr21 = 2.0 * (qz * ny + qy * nz + qx * nw + qw * nx)
-            dr22 = -4.0 * (qx * nx + qy * ny)
-            dv00 = t00 * dr00 + t01 * dr10 + t02 * dr20
-            dv01 = t00 * dr01 + t01 * dr11 + t02 * dr21
-            dv02 = t00 * dr02 + t01 * dr12 + t02 * dr22
-            dv10 = t10 * dr00 + t11 * dr10 + t12 * dr20
-            dv11 = t10 * dr01 + t11 * dr11 + t12 * dr21
-            dv12 = t10 * dr02 + t11 * dr12 + t12 * dr22
-            dc00 = 2.0 * (dv00 * a0 + dv01 * a1 + dv02 * a2)
-            dc01 = dv00 * b0 + dv01 * b1 + dv02 * b2 + a0 * dv10 + a1 * dv11 + a2 * dv12
-            dc11 = 2.0 * (dv10 * b0 + dv11 * b1 + dv12 * b2)
-            da, db, dc = _conic_diff(ok, idet, c00, c01, c11, dc00, dc01, dc11)
-            jac[2, 6 + j] = da
-            jac[3, 6 + j] = db
-            jac[4, 6 + j] = dc
+        _jac_quats(jac, ok, idet, c00, c01, c11, qw, qx, qy, qz, iqn, t00, t01, t02, t10, t11,
+                   t12, a0, a1, a2, b0, b1, b2)
 
 
 @_jit

@@ -31,6 +31,7 @@ import math
 
 import numpy as np
 
+from .common import inline as _inline
 from .common import jit as _jit
 
 _SOFTPLUS_THRESHOLD = 20.0
@@ -155,6 +156,188 @@ def _axis(ix: float, size: int) -> tuple[int, int, float, float]:
     return i0, i1, f, inside
 
 
+@_inline
+def _softplus_depth(z: float, near: float, beta: float) -> tuple[float, float]:
+    """The depth softplus-smoothed above the near plane (torch's threshold) and its
+    derivative in ``z``."""
+    arg = beta * (z - near)
+    if arg > _SOFTPLUS_THRESHOLD:
+        return near + (z - near), 1.0
+    return near + math.log1p(math.exp(arg)) / beta, _sig(arg)
+
+
+@_inline
+def _sigma_times(sigma6: np.ndarray, s: int, e0: float, e1: float, e2: float
+                 ) -> tuple[float, float, float]:
+    """Σ e for sample ``s``'s covariance (packed as ``sigma6``) and a vector e (3)."""
+    sxx, syy, szz = sigma6[s, 0], sigma6[s, 1], sigma6[s, 2]
+    sxy, sxz, syz = 0.5 * sigma6[s, 3], 0.5 * sigma6[s, 4], 0.5 * sigma6[s, 5]
+    return (sxx * e0 + sxy * e1 + sxz * e2, sxy * e0 + syy * e1 + syz * e2,
+            sxz * e0 + syz * e1 + szz * e2)
+
+
+@_inline
+def _dot(a0: float, a1: float, a2: float, b0: float, b1: float, b2: float) -> float:
+    return a0 * b0 + a1 * b1 + a2 * b2
+
+
+@_inline
+def _footprint(qxx: float, qxy: float, qxz: float, qyy: float, qyz: float, qzz: float,
+               tx: float, ty: float, iz2: float, ff: float, fg: float, gg: float
+               ) -> tuple[float, float, float, float, float, float, float, float]:
+    """The projected covariance's quadratic forms (pa, pb, pc), its low-passed entries (a,
+    bb, cc), their determinant and the footprint sqrt(det) (clamped at 1e-12), from the
+    camera axes' forms q.. and the sample's image-plane coordinates (tx, ty)."""
+    pa = qxx - 2 * tx * qxz + tx * tx * qzz
+    pb = qxy - tx * qyz - ty * qxz + tx * ty * qzz
+    pc = qyy - 2 * ty * qyz + ty * ty * qzz
+    a = ff * iz2 * pa + 0.3
+    bb = fg * iz2 * pb
+    cc = gg * iz2 * pc + 0.3
+    det = a * cc - bb * bb
+    return pa, pb, pc, a, bb, cc, det, math.sqrt(det if det > 1e-12 else 1e-12)
+
+
+@_inline
+def _footprint_grad(g_foot: float, foot: float, a: float, bb: float, cc: float, pa: float,
+                    pb: float, pc: float, qxz: float, qyz: float, qzz: float, tx: float,
+                    ty: float, iz2: float, izs: float, ff: float, fg: float, gg: float
+                    ) -> tuple[float, float, float, float, float, float, float, float, float]:
+    """The footprint's gradient ``g_foot`` carried to the smoothed depth (its part through
+    the 1 / z² scale), tx, ty and the six quadratic forms (xx, xy, yy, xz, yz, zz)."""
+    ga = g_foot * cc / (2.0 * foot)
+    gc = g_foot * a / (2.0 * foot)
+    gb = -g_foot * bb / foot
+    izs3 = -2.0 * iz2 * izs
+    g_zs = (ga * ff * pa + gb * fg * pb + gc * gg * pc) * izs3
+    g_tx = ga * ff * iz2 * (-2 * qxz + 2 * tx * qzz) + gb * fg * iz2 * (-qyz + ty * qzz)
+    g_ty = gb * fg * iz2 * (-qxz + tx * qzz) + gc * gg * iz2 * (-2 * qyz + 2 * ty * qzz)
+    g_qxx = ga * ff * iz2
+    g_qxy = gb * fg * iz2
+    g_qyy = gc * gg * iz2
+    g_qxz = ga * ff * iz2 * (-2 * tx) - gb * fg * iz2 * ty
+    g_qyz = -gb * fg * iz2 * tx + gc * gg * iz2 * (-2 * ty)
+    g_qzz = ga * ff * iz2 * tx * tx + gb * fg * iz2 * tx * ty + gc * gg * iz2 * ty * ty
+    return g_zs, g_tx, g_ty, g_qxx, g_qxy, g_qyy, g_qxz, g_qyz, g_qzz
+
+
+@_inline
+def _in_frustum(z: float, u: float, v: float, near: float, wd: float, ht: float, edge: float,
+                pairs: bool, c_wd: float, c_ht: float
+                ) -> tuple[float, float, float, float, float, float]:
+    """The smooth in-frustum test at depth ``z`` and pixel (u, v), and its five sigmoids
+    (near, left, right, top, bottom); with ``pairs`` (ψ alone) each pair of opposite bounds
+    from one exponential (``c_wd``, ``c_ht``: exp(-width / edge), exp(-height / edge)) and
+    the four bounds' sigmoids left 0."""
+    s0 = _sig((z - near) / (0.25 * near))
+    if pairs:
+        return (s0 * _sig_pair(u / edge, (wd - u) / edge, c_wd)
+                * _sig_pair(v / edge, (ht - v) / edge, c_ht)), s0, 0.0, 0.0, 0.0, 0.0
+    s1 = _sig(u / edge)
+    s2 = _sig((wd - u) / edge)
+    s3 = _sig(v / edge)
+    s4 = _sig((ht - v) / edge)
+    return s0 * s1 * s2 * s3 * s4, s0, s1, s2, s3, s4
+
+
+@_inline
+def _transmittance(cum: np.ndarray, iu: float, iv: float, idp: float, g: int, nb: int,
+                   want_grad: bool) -> tuple[float, float, float, float]:
+    """exp(-τ), τ the deep opacity map ``cum`` [nb + 1, g, g] read trilinearly at grid
+    coordinates (iu, iv, idp) (clamped into the grid); with ``want_grad`` dτ / d(iu, iv,
+    idp), zero where a coordinate is clamped (else zeros)."""
+    iu_c = min(max(iu, 0.0), g - 1.0)
+    iv_c = min(max(iv, 0.0), g - 1.0)
+    id_c = min(max(idp, 0.0), float(nb))
+    u0, u1, fu, in_u = _axis(iu_c, g)
+    v0, v1, fv, in_v = _axis(iv_c, g)
+    d0, d1, fd, in_d = _axis(id_c, nb + 1)
+    c000 = cum[d0, v0, u0]
+    c001 = cum[d0, v0, u1]
+    c010 = cum[d0, v1, u0]
+    c011 = cum[d0, v1, u1]
+    c100 = cum[d1, v0, u0]
+    c101 = cum[d1, v0, u1]
+    c110 = cum[d1, v1, u0]
+    c111 = cum[d1, v1, u1]
+    e00 = c000 + fu * (c001 - c000)
+    e01 = c010 + fu * (c011 - c010)
+    e10 = c100 + fu * (c101 - c100)
+    e11 = c110 + fu * (c111 - c110)
+    e0 = e00 + fv * (e01 - e00)
+    e1 = e10 + fv * (e11 - e10)
+    vis = math.exp(-(e0 + fd * (e1 - e0)))
+    if not want_grad:
+        return vis, 0.0, 0.0, 0.0
+    dtu = ((1 - fd) * ((1 - fv) * (c001 - c000) + fv * (c011 - c010))
+           + fd * ((1 - fv) * (c101 - c100) + fv * (c111 - c110)))
+    dtv = (1 - fd) * (e01 - e00) + fd * (e11 - e10)
+    return vis, dtu * in_u, dtv * in_v, (e1 - e0) * in_d
+
+
+@_inline
+def _direction_factors(m0: float, m1: float, m2: float, t0: float, t1: float, t2: float,
+                       axes: np.ndarray, s: int
+                       ) -> tuple[float, float, float, float, float, float, float, float,
+                                  float, float, float]:
+    """The unit ray d (3) from the centre t to the sample's mean, the ray's length and that
+    length clamped at 1e-12, and the sample's direction factors but the first (which is 1):
+    1 - d_k² per world axis (3), 1 - (d · a_j)² per local axis a_j of ``axes`` (3)."""
+    v0 = m0 - t0
+    v1 = m1 - t1
+    v2 = m2 - t2
+    length = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+    nrm = length if length > 1e-12 else 1e-12
+    d0 = v0 / nrm
+    d1 = v1 / nrm
+    d2 = v2 / nrm
+    c0 = d0 * axes[s, 0] + d1 * axes[s, 3] + d2 * axes[s, 6]
+    c1 = d0 * axes[s, 1] + d1 * axes[s, 4] + d2 * axes[s, 7]
+    c2 = d0 * axes[s, 2] + d1 * axes[s, 5] + d2 * axes[s, 8]
+    return (d0, d1, d2, length, nrm, 1.0 - d0 * d0, 1.0 - d1 * d1, 1.0 - d2 * d2,
+            1.0 - c0 * c0, 1.0 - c1 * c1, 1.0 - c2 * c2)
+
+
+@_inline
+def _slots_log(term: float, f7: np.ndarray, kinds: np.ndarray, rate: np.ndarray, s: int,
+               nq: int) -> float:
+    """Σ_q log(1 + term f_q r_q) over sample ``s``'s slots, ψ alone: one log1p of
+    Π_q (1 + x_q) - 1, accumulated as p + x + p x (no cancellation for small x) in two
+    running products (even and odd slots, half the chain of dependent operations)."""
+    acc = 0.0
+    acc2 = 0.0
+    for q in range(0, nq - 1, 2):
+        xq = term * f7[kinds[q]] * rate[s, q]
+        xq2 = term * f7[kinds[q + 1]] * rate[s, q + 1]
+        acc = acc + xq + acc * xq
+        acc2 = acc2 + xq2 + acc2 * xq2
+    if nq % 2 == 1:
+        xq = term * f7[kinds[nq - 1]] * rate[s, nq - 1]
+        acc = acc + xq + acc * xq
+    return _log1p(acc + acc2 + acc * acc2)
+
+
+@_inline
+def _ray_grad(dd: np.ndarray, gf7: np.ndarray, axes: np.ndarray, s: int, w: float,
+              length: float, nrm: float) -> tuple[float, float, float]:
+    """The direction factors' gradient ``gf7`` (times the weight ``w``) carried to the unit
+    ray ``dd``, then to the ray's end at the sample (minus the centre's gradient)."""
+    gd0 = -2.0 * dd[0] * gf7[1] * w
+    gd1 = -2.0 * dd[1] * gf7[2] * w
+    gd2 = -2.0 * dd[2] * gf7[3] * w
+    for j in range(3):
+        a0, a1, a2 = axes[s, j], axes[s, 3 + j], axes[s, 6 + j]
+        cj = dd[0] * a0 + dd[1] * a1 + dd[2] * a2
+        k2 = -2.0 * cj * gf7[4 + j] * w
+        gd0 += k2 * a0
+        gd1 += k2 * a1
+        gd2 += k2 * a2
+    if length > 1e-12:
+        dot = gd0 * dd[0] + gd1 * dd[1] + gd2 * dd[2]
+        return (gd0 - dot * dd[0]) / nrm, (gd1 - dot * dd[1]) / nrm, (gd2 - dot * dd[2]) / nrm
+    return gd0 / nrm, gd1 / nrm, gd2 / nrm
+
+
 @_jit
 def proxy_psi(cams: np.ndarray, intr: np.ndarray, means: np.ndarray, sigma6: np.ndarray,
               weight: np.ndarray, rate: np.ndarray, kinds: np.ndarray, axes: np.ndarray,
@@ -169,6 +352,7 @@ def proxy_psi(cams: np.ndarray, intr: np.ndarray, means: np.ndarray, sigma6: np.
     ``axes``) added to ``acc_out`` [S, 7] (one thread: the poses add to the same rows)."""
     fx, fy, cx, cy, wd, ht, near, edge = (intr[0], intr[1], intr[2], intr[3], intr[4],
                                           intr[5], intr[6], intr[7])
+    ff, fg, gg = fx * fx, fx * fy, fy * fy
     beta = 20.0 / near
     has_grid = vis_prm[4] > 0.5
     g = cells
@@ -178,7 +362,7 @@ def proxy_psi(cams: np.ndarray, intr: np.ndarray, means: np.ndarray, sigma6: np.
     cum = np.zeros((nb + 1, g, g))
     dz = 2.0 * vis_prm[3] / nb
     nq = rate.shape[1]
-    f7 = np.empty(7)
+    f7 = np.ones(7)  # the direction factors (the first is 1)
     gf7 = np.empty(7)
     # (the pairs need exp(-width / edge) well inside the range of floats)
     reduce_only = not want_grad and not per_sample and wd / edge < 600.0 and ht / edge < 600.0
@@ -207,123 +391,47 @@ def proxy_psi(cams: np.ndarray, intr: np.ndarray, means: np.ndarray, sigma6: np.
             x = (ex0 * m0 + ex1 * m1 + ex2 * m2) - ex_t
             y = (ey0 * m0 + ey1 * m1 + ey2 * m2) - ey_t
             z = (ez0 * m0 + ez1 * m1 + ez2 * m2) - ez_t
-            # softplus depth above the near plane
-            arg = beta * (z - near)
-            if arg > _SOFTPLUS_THRESHOLD:
-                zs = near + (z - near)
-                dzs = 1.0
-            else:
-                zs = near + math.log1p(math.exp(arg)) / beta
-                dzs = _sig(arg)
+            zs, dzs = _softplus_depth(z, near, beta)
             izs = 1.0 / zs
             tx = x / zs
             ty = y / zs
             # footprint: the quadratic forms of the camera axes
-            sxx, syy, szz = sigma6[s, 0], sigma6[s, 1], sigma6[s, 2]
-            sxy, sxz, syz = 0.5 * sigma6[s, 3], 0.5 * sigma6[s, 4], 0.5 * sigma6[s, 5]
-            sx0 = sxx * ex0 + sxy * ex1 + sxz * ex2
-            sx1 = sxy * ex0 + syy * ex1 + syz * ex2
-            sx2 = sxz * ex0 + syz * ex1 + szz * ex2
-            sy0 = sxx * ey0 + sxy * ey1 + sxz * ey2
-            sy1 = sxy * ey0 + syy * ey1 + syz * ey2
-            sy2 = sxz * ey0 + syz * ey1 + szz * ey2
-            sz0 = sxx * ez0 + sxy * ez1 + sxz * ez2
-            sz1 = sxy * ez0 + syy * ez1 + syz * ez2
-            sz2 = sxz * ez0 + syz * ez1 + szz * ez2
-            qxx = ex0 * sx0 + ex1 * sx1 + ex2 * sx2
-            qxy = ex0 * sy0 + ex1 * sy1 + ex2 * sy2
-            qxz = ex0 * sz0 + ex1 * sz1 + ex2 * sz2
-            qyy = ey0 * sy0 + ey1 * sy1 + ey2 * sy2
-            qyz = ey0 * sz0 + ey1 * sz1 + ey2 * sz2
-            qzz = ez0 * sz0 + ez1 * sz1 + ez2 * sz2
+            sx0, sx1, sx2 = _sigma_times(sigma6, s, ex0, ex1, ex2)
+            sy0, sy1, sy2 = _sigma_times(sigma6, s, ey0, ey1, ey2)
+            sz0, sz1, sz2 = _sigma_times(sigma6, s, ez0, ez1, ez2)
+            qxz = _dot(ex0, ex1, ex2, sz0, sz1, sz2)
+            qyz = _dot(ey0, ey1, ey2, sz0, sz1, sz2)
+            qzz = _dot(ez0, ez1, ez2, sz0, sz1, sz2)
             iz2 = 1.0 / (zs * zs)
-            ff, fg, gg = fx * fx, fx * fy, fy * fy
-            pa = qxx - 2 * tx * qxz + tx * tx * qzz
-            pb = qxy - tx * qyz - ty * qxz + tx * ty * qzz
-            pc = qyy - 2 * ty * qyz + ty * ty * qzz
-            a = ff * iz2 * pa + 0.3
-            bb = fg * iz2 * pb
-            cc = gg * iz2 * pc + 0.3
-            det = a * cc - bb * bb
-            foot = math.sqrt(det if det > 1e-12 else 1e-12)
+            pa, pb, pc, a, bb, cc, det, foot = _footprint(
+                _dot(ex0, ex1, ex2, sx0, sx1, sx2), _dot(ex0, ex1, ex2, sy0, sy1, sy2), qxz,
+                _dot(ey0, ey1, ey2, sy0, sy1, sy2), qyz, qzz, tx, ty, iz2, ff, fg, gg)
             # the smooth in-frustum test
-            u = fx * x / zs + cx
-            v = fy * y / zs + cy
-            s0 = _sig((z - near) / (0.25 * near))
-            if reduce_only:
-                # psi alone: each pair of opposite bounds' sigmoids from one exponential
-                s1 = s2 = s3 = s4 = 0.0
-                inside = (s0 * _sig_pair(u / edge, (wd - u) / edge, c_wd)
-                          * _sig_pair(v / edge, (ht - v) / edge, c_ht))
-            else:
-                s1 = _sig(u / edge)
-                s2 = _sig((wd - u) / edge)
-                s3 = _sig(v / edge)
-                s4 = _sig((ht - v) / edge)
-                inside = s0 * s1 * s2 * s3 * s4
+            inside, s0, s1, s2, s3, s4 = _in_frustum(z, fx * x / zs + cx, fy * y / zs + cy,
+                                                     near, wd, ht, edge, reduce_only, c_wd,
+                                                     c_ht)
             # the transmittance from the deep opacity map
-            vis = 1.0
-            tu = 0.0
-            tv = 0.0
-            td = 0.0
+            vis, tu, tv, td = 1.0, 0.0, 0.0, 0.0
             zt = z if z > 1e-6 else 1e-6
             if has_grid:
-                iu = (fx * x / zt + cx) / wd * g - 0.5
-                iv = (fy * y / zt + cy) / ht * g - 0.5
-                idp = (z - z0) / dz - 1.0
-                iu_c = min(max(iu, 0.0), g - 1.0)
-                iv_c = min(max(iv, 0.0), g - 1.0)
-                id_c = min(max(idp, 0.0), float(nb))
-                u0, u1, fu, in_u = _axis(iu_c, g)
-                v0, v1, fv, in_v = _axis(iv_c, g)
-                d0, d1, fd, in_d = _axis(id_c, nb + 1)
-                c000 = cum[d0, v0, u0]
-                c001 = cum[d0, v0, u1]
-                c010 = cum[d0, v1, u0]
-                c011 = cum[d0, v1, u1]
-                c100 = cum[d1, v0, u0]
-                c101 = cum[d1, v0, u1]
-                c110 = cum[d1, v1, u0]
-                c111 = cum[d1, v1, u1]
-                e00 = c000 + fu * (c001 - c000)
-                e01 = c010 + fu * (c011 - c010)
-                e10 = c100 + fu * (c101 - c100)
-                e11 = c110 + fu * (c111 - c110)
-                e0 = e00 + fv * (e01 - e00)
-                e1 = e10 + fv * (e11 - e10)
-                tau = e0 + fd * (e1 - e0)
-                vis = math.exp(-tau)
-                if want_grad:
-                    # d tau / d (iu, iv, id), zero where the coordinate is clamped
-                    dtu = ((1 - fd) * ((1 - fv) * (c001 - c000) + fv * (c011 - c010))
-                           + fd * ((1 - fv) * (c101 - c100) + fv * (c111 - c110)))
-                    dtv = (1 - fd) * (e01 - e00) + fd * (e11 - e10)
-                    dtd = e1 - e0
-                    tu = dtu * in_u
-                    tv = dtv * in_v
-                    td = dtd * in_d
+                vis, tu, tv, td = _transmittance(
+                    cum, (fx * x / zt + cx) / wd * g - 0.5, (fy * y / zt + cy) / ht * g - 0.5,
+                    (z - z0) / dz - 1.0, g, nb, want_grad)
             term = foot * inside * vis
             if per_sample:
                 terms_out[b, s] = term
                 if accumulate:
-                    v0_ = m0 - t0
-                    v1_ = m1 - t1
-                    v2_ = m2 - t2
-                    nrm = math.sqrt(v0_ * v0_ + v1_ * v1_ + v2_ * v2_)
-                    nrm = nrm if nrm > 1e-12 else 1e-12
-                    d0_ = v0_ / nrm
-                    d1_ = v1_ / nrm
-                    d2_ = v2_ / nrm
+                    _, _, _, _, _, f1, f2, f3, f4, f5, f6 = _direction_factors(
+                        m0, m1, m2, t0, t1, t2, axes, s)
                     acc_out[s, 0] += term
-                    acc_out[s, 1] += term * (1.0 - d0_ * d0_)
-                    acc_out[s, 2] += term * (1.0 - d1_ * d1_)
-                    acc_out[s, 3] += term * (1.0 - d2_ * d2_)
-                    for j in range(3):
-                        cj = d0_ * axes[s, j] + d1_ * axes[s, 3 + j] + d2_ * axes[s, 6 + j]
-                        acc_out[s, 4 + j] += term * (1.0 - cj * cj)
+                    acc_out[s, 1] += term * f1
+                    acc_out[s, 2] += term * f2
+                    acc_out[s, 3] += term * f3
+                    acc_out[s, 4] += term * f4
+                    acc_out[s, 5] += term * f5
+                    acc_out[s, 6] += term * f6
                 continue
             # the model's log form and its derivative in the term (and direction factors)
-            gterm = 0.0
             w = weight[s]
             if mode == 0:
                 total += w * term
@@ -333,72 +441,32 @@ def proxy_psi(cams: np.ndarray, intr: np.ndarray, means: np.ndarray, sigma6: np.
                 total += w * math.log1p(term * r)
                 gterm = w * r / (1.0 + term * r)
             else:
-                v0_ = m0 - t0
-                v1_ = m1 - t1
-                v2_ = m2 - t2
-                nrm = math.sqrt(v0_ * v0_ + v1_ * v1_ + v2_ * v2_)
-                nrm = nrm if nrm > 1e-12 else 1e-12
-                dd[0] = v0_ / nrm
-                dd[1] = v1_ / nrm
-                dd[2] = v2_ / nrm
-                f7[0] = 1.0
-                for k in range(3):
-                    f7[1 + k] = 1.0 - dd[k] * dd[k]
-                for j in range(3):
-                    cj = dd[0] * axes[s, j] + dd[1] * axes[s, 3 + j] + dd[2] * axes[s, 6 + j]
-                    f7[4 + j] = 1.0 - cj * cj
-                # sum_q log(1 + x_q) as one log1p of prod_q (1 + x_q) - 1, accumulated as
-                # p + x + p x (no cancellation for small x)
-                acc = 0.0
+                (dd[0], dd[1], dd[2], length, nrm, f7[1], f7[2], f7[3], f7[4], f7[5],
+                 f7[6]) = _direction_factors(m0, m1, m2, t0, t1, t2, axes, s)
                 if not want_grad:
-                    # two running products (even and odd slots), then combined: half the
-                    # chain of dependent operations
-                    acc2 = 0.0
-                    for q in range(0, nq - 1, 2):
-                        xq = term * f7[kinds[q]] * rate[s, q]
-                        xq2 = term * f7[kinds[q + 1]] * rate[s, q + 1]
-                        acc = acc + xq + acc * xq
-                        acc2 = acc2 + xq2 + acc2 * xq2
-                    if nq % 2 == 1:
-                        xq = term * f7[kinds[nq - 1]] * rate[s, nq - 1]
-                        acc = acc + xq + acc * xq
-                    total += w * _log1p(acc + acc2 + acc * acc2)
+                    total += w * _slots_log(term, f7, kinds, rate, s, nq)
                     continue
+                # the reference's one chain, with the derivatives in the term and in each
+                # direction factor
                 for k in range(7):
                     gf7[k] = 0.0
+                acc = 0.0
+                gterm = 0.0
                 for q in range(nq):
                     kq = kinds[q]
                     tf = term * f7[kq]
                     r = rate[s, q]
                     xq = tf * r
                     acc = acc + xq + acc * xq
-                    if want_grad:
-                        den = 1.0 / (1.0 + xq)
-                        gterm += f7[kq] * r * den
-                        gf7[kq] += term * r * den
+                    den = 1.0 / (1.0 + xq)
+                    gterm += f7[kq] * r * den
+                    gf7[kq] += term * r * den
                 total += w * math.log1p(acc)
-                if want_grad:
-                    gterm *= w
-                    # direction factors -> the unit ray d -> the centre t
-                    gd0 = -2.0 * dd[0] * gf7[1] * w
-                    gd1 = -2.0 * dd[1] * gf7[2] * w
-                    gd2 = -2.0 * dd[2] * gf7[3] * w
-                    for j in range(3):
-                        a0, a1, a2 = axes[s, j], axes[s, 3 + j], axes[s, 6 + j]
-                        cj = dd[0] * a0 + dd[1] * a1 + dd[2] * a2
-                        k2 = -2.0 * cj * gf7[4 + j] * w
-                        gd0 += k2 * a0
-                        gd1 += k2 * a1
-                        gd2 += k2 * a2
-                    if math.sqrt(v0_ * v0_ + v1_ * v1_ + v2_ * v2_) > 1e-12:
-                        dot = gd0 * dd[0] + gd1 * dd[1] + gd2 * dd[2]
-                        gt0 -= (gd0 - dot * dd[0]) / nrm
-                        gt1 -= (gd1 - dot * dd[1]) / nrm
-                        gt2 -= (gd2 - dot * dd[2]) / nrm
-                    else:
-                        gt0 -= gd0 / nrm
-                        gt1 -= gd1 / nrm
-                        gt2 -= gd2 / nrm
+                gterm *= w
+                r0, r1, r2 = _ray_grad(dd, gf7, axes, s, w, length, nrm)
+                gt0 -= r0
+                gt1 -= r1
+                gt2 -= r2
             if not want_grad or gterm == 0.0:
                 continue
             # term = foot * inside * vis
@@ -411,31 +479,22 @@ def proxy_psi(cams: np.ndarray, intr: np.ndarray, means: np.ndarray, sigma6: np.
             g_zs = 0.0
             # footprint
             if det > 1e-12:
-                ga = g_foot * cc / (2.0 * foot)
-                gc = g_foot * a / (2.0 * foot)
-                gb = -g_foot * bb / foot
-                izs3 = -2.0 * iz2 * izs
-                g_zs += (ga * ff * pa + gb * fg * pb + gc * gg * pc) * izs3
-                g_tx = ga * ff * iz2 * (-2 * qxz + 2 * tx * qzz) + gb * fg * iz2 * (-qyz + ty * qzz)
-                g_ty = gb * fg * iz2 * (-qxz + tx * qzz) + gc * gg * iz2 * (-2 * qyz + 2 * ty * qzz)
-                g_qxx = ga * ff * iz2
-                g_qxy = gb * fg * iz2
-                g_qyy = gc * gg * iz2
-                g_qxz = ga * ff * iz2 * (-2 * tx) - gb * fg * iz2 * ty
-                g_qyz = -gb * fg * iz2 * tx + gc * gg * iz2 * (-2 * ty)
-                g_qzz = ga * ff * iz2 * tx * tx + gb * fg * iz2 * tx * ty + gc * gg * iz2 * ty * ty
+                fz, g_tx, g_ty, g_qxx, g_qxy, g_qyy, g_qxz, g_qyz, g_qzz = _footprint_grad(
+                    g_foot, foot, a, bb, cc, pa, pb, pc, qxz, qyz, qzz, tx, ty, iz2, izs, ff,
+                    fg, gg)
+                g_zs += fz
                 gx += g_tx * izs
                 gy += g_ty * izs
                 g_zs += -(g_tx * tx + g_ty * ty) * izs
-                gex0 += 2 * g_qxx * sx0 + g_qxy * sy0 + g_qxz * sz0
-                gex1 += 2 * g_qxx * sx1 + g_qxy * sy1 + g_qxz * sz1
-                gex2 += 2 * g_qxx * sx2 + g_qxy * sy2 + g_qxz * sz2
-                gey0 += g_qxy * sx0 + 2 * g_qyy * sy0 + g_qyz * sz0
-                gey1 += g_qxy * sx1 + 2 * g_qyy * sy1 + g_qyz * sz1
-                gey2 += g_qxy * sx2 + 2 * g_qyy * sy2 + g_qyz * sz2
-                gez0 += g_qxz * sx0 + g_qyz * sy0 + 2 * g_qzz * sz0
-                gez1 += g_qxz * sx1 + g_qyz * sy1 + 2 * g_qzz * sz1
-                gez2 += g_qxz * sx2 + g_qyz * sy2 + 2 * g_qzz * sz2
+                gex0 += _dot(2 * g_qxx, g_qxy, g_qxz, sx0, sy0, sz0)
+                gex1 += _dot(2 * g_qxx, g_qxy, g_qxz, sx1, sy1, sz1)
+                gex2 += _dot(2 * g_qxx, g_qxy, g_qxz, sx2, sy2, sz2)
+                gey0 += _dot(g_qxy, 2 * g_qyy, g_qyz, sx0, sy0, sz0)
+                gey1 += _dot(g_qxy, 2 * g_qyy, g_qyz, sx1, sy1, sz1)
+                gey2 += _dot(g_qxy, 2 * g_qyy, g_qyz, sx2, sy2, sz2)
+                gez0 += _dot(g_qxz, g_qyz, 2 * g_qzz, sx0, sy0, sz0)
+                gez1 += _dot(g_qxz, g_qyz, 2 * g_qzz, sx1, sy1, sz1)
+                gez2 += _dot(g_qxz, g_qyz, 2 * g_qzz, sx2, sy2, sz2)
             # in-frustum test
             gi = g_in * inside
             dlu = ((1.0 - s1) - (1.0 - s2)) / edge
@@ -460,29 +519,15 @@ def proxy_psi(cams: np.ndarray, intr: np.ndarray, means: np.ndarray, sigma6: np.
             q0 = m0 - t0
             q1 = m1 - t1
             q2 = m2 - t2
-            gex0 += gx * q0
-            gex1 += gx * q1
-            gex2 += gx * q2
-            gey0 += gy * q0
-            gey1 += gy * q1
-            gey2 += gy * q2
-            gez0 += gz * q0
-            gez1 += gz * q1
-            gez2 += gz * q2
+            gex0, gex1, gex2 = gex0 + gx * q0, gex1 + gx * q1, gex2 + gx * q2
+            gey0, gey1, gey2 = gey0 + gy * q0, gey1 + gy * q1, gey2 + gy * q2
+            gez0, gez1, gez2 = gez0 + gz * q0, gez1 + gz * q1, gez2 + gz * q2
             gt0 -= gx * ex0 + gy * ey0 + gz * ez0
             gt1 -= gx * ex1 + gy * ey1 + gz * ez1
             gt2 -= gx * ex2 + gy * ey2 + gz * ez2
         psi[b] = total
         if want_grad:
-            grad[b, 0] = gex0
-            grad[b, 3] = gex1
-            grad[b, 6] = gex2
-            grad[b, 1] = gey0
-            grad[b, 4] = gey1
-            grad[b, 7] = gey2
-            grad[b, 2] = gez0
-            grad[b, 5] = gez1
-            grad[b, 8] = gez2
-            grad[b, 9] = gt0
-            grad[b, 10] = gt1
-            grad[b, 11] = gt2
+            grad[b, 0], grad[b, 3], grad[b, 6] = gex0, gex1, gex2
+            grad[b, 1], grad[b, 4], grad[b, 7] = gey0, gey1, gey2
+            grad[b, 2], grad[b, 5], grad[b, 8] = gez0, gez1, gez2
+            grad[b, 9], grad[b, 10], grad[b, 11] = gt0, gt1, gt2

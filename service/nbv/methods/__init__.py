@@ -1,6 +1,8 @@
 """The selection methods, one module each, registered by name (see :mod:`.base`).
 
 - ``random`` (:mod:`.random`): a seeded uniform choice.
+- ``spread`` (:mod:`.spread`): farthest-point sampling, the eligible candidate farthest from
+  every acquired view (position and rotation); needs neither the map nor Hhat.
 - ``fisherrf`` (:mod:`.fisherrf`): FisherRF as its code computes it (trace score against a
   Hessian rebuilt from the acquired views), argmax.
 - ``cover`` (:mod:`.cover`): COVER's coverage score, argmin.
@@ -37,7 +39,7 @@ __all__ = [
     "register",
 ]
 
-MODULES: tuple[str, ...] = ("random", "fisherrf", "cover", "full_eig", "agile")
+MODULES: tuple[str, ...] = ("random", "spread", "fisherrf", "cover", "full_eig", "agile")
 """The method modules, imported (so registered) in this order: the order methods are listed in."""
 
 for _module in MODULES:

@@ -24,21 +24,59 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ..anchor.ascent import optimize_anchor_validated
+from ..anchor.ascent import find_anchor
 from ..anchor.envelope import PoolEnvelope
 from ..anchor.fitting import typical_fisher_from_views
+from ..anchor.records import AnchorInputs
 from ..camera import Camera
 from ..cancel import checkpoint
 from ..coverage import coverage_matrix, jl_projection, support_samples
 from ..information import fisher_diag
 from ..leverage import greedy_ridge_leverage_gains, online_ridge_leverage, topnorm_shortlist
 from ..se3 import pose_distance
+from ..spread import farthest_point_order
 from .base import MethodResult, SelectionContext, register, timed
-from .common import argmax_first, eig_scores_keeping_best
+from .common import argmax_first
+from .objective import objective_scores_keeping_best
+
+
+def _typical(ctx: SelectionContext, out: dict[str, Any]) -> dict[str, Tensor] | None:
+    """The typical Fisher the anchor's typical model uses as is: with
+    ``typical_fisher="start_view"``, the warm state's, else one Fisher pass at a typical view
+    (the last acquired one, else the first eligible candidate), kept in ``out["state"]`` for
+    the next events; None otherwise (from Hhat)."""
+    if ctx.config.anchor.typical_fisher != "start_view":
+        return None
+    typical = ctx.state.get("typical_fisher")
+    if typical is None:
+        acquired = ctx.acquired
+        ref = (
+            acquired[-1].to(ctx.gmap.dtype)
+            if acquired is not None and acquired.shape[0]
+            else ctx.pool[ctx.eligible[0]]
+        )
+        cam = Camera(c2w=ref, intrinsics=ctx.intrinsics)
+        with torch.no_grad():
+            hv = fisher_diag(ctx.gmap.detach(), cam, fields=ctx.fields,
+                             background=ctx.background)
+        typical = typical_fisher_from_views([hv], ctx.fields)
+    out["state"]["typical_fisher"] = typical
+    return typical
+
+
+def _warm(ctx: SelectionContext) -> Tensor | None:
+    """The warm state's anchor [4, 4] when ``warm_start`` and it is a proper one, else None."""
+    warm = ctx.state.get("anchor_c2w") if ctx.config.anchor.warm_start else None
+    if warm is not None and (
+        not isinstance(warm, Tensor) or warm.shape != (4, 4) or not torch.isfinite(warm).all()
+    ):
+        return None
+    return warm
 
 
 def _anchor(ctx: SelectionContext, lat: dict[str, float], out: dict[str, Any]) -> Tensor:
-    """Run the anchor ascent; fills ``out`` (state, details, psi trace); returns T* [4, 4]."""
+    """Run the anchor ascent; fills ``out`` (state, details, psi trace, modes) and ``lat``
+    (the anchor's stages, :meth:`AnchorResult.report`); returns T* [4, 4]."""
     cfg = ctx.config
     dt = ctx.gmap.dtype
     with timed(lat, "anchor"):
@@ -48,87 +86,34 @@ def _anchor(ctx: SelectionContext, lat: dict[str, float], out: dict[str, Any]) -
                 if cfg.anchor.envelope
                 else None
             )
-        warm = ctx.state.get("anchor_c2w") if cfg.anchor.warm_start else None
-        if warm is not None and (
-            not isinstance(warm, Tensor) or warm.shape != (4, 4) or not torch.isfinite(warm).all()
-        ):
-            warm = None
+        warm = _warm(ctx)
         acquired = ctx.acquired
-        num_acq = int(acquired.shape[0]) if acquired is not None else 1
-        typical = ctx.state.get("typical_fisher")
-        if cfg.anchor.typical_fisher == "start_view" and typical is None:
-            # one Fisher pass at a typical view: the last acquired one (else the first
-            # eligible candidate); cached in state for the next events
-            ref = (
-                acquired[-1].to(dt)
-                if acquired is not None and acquired.shape[0]
-                else ctx.pool[ctx.eligible[0]]
-            )
-            cam = Camera(c2w=ref, intrinsics=ctx.intrinsics)
-            with torch.no_grad():
-                hv = fisher_diag(ctx.gmap.detach(), cam, fields=ctx.fields,
-                                 background=ctx.background)
-            typical = typical_fisher_from_views([hv], ctx.fields)
-        if cfg.anchor.typical_fisher == "start_view":
-            out["state"]["typical_fisher"] = typical
-        else:
-            typical = None
-        res = optimize_anchor_validated(
+        res = find_anchor(AnchorInputs(
             ctx.gmap,
             dict(ctx.h_acc),
             ctx.eligible_poses,
             ctx.intrinsics,
-            config=cfg.anchor,
+            cfg.anchor,
             fields=ctx.fields,
-            num_acquired=num_acq,
+            num_acquired=int(acquired.shape[0]) if acquired is not None else 1,
             envelope=envelope,
             warm_c2w=warm,
-            typical=typical,
+            typical=_typical(ctx, out),
             generator=ctx.generator(2),
             acquired=acquired.to(dt) if acquired is not None else None,
             lam=ctx.lam,
             background=ctx.background,
             carried=ctx.state.get("anchor_parts"),
-        )
+        ))
         out["state"]["anchor_c2w"] = res.c2w.clone()
-        if "carry" in res.extra:
-            out["state"]["anchor_parts"] = res.extra.pop("carry")
-    # the anchor's stages, apart: "anchor.<stage>" (within "anchor", not added to it)
-    for stage, sec in res.extra.get("timings_s", {}).items():
-        lat[f"anchor.{stage}"] = sec * 1e3
-    split = res.extra.get("ascent_split", {})
-    if split:
-        lat["anchor.ascent.gradients"] = split["gradient_s"] * 1e3
-        lat["anchor.ascent.values"] = split["value_s"] * 1e3
-        out["details"]["ascent_evaluations"] = {
-            "gradient": int(split["gradient_evaluations"]),
-            "value": int(split["value_evaluations"]),
-        }
+        if res.carry is not None:
+            out["state"]["anchor_parts"] = res.carry
+    stages, details = res.report(ctx.eligible, cfg.anchor)
+    lat.update(stages)  # within "anchor", not added to it
+    out["details"].update(details)
     out["psi_trace"] = list(res.psi_trace)
     if res.modes is not None and res.modes.shape[0] > 1:
         out["modes"] = (res.modes, res.mode_psi)
-        out["details"]["anchor_modes"] = len(res.mode_psi)
-    # psi at the anchor against psi at the best candidate, both of the function ascended:
-    # the proxy's over every eligible candidate, the exact one's over the pool starts
-    n_pool_starts = len(res.extra.get("start_indices", []))
-    if cfg.anchor.psi == "proxy" and res.pool_psi is not None and res.pool_psi.numel():
-        best_psi: float | None = float(res.pool_psi.max())
-    else:
-        firsts = [tr[0] for tr in res.traces[:n_pool_starts] if tr]
-        best_psi = max(firsts) if firsts else None
-    out["details"].update(
-        anchor_psi=float(res.psi),
-        best_candidate_psi=best_psi,
-        psi_evaluations=res.evaluations,
-        anchor_starts=[ctx.eligible[i] for i in res.extra.get("start_indices", [])],
-        proxy_samples=res.extra.get("proxy_samples"),
-    )
-    if cfg.anchor.carry_over_tolerance > 0:
-        out["details"]["anchor_carried"] = bool(res.extra.get("carried"))
-    if res.pool_psi is not None:
-        out["details"]["pool_proxy_psi"] = {
-            v: float(p) for v, p in zip(ctx.eligible, res.pool_psi)
-        }
     return res.c2w
 
 
@@ -262,11 +247,16 @@ def probe_count(ctx: SelectionContext, n_short: int) -> int:
 
 
 def draw_probes(ctx: SelectionContext, picked: list[int], n: int) -> list[int]:
-    """``n`` eligible candidates outside ``picked``, drawn uniformly (seeded by the event)."""
+    """``n`` eligible candidates outside ``picked``, drawn uniformly (seeded by the event), or
+    with ``config.probe_draw = "spread"`` in their farthest-point order from the acquired
+    views."""
     if n <= 0:
         return []
     taken = set(picked)
     rest = [v for v in ctx.eligible if v not in taken]
+    if ctx.config.probe_draw == "spread":
+        far = farthest_point_order(ctx.pool[rest], ctx.acquired, ctx.rot_weight, n)
+        return [rest[i] for i in far]
     order = torch.randperm(len(rest), generator=ctx.generator(6))[:n].tolist()
     return [rest[i] for i in order]
 
@@ -308,9 +298,7 @@ class AgileMethod:
             probes = draw_probes(ctx, picked, n_probes)
             with timed(lat, "rerank"):
                 sl = torch.as_tensor(picked + probes, dtype=torch.long)
-                phi, chosen = eig_scores_keeping_best(
-                    ctx.gmap, ctx.h_acc, ctx.pool[sl], ctx.intrinsics,
-                    fields=ctx.fields, background=ctx.background)
+                phi, chosen = objective_scores_keeping_best(ctx, ctx.pool[sl], lat, "rerank")
             out["details"]["shortlist_scores"] = scores
             if probes:
                 _judge_model(ctx, phi, len(picked), len(probes), out)

@@ -64,6 +64,7 @@ class SelectionContext:
         rot_weight: world units per radian of the SE(3) distance.
         background: background colour [3] of the Fisher renders, or None (black).
         lam: the lambda included in ``h_acc``, or None (unknown: estimated where needed).
+        targets: the target views [T, 4, 4] of the ``target`` objective, or None (the pool).
     """
 
     gmap: GaussianMap
@@ -81,6 +82,7 @@ class SelectionContext:
     rot_weight: float
     background: Tensor | None
     lam: float | None = None
+    targets: Tensor | None = None
 
     @property
     def eligible_index(self) -> Tensor:
@@ -132,6 +134,8 @@ class SelectionMethod(Protocol):
     name: str
     uses_information: bool
     """Whether it reads Hhat (the benchmark gives the others lambda I only)."""
+    # A method may also say ``uses_map = False`` (read with ``getattr``, default True): it
+    # reads none of the map's Gaussians, so it selects on a map with none (spread).
 
     def __call__(self, ctx: SelectionContext) -> MethodResult: ...
 

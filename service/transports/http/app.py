@@ -3,7 +3,7 @@
 Every operation of :data:`agilegs.schemas.ops.OPERATIONS` is one route (see
 :mod:`agilegs.service.transports.http.routes`); bodies are JSON or msgpack by Content-Type,
 responses by Accept. ``/healthz`` (liveness), ``/readyz`` (readiness: 503 with the reason while the
-server is saturated, :meth:`Admission.saturation
+server compiles its kernels at start, or is saturated, :meth:`Admission.saturation
 <agilegs.service.transports.admission.Admission.saturation>`) and ``/metrics`` answer on the event
 loop. Errors, whatever raised them, are the :class:`~agilegs.schemas.errors.ErrorBody` of
 :mod:`agilegs.schemas.errors`. The app's lifespan starts (unless told otherwise) and stops the
@@ -95,6 +95,8 @@ class Served(Protocol):
 
     def close(self) -> None: ...
 
+    def warming(self) -> str | None: ...
+
 
 def create_app(server: Served, *, start: bool = True) -> FastAPI:
     """The FastAPI app of ``server``; its lifespan starts the server (sessions loaded, Zenoh
@@ -167,10 +169,11 @@ def create_app(server: Served, *, start: bool = True) -> FastAPI:
         return Response(server.metrics.render(), media_type=CONTENT_TYPE_LATEST)
 
     @app.get("/readyz", tags=["service"], summary="Readiness: 503 with the reason while the "
-             "server is saturated", response_class=Response)
+             "server compiles its kernels at start (warm-up) or is saturated",
+             response_class=Response)
     async def readyz() -> Response:
         # on the event loop, like /healthz (liveness): answers while every worker is busy
-        reason = gateway.admission.saturation()
+        reason = server.warming() or gateway.admission.saturation()
         if reason is None:
             return Response(codec.dump({"ready": True}, codec.JSON), media_type=codec.JSON)
         return Response(codec.dump({"ready": False, "reason": reason}, codec.JSON),

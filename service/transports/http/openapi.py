@@ -10,6 +10,7 @@ from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
 
 from agilegs.schemas import OPERATIONS, ErrorBody, Operation, codec
+from agilegs.schemas.codec import GAUSSIAN_FILE_TYPES
 from agilegs.schemas.forms import RULES_KEY
 from agilegs.schemas.keys import INSTANCE_ID_PATTERN
 
@@ -23,6 +24,11 @@ _HEADERS: dict[int, dict[str, Any]] = {
     415: {"Accept": {"description": "the media types the operation reads",
                      "schema": {"type": "string"}}},
 }
+
+
+_FILES = {"ply": "the Inria 3DGS layout: x y z nx ny nz f_dc_* f_rest_* opacity scale_* rot_*, "
+               "float32, the raw parameters", "splat": "antimatter15's 32-byte records, "
+               "quantised: colour, opacity and rotation to 8 bits, no SH beyond the DC"}
 
 
 def _error_responses(op: Operation) -> dict[int | str, dict[str, Any]]:
@@ -82,7 +88,8 @@ def _request_body(op: Operation) -> dict[str, Any] | None:
         extra["parameters"] = [{
             "name": "instance", "in": "query", "required": False,
             "description": "create it on this instance (default: the instance with the fewest "
-                           "sessions, ties by smallest id; see agilegs.service.transports.cluster)",
+                           "sessions, ties by smallest id; see "
+                           "agilegs.service.transports.zenoh.cluster)",
             "schema": {"type": "string", "pattern": INSTANCE_ID_PATTERN},
         }]
     return extra
@@ -92,6 +99,11 @@ def route_openapi(op: Operation) -> dict[str, Any]:
     """The ``add_api_route`` keywords that describe ``op``'s bodies and answers."""
     content: dict[str, Any] = {codec.MSGPACK: {
         "schema": {"$ref": f"#/components/schemas/{op.response.__name__}"}}}
+    if op.name == "get_gaussians":
+        for fmt, media in GAUSSIAN_FILE_TYPES.items():
+            content[media] = {"schema": {"type": "string", "format": "binary", "description": (
+                f"the map as a .{fmt} file ({_FILES[fmt]}), answered when Accept prefers "
+                f"{media} to JSON and msgpack (406 names the types it answers)")}}
     if op.event_stream:
         content["text/event-stream"] = {"schema": {
             "type": "string", "description": "server-sent events (Accept: text/event-stream): "
@@ -201,6 +213,8 @@ Next-best-view selection for active 3D Gaussian Splatting (AGILE-GS), per map se
 
 * Bodies are JSON (`application/json`) or msgpack (`application/msgpack`), chosen by
   `Content-Type`; responses follow `Accept`. Bytes travel raw in msgpack and base64 in JSON.
+  `get_gaussians` also answers the map as a file: `Accept: application/x-ply` (Inria 3DGS
+  `.ply`) or `application/x-splat` (antimatter15 `.splat`).
 * Poses are camera-to-world with OpenCV axes (x right, y down, z forward): a 4x4 row-major
   `matrix`, or `position` + `orientation_xyzw` (unit quaternion, ROS order x, y, z, w). The
   rotation must be orthonormal (max |RᵀR − I| ≤ 1e-3, det > 0).

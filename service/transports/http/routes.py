@@ -146,7 +146,12 @@ def build_router(gateway: Gateway) -> APIRouter:
         reserved = [0]
         try:
             try:
-                gateway.negotiate(accept)
+                gateway.negotiate(accept, op.name)
+                if op.name == "get_gaussians" and "format" in request.query_params:
+                    raise ServiceError(400, ErrorCode.BAD_REQUEST, "query.format: "
+                                       "get_gaussians takes no format parameter; ask for a file "
+                                       "with Accept: application/x-ply or application/x-splat",
+                                       "query.format")
                 deadline_ms = deadline_header(request)
                 if op.request is not None and not op.query:
                     body = await read_body(request, gateway, reserved)

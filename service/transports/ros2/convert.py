@@ -143,7 +143,8 @@ def create_body(req: Any, camera: Any | None) -> dict[str, Any]:
 
 
 def select_body(req: Any, binding: Binding) -> dict[str, Any]:
-    """The ``select`` body of a Select request (0 and "" take the session's defaults)."""
+    """The ``select`` body of a Select request (0, "" and an empty ``targets`` take the
+    session's defaults; ``config_json`` is the body's ``config``)."""
     body: dict[str, Any] = {"commit": bool(req.commit)}
     if req.method.strip():
         body["method"] = req.method.strip()
@@ -153,6 +154,16 @@ def select_body(req: Any, binding: Binding) -> dict[str, Any]:
         body["embodied_k"] = int(req.embodied_k)
     if req.use_current_pose:
         body["current_pose"] = pose_msg_to_wire(req.current_pose, binding.axes)
+    if req.config_json.strip():
+        try:
+            config = json.loads(req.config_json)
+        except json.JSONDecodeError as exc:
+            raise FieldError("config_json", f"not JSON ({exc})") from None
+        if not isinstance(config, dict):
+            raise FieldError("config_json", "must be a JSON object of SelectConfig fields")
+        body["config"] = config
+    if len(req.targets):
+        body["targets"] = [pose_msg_to_wire(p, binding.axes) for p in req.targets]
     return body
 
 

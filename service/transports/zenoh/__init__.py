@@ -1,2 +1,4 @@
 """The Zenoh transport: queryables, subscriptions and the decision publication
-(:mod:`.adapter`), and Zenoh's own TLS, authentication and access control (:mod:`.security`)."""
+(:mod:`.adapter`), Zenoh's own TLS, authentication and access control (:mod:`.security`), and
+the cluster of instances joined over Zenoh, each session served by one of them
+(:mod:`.cluster`)."""

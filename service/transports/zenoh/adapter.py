@@ -5,7 +5,9 @@ Key expressions come from :mod:`agilegs.schemas.keys`. A query becomes a gateway
 :class:`~agilegs.service.transports.gateway.Request` (its payload msgpack, or JSON when the query's
 encoding says so, refused with 415 like over HTTP when it names another type; its attachment
 the credentials; its ``deadline_ms`` parameter its deadline, which the SDK sets to its query
-timeout) admitted and run in a worker thread (:meth:`Gateway.submit
+timeout; ``get_gaussians``' ``format`` parameter, ``ply`` or ``splat``, asks for the file
+as HTTP's Accept does, answered with the encoding ``application/x-ply`` /
+``application/x-splat``) admitted and run in a worker thread (:meth:`Gateway.submit
 <agilegs.service.transports.gateway.Gateway.submit>`), and is answered with
 the reply or an error reply carrying the same :class:`~agilegs.schemas.errors.ErrorBody` as
 over HTTP. Frames and pools published by a robot are applied in arrival order by one thread; a
@@ -16,7 +18,7 @@ Who may connect and which keys they may use is Zenoh's own business, set up from
 server's settings by :mod:`agilegs.service.transports.zenoh.security` (TLS, usrpwd, access control).
 
 Which keys this instance declares (the ``@service`` and ``@instances/<id>`` queryables, and
-each owned session's queryable and subscribers) is :mod:`agilegs.service.transports.cluster`'s
+each owned session's queryable and subscribers) is :mod:`agilegs.service.transports.zenoh.cluster`'s
 business.
 """
 
@@ -30,12 +32,14 @@ from typing import Any
 
 from agilegs.client.zenoh_rpc import open_session
 from agilegs.schemas import SelectResponse, codec, keys
+from agilegs.schemas.codec import GAUSSIAN_FILE_TYPES
+from agilegs.schemas.errors import ErrorCode
 
 from ...errors import ServiceError
 from ...settings import Settings
 from ..admission import parse_deadline_ms
-from ..cluster import ClusterNode
 from ..gateway import Gateway, Reply, Request
+from .cluster import ClusterNode
 from .security import zenoh_settings
 
 __all__ = ["ZenohAdapter", "content_type", "reply_kind"]
@@ -163,10 +167,17 @@ class ZenohAdapter:
         if op == "create_session" and query.parameters.get("instance") is not None:
             params["instance"] = query.parameters.get("instance")
         deadline_ms = parse_deadline_ms(query.parameters.get("deadline_ms"), "query.deadline_ms")
+        accept = kind
+        fmt = query.parameters.get("format") if op == "get_gaussians" else None
+        if fmt is not None:  # the file, as Accept asks for it over HTTP; errors in ``kind``
+            if fmt not in GAUSSIAN_FILE_TYPES:
+                raise ServiceError(422, ErrorCode.INVALID, "query.format: must be one of "
+                                   f"{', '.join(GAUSSIAN_FILE_TYPES)}", "query.format")
+            accept = f"{GAUSSIAN_FILE_TYPES[fmt]}, {kind};q=0.5"
         return Request(
             op=op, session=session,
             body=query.payload.to_bytes() if query.payload is not None else b"",
-            content_type=content_type(query.encoding), accept=kind,
+            content_type=content_type(query.encoding), accept=accept,
             credentials=query.attachment.to_bytes() if query.attachment is not None
             else None,
             credentials_field="attachment", params=params, transport="zenoh", t0=t0,

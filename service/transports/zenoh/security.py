@@ -56,18 +56,36 @@ ACL_MESSAGES = ["put", "delete", "declare_subscriber", "query", "reply", "declar
 """Every message kind Zenoh's access control filters."""
 
 
+class UsersFileError(ValueError):
+    """The Zenoh users file cannot be read or holds no ``user:password`` line; the message
+    says which and what to do, in one line."""
+
+
+_MAKE_USERS = ("create it with one user:password line per peer, e.g. printf 'robot:%s\\n' "
+               "\"$(openssl rand -hex 16)\" > FILE")
+
+
 def read_users(path: Path) -> list[str]:
-    """The usernames of a ``user:password`` file (ValueError naming a malformed line)."""
+    """The usernames of a ``user:password`` file (:class:`UsersFileError` naming a missing
+    file or a malformed line)."""
     users = []
-    for i, line in enumerate(Path(path).read_text().splitlines(), 1):
+    try:
+        text = Path(path).read_text()
+    except OSError as exc:
+        raise UsersFileError(
+            f"cannot read the Zenoh users file {path} (--zenoh-users-file, "
+            f"AGILEGS_ZENOH_USERS_FILE): {exc.strerror or exc}; "
+            + _MAKE_USERS.replace("FILE", str(path))) from None
+    for i, line in enumerate(text.splitlines(), 1):
         if not line.strip():
             continue
         user, sep, password = line.partition(":")
         if not sep or not user or not password:
-            raise ValueError(f"{path}:{i}: expected user:password")
+            raise UsersFileError(f"{path}:{i}: expected user:password")
         users.append(user)
     if not users:
-        raise ValueError(f"{path}: no user:password line")
+        raise UsersFileError(f"{path}: no user:password line; "
+                             + _MAKE_USERS.replace("FILE", str(path)))
     return users
 
 

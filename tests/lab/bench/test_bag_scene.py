@@ -15,10 +15,8 @@ from agilegs.lab.bench.scene_model import SceneOptions, orbit_cameras
 from agilegs.lab.bench.scenes import detect_scene_kind, load_bench_scene
 from agilegs.lab.scenes import bundled_scene
 from agilegs.service.cli import main
-from agilegs.service.nbv.camera import Camera, Intrinsics
+from agilegs.service.nbv import Camera, Intrinsics, load_scene, render
 from agilegs.service.nbv.candidates import scene_center_radius
-from agilegs.service.nbv.gaussians import load_scene
-from agilegs.service.nbv.rasterize import render
 
 
 def _frames(n: int, size: int, depth: bool) -> list[BagFrame]:

@@ -25,9 +25,7 @@ from agilegs.lab.bench.variants import Variant, build_variants, display_name
 from agilegs.lab.scenes import bundled_scene
 from agilegs.service.cli import main
 from agilegs.service.data.colmap import rotmat_to_qvec
-from agilegs.service.nbv.camera import Camera, Intrinsics
-from agilegs.service.nbv.gaussians import load_scene
-from agilegs.service.nbv.rasterize import render
+from agilegs.service.nbv import Camera, Intrinsics, load_scene, render
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 RUN_KEYS = {
@@ -38,7 +36,7 @@ RUN_KEYS = {
 EVENT_KEYS = {  # what the report, the plots and the replay (agilegs view --run) read
     "event", "step", "views_before", "choice", "shortlist", "eligible", "latency_ms",
     "select_wall_ms", "select_cpu_ms", "information_ms", "upkeep_ms", "num_gaussians",
-    "scores", "anchor", "anchor_psi", "best_candidate_psi", "probes", "probe_won",
+    "scores", "anchor", "anchor_psi", "best_candidate_psi", "probes", "probe_won", "eig_mass",
 }
 
 
@@ -50,6 +48,7 @@ def test_tiny_run_writes_outputs_and_rerun_skips(tmp_path: Path) -> None:
     assert main(argv) == 0
 
     res = json.loads((out / "results.json").read_text())
+    assert res["settings"]["kernel_warmup_s"] > 0  # the compile, apart from the selections
     prof = PROFILES["tiny"]
     scene = res["scenes"]["spot_10k"]
     assert scene["pool"] == prof.scene.pool_size and scene["kind"] == "splat"

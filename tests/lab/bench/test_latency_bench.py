@@ -13,7 +13,7 @@ import torch
 from agilegs.lab.bench.latency import PeakRSS, densified
 from agilegs.lab.bench.stages import ANCHOR_STAGES
 from agilegs.service.cli import main
-from agilegs.service.nbv.gaussians import GaussianMap
+from agilegs.service.nbv import GaussianMap
 
 
 def test_latency_bench_reports_every_method(tmp_path: Path) -> None:

@@ -7,10 +7,7 @@ import torch
 
 from agilegs.config.selection import FIELD_NAMES
 from agilegs.lab.bench.render_reference import baseline_fisher_diag, baseline_render
-from agilegs.service.nbv.camera import Camera, look_at
-from agilegs.service.nbv.gaussians import GaussianMap
-from agilegs.service.nbv.information import fisher_diag
-from agilegs.service.nbv.rasterize import render
+from agilegs.service.nbv import Camera, GaussianMap, fisher_diag, look_at, render
 
 F64 = torch.float64
 

@@ -12,7 +12,7 @@ from pathlib import Path
 from agilegs.lab.bench.scenes import detect_scene_kind
 
 ROOT = Path(__file__).resolve().parents[3]
-SCENES = ROOT / "service" / "data" / "scenes"
+SCENES = ROOT / "lab" / "scenes"
 
 OBJECTS = ("bob", "boot", "fish", "koala", "penguin", "skull", "spot", "stanford_bunny",
            "teapot", "violin")

@@ -10,13 +10,18 @@ import pytest
 import torch
 
 from agilegs.config.selection import AnchorConfig, SelectConfig
+from agilegs.service.nbv import (
+    Camera,
+    GaussianMap,
+    Intrinsics,
+    accumulate_information,
+    fisher_diag,
+    init_information,
+    select,
+)
 from agilegs.service.nbv.anchor.ascent import optimize_anchor
 from agilegs.service.nbv.anchor.envelope import PoolEnvelope
-from agilegs.service.nbv.camera import Camera, Intrinsics
 from agilegs.service.nbv.candidates import capture_pool
-from agilegs.service.nbv.gaussians import GaussianMap
-from agilegs.service.nbv.information import accumulate_information, fisher_diag, init_information
-from agilegs.service.nbv.selectors import select
 from agilegs.service.sessions.convert import storable_state
 
 INTR = Intrinsics.from_fov(55.0, 32, 32)
@@ -50,44 +55,44 @@ def test_reused_parts_equal_a_rebuild_when_nothing_changed(model) -> None:
     gmap, h, pool, acq = world()
     on = AnchorConfig(model=model, carry_over_tolerance=0.01)
     first = anchor(gmap, h, pool, acq, on)
-    assert first.extra["carried"] is False
-    parts = storable_state({"p": first.extra["carry"]})["p"]  # as the session store keeps it
+    assert first.diagnostics.carried is False
+    parts = storable_state({"p": first.carry})["p"]  # as the session store keeps it
     again = anchor(gmap, h, pool, acq, on, carried=parts)
-    assert again.extra["carried"] is True
+    assert again.diagnostics.carried is True
     rebuilt = anchor(gmap, h, pool, acq, dataclasses.replace(on, carry_over_tolerance=0.0))
-    assert rebuilt.extra["carried"] is False and "carry" not in rebuilt.extra
+    assert rebuilt.diagnostics.carried is False and rebuilt.carry is None
     assert torch.equal(again.c2w, rebuilt.c2w) and again.psi == rebuilt.psi
     assert again.traces == rebuilt.traces
     assert torch.equal(again.pool_psi, rebuilt.pool_psi)
     for key in ("model", "unexplored_fraction", "unexplored_points"):
-        assert again.extra.get(key) == rebuilt.extra.get(key)
+        assert getattr(again.diagnostics.model, key) == getattr(rebuilt.diagnostics.model, key)
     # the parts kept are those of the build (its fingerprint), not refreshed by the reuse
-    assert again.extra["carry"] is parts
+    assert again.carry is parts
 
 
 def test_a_change_beyond_the_tolerance_rebuilds() -> None:
     gmap, h, pool, acq = world()
     on = AnchorConfig(carry_over_tolerance=0.05)
-    parts = anchor(gmap, h, pool, acq, on).extra["carry"]
+    parts = anchor(gmap, h, pool, acq, on).carry
     with torch.no_grad():
         hv = fisher_diag(gmap, Camera(c2w=pool[4], intrinsics=INTR))
     more = accumulate_information(h, hv)
     grown = max(float((more[k].sum() - h[k].sum()) / h[k].sum()) for k in h)
     assert grown > 0.05
-    assert anchor(gmap, more, pool, acq, on, carried=parts).extra["carried"] is False
+    assert anchor(gmap, more, pool, acq, on, carried=parts).diagnostics.carried is False
     # within the tolerance: reused
     loose = dataclasses.replace(on, carry_over_tolerance=min(1.0, 2 * grown))
-    parts = anchor(gmap, h, pool, acq, loose).extra["carry"]
-    assert anchor(gmap, more, pool, acq, loose, carried=parts).extra["carried"] is True
+    parts = anchor(gmap, h, pool, acq, loose).carry
+    assert anchor(gmap, more, pool, acq, loose, carried=parts).diagnostics.carried is True
     # other settings, another map size or malformed parts: rebuilt
     other = dataclasses.replace(on, num_gaussians=500)
-    assert anchor(gmap, h, pool, acq, other, carried=parts).extra["carried"] is False
+    assert anchor(gmap, h, pool, acq, other, carried=parts).diagnostics.carried is False
     sub = gmap.subset(torch.arange(150))
     h_sub = {k: v[:150] for k, v in h.items()}
-    assert anchor(sub, h_sub, pool, acq, loose, carried=parts).extra["carried"] is False
+    assert anchor(sub, h_sub, pool, acq, loose, carried=parts).diagnostics.carried is False
     broken = {**parts, "proxy": {**parts["proxy"], "means": parts["proxy"]["means"][:, :2]}}
-    assert anchor(gmap, h, pool, acq, loose, carried=broken).extra["carried"] is False
-    assert anchor(gmap, h, pool, acq, loose, carried=[1, 2]).extra["carried"] is False
+    assert anchor(gmap, h, pool, acq, loose, carried=broken).diagnostics.carried is False
+    assert anchor(gmap, h, pool, acq, loose, carried=[1, 2]).diagnostics.carried is False
 
 
 def test_off_selections_are_unchanged_by_carried_parts() -> None:

@@ -3,10 +3,11 @@
 Each instance of a fleet (``--state-url s3://...`` with Zenoh on) owns some of the store's
 sessions. While it owns one it declares the Zenoh liveliness token
 ``agilegs/@leases/<session>/<instance>`` (beside the session's queryables, see
-:mod:`agilegs.service.transports.cluster`), and while it is up, ``agilegs/@members/<instance>``.
-Every instance subscribes to both, so each learns at once when an owner is gone: its Zenoh
-session ends (a killed process's links close at once; a paused or cut-off one's expire with
-Zenoh's lease, 10 s by default), and its tokens go with it.
+:mod:`agilegs.service.transports.zenoh.cluster`), and while it is up,
+``agilegs/@members/<instance>``. Every instance subscribes to both, so each learns at once
+when an owner is gone: its Zenoh session ends (a killed process's links close at once; a
+paused or cut-off one's expire with Zenoh's lease, 10 s by default), and its tokens go with
+it.
 
 A session whose owner is gone is *orphaned*. One live instance takes it over: the one first
 in its rendezvous order (a hash of session and instance id: sessions spread evenly, and every
@@ -44,7 +45,7 @@ from typing import TYPE_CHECKING, Any
 from agilegs.schemas.keys import LEASES, MEMBERS, PREFIX, lease_key, member_key, parse_lease_key
 
 if TYPE_CHECKING:
-    from ..sessions.registry import SessionRegistry
+    from ...sessions.registry import SessionRegistry
 
 __all__ = ["CHECK", "GRACE", "SCAN", "STAGGER", "Fleet", "rendezvous_order"]
 

@@ -7,8 +7,20 @@ import math
 
 import pytest
 import torch
+from conftest import TINY_INTR as INTR
+from conftest import tiny_scene
 
 from agilegs.config.selection import FIELD_NAMES, AnchorConfig
+from agilegs.service.nbv import (
+    Camera,
+    GaussianMap,
+    accumulate_information,
+    check_pose,
+    fisher_diag,
+    init_information,
+    look_at,
+    se3_exp,
+)
 from agilegs.service.nbv.anchor.ascent import ascend, optimize_anchor
 from agilegs.service.nbv.anchor.envelope import PoolEnvelope
 from agilegs.service.nbv.anchor.fitting import (
@@ -18,29 +30,6 @@ from agilegs.service.nbv.anchor.fitting import (
     typical_fisher_from_views,
 )
 from agilegs.service.nbv.anchor.proxy import ProxyPsi
-from agilegs.service.nbv.camera import Camera, Intrinsics, check_pose, look_at
-from agilegs.service.nbv.candidates import capture_pool
-from agilegs.service.nbv.gaussians import GaussianMap
-from agilegs.service.nbv.information import accumulate_information, fisher_diag, init_information
-from agilegs.service.nbv.se3 import se3_exp
-
-INTR = Intrinsics.from_fov(55.0, 32, 32)
-
-
-def tiny_scene(n: int = 250, seed: int = 0, dtype: torch.dtype = torch.float64):
-    """A blob of Gaussians, a 24-camera capture pool and Hhat from 3 of its views."""
-    g = torch.Generator().manual_seed(seed)
-    pts = 0.3 * torch.randn(n, 3, generator=g, dtype=torch.float64)
-    pts[:, 0] *= 1.5  # elongated so that views differ
-    cols = torch.rand(n, 3, generator=g, dtype=torch.float64)
-    gmap = GaussianMap.from_points(pts, cols, scale=0.05, opacity=0.7).to(dtype=dtype)
-    pool = capture_pool([0.0, 0.0, 0.0], 2.0, 24, seed=seed, dtype=dtype)
-    acq = pool[[0, 8, 9]]
-    h = init_information(gmap, 1e-6)
-    with torch.no_grad():
-        for p in acq:
-            h = accumulate_information(h, fisher_diag(gmap, Camera(c2w=p, intrinsics=INTR)))
-    return gmap, pool, acq, h
 
 
 @pytest.fixture(scope="module")
@@ -177,7 +166,7 @@ def test_starts_are_the_best_pool_candidates_under_the_proxy(scene, anchors: int
         r = pool_radius(pool)
         best = distinct_best(pool, res.pool_psi, 3, cfg.mode_separation * r, r).tolist()
         assert len(best) == 3 and best != torch.topk(res.pool_psi, 3).indices.tolist()
-    assert res.extra["start_indices"] == best
+    assert res.diagnostics.start_indices == best
     assert res.psi == pytest.approx(float(res.pool_psi.max()), rel=1e-9)
 
 
@@ -279,8 +268,8 @@ def test_typical_fisher_and_rates_use_the_given_lambda(scene) -> None:
 
 
 def test_exact_psi_renders_on_the_given_background(scene) -> None:
+    from agilegs.service.nbv import trace_surrogate
     from agilegs.service.nbv.anchor.exact import exact_psi_fn
-    from agilegs.service.nbv.information import trace_surrogate
 
     gmap, pool, _, h = scene
     bg = torch.tensor([0.2, 0.9, 0.4], dtype=torch.float64)
@@ -313,7 +302,7 @@ def test_exact_psi_ascent_is_monotone() -> None:
     trace = res.psi_trace
     assert all(b >= a for a, b in zip(trace, trace[1:]))
     # the reported psi is the exact trace surrogate at the anchor
-    from agilegs.service.nbv.information import trace_surrogate
+    from agilegs.service.nbv import trace_surrogate
 
     small = INTR.scaled(24, 24)
     with torch.no_grad():
@@ -402,7 +391,7 @@ def test_log_form_proxy_and_its_importance_sampling(scene) -> None:
 @pytest.mark.parametrize("model", ["fitted", "directional"])
 def test_fitted_model_ranks_the_pool_like_the_exact_eig(model: str) -> None:
     """Views of the side no acquired view saw score high under the proxy and the exact EIG."""
-    from agilegs.service.nbv.information import eig_scores
+    from agilegs.service.nbv import eig_scores
 
     gmap, pool, _, _ = tiny_scene(n=300, seed=1)
     acq = pool[[0, 1, 2]]  # neighbours in capture order: one side of the blob
@@ -416,7 +405,7 @@ def test_fitted_model_ranks_the_pool_like_the_exact_eig(model: str) -> None:
         gmap, h, pool, INTR, config=AnchorConfig(iterations=0, model=model, unexplored=False),
         acquired=acq, generator=gen
     )
-    assert fitted.extra["model"] == model
+    assert fitted.diagnostics.model.model == model
     assert fitted.pool_psi is not None
 
     def ranks(x: torch.Tensor) -> torch.Tensor:
@@ -429,7 +418,7 @@ def test_fitted_model_ranks_the_pool_like_the_exact_eig(model: str) -> None:
     typical = optimize_anchor(
         gmap, h, pool, INTR, config=AnchorConfig(iterations=0), generator=gen
     )
-    assert typical.extra["model"] == "typical"
+    assert typical.diagnostics.model.model == "typical"
 
 
 def test_occluder_cover_closes_gaps_between_occluder_points() -> None:

@@ -10,19 +10,24 @@ import pytest
 import torch
 
 from agilegs.config.selection import FIELD_NAMES, AnchorConfig
-from agilegs.service.nbv import cancel
+from agilegs.service.nbv import (
+    Camera,
+    GaussianMap,
+    Intrinsics,
+    accumulate_information,
+    cancel,
+    fisher_diag,
+    init_information,
+    se3_exp,
+)
 from agilegs.service.nbv.anchor.ascent import _exp_at_zero, ascend, optimize_anchor
 from agilegs.service.nbv.anchor.envelope import PoolEnvelope
 from agilegs.service.nbv.anchor.fitting import directional_rates, lower_median
 from agilegs.service.nbv.anchor.line_search import CompiledLineSearch
 from agilegs.service.nbv.anchor.proxy import ProxyPsi, direction_factors
 from agilegs.service.nbv.anchor.visibility import OpacityMaps
-from agilegs.service.nbv.camera import Camera, Intrinsics
 from agilegs.service.nbv.candidates import capture_pool, scene_center_radius
-from agilegs.service.nbv.gaussians import GaussianMap
-from agilegs.service.nbv.information import accumulate_information, fisher_diag, init_information
 from agilegs.service.nbv.kernels import backend
-from agilegs.service.nbv.se3 import se3_exp
 
 pytestmark = pytest.mark.skipif(not backend.kernels_available(), reason="numba unavailable")
 
@@ -172,11 +177,11 @@ def test_the_ascent_decides_alike_with_either_path() -> None:
         finally:
             backend.set_default_backend(None)
     t, k = results["torch"], results["numba"]
-    assert t.extra["start_indices"] == k.extra["start_indices"]
+    assert t.diagnostics.start_indices == k.diagnostics.start_indices
     assert t.evaluations == k.evaluations
     torch.testing.assert_close(k.c2w, t.c2w, rtol=0, atol=1e-9)
     assert k.psi == pytest.approx(t.psi, rel=1e-10)
-    assert set(k.extra["timings_s"]) == {"visibility", "rates", "unexplored", "starts",
+    assert set(k.diagnostics.timings_s) == {"visibility", "rates", "unexplored", "starts",
                                          "ascent"}
 
 

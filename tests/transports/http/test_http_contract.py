@@ -107,6 +107,26 @@ def test_a_session_may_start_from_rgb_frames_alone(api: InProcess) -> None:
             raise AssertionError("a selection without Gaussians must be refused")
         except ConflictError as exc:
             assert exc.code == "map_empty"
+        # spread reads no map: it chooses from the first frame
+        out = c.select(sid, method="spread", commit=True)
+        assert out.committed is not None and out.chosen.id in out.eligible
+
+
+def test_a_select_carries_the_target_objective_and_its_targets(api: InProcess) -> None:
+    from agilegs.client import ValidationError
+
+    sid = _sid()
+    poses = ring_poses(6)
+    with api.client() as c:
+        c.create_session(SMALL_INTRINSICS, id=sid, bounds=BOUNDS, init_gaussians=80, pool=poses)
+        cfg = {"objective": "target", "target_views": 2}
+        out = c.select(sid, method="full_eig", config=cfg, targets=poses[[0, 3]])
+        assert out.latency_ms["scoring.targets"] > 0
+        try:
+            c.select(sid, method="full_eig", targets=poses[[0]])
+            raise AssertionError("targets without the target objective must be refused")
+        except ValidationError as exc:
+            assert exc.field == "body.targets"
 
 
 def test_a_value_over_a_limit_is_a_422_naming_the_field(api_factory: object) -> None:

@@ -57,7 +57,7 @@ class Listener:
 def _serve(tmp_path: Path, **settings: Any) -> Iterator[tuple[Server, str]]:
     ep = f"tcp/127.0.0.1:{free_port()}"
     srv = Server(Settings(state_dir=tmp_path / "state", http=False, zenoh_listen=[ep],
-                          mapper=False, workers=2, ros2=[NS, OTHER], **settings))
+                          mapper=False, workers=2, ros2=[NS, OTHER], warmup=False, **settings))
     srv.start()
     try:
         yield srv, ep

@@ -13,10 +13,11 @@ from pathlib import Path
 
 import pytest
 import torch
-from test_kernels import F32, F64, camera, random_map
+from conftest import ROOT, camera, random_map
 
 from agilegs.config.selection import FIELD_NAMES
-from agilegs.service.nbv.information import fisher_diag, pair_moments, screen_second_moments
+from agilegs.service.nbv import fisher_diag
+from agilegs.service.nbv.information import pair_moments, screen_second_moments
 from agilegs.service.nbv.kernels.gpu import (
     bin_tiles,
     gpu_moments_apply,
@@ -26,15 +27,16 @@ from agilegs.service.nbv.kernels.gpu import (
 from agilegs.service.nbv.projection import project_map
 from agilegs.service.nbv.rasterize import pairs_of
 
-HERE = Path(__file__).resolve().parent
+F64, F32 = torch.float64, torch.float32
+HERE = ROOT / "tests"
 
 _COMPARE = textwrap.dedent("""
     import json, sys, torch
     sys.path.insert(0, {here!r})
-    from test_kernels import random_map, camera
     from agilegs.service.nbv.projection import project_map
     from agilegs.service.nbv.information import pair_moments
     from agilegs.service.nbv.kernels.gpu import tile_moments
+    from conftest import camera, random_map
     out = []
     for dtype, tile, res, bg in {cases!r}:
         dt = getattr(torch, dtype)

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import pytest
 import torch
-from test_anchor import INTR, tiny_scene
+from conftest import TINY_INTR as INTR
+from conftest import tiny_scene
 
 from agilegs.config.selection import FIELD_NAMES, AnchorConfig
 from agilegs.service.nbv.anchor import exact

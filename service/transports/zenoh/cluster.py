@@ -63,7 +63,7 @@ Topology
 
 A fleet (the sessions in an object store, ``--state-url s3://...``): an instance owns the
 sessions whose lease it holds, not those it created, and a live instance takes over the
-sessions of one that died (:mod:`agilegs.service.transports.fleet`); creating a session is a
+sessions of one that died (:mod:`agilegs.service.transports.zenoh.fleet`); creating a session is a
 conditional create in the store, so of two instances creating one id at once exactly one
 succeeds. Known limits of instances with state folders of their own: two instances creating
 the same explicit session id at the same moment may both succeed (the check-then-create is
@@ -97,9 +97,9 @@ from agilegs.schemas.keys import (
     parse_instance_key,
 )
 
-from ..errors import ServiceError
+from ...errors import ServiceError
+from ..gateway import Forwarded
 from .fleet import Fleet
-from .gateway import Forwarded
 
 if TYPE_CHECKING:
     from concurrent.futures import Executor

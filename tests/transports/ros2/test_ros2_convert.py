@@ -138,6 +138,18 @@ def test_create_and_select_requests() -> None:
     got = SelectRequest.model_validate(select_body(sel, Binding("s", camera_frame="cam_link")))
     assert got.embodied_k == 4 and got.current_pose is not None
     np.testing.assert_allclose(got.current_pose.to_matrix(), ring_poses(3)[1], atol=1e-12)
+    # the objective through config_json, the targets as poses
+    sel = m.msg(m.request_type(m.SELECT), method="full_eig",
+                config_json='{"objective": "target", "target_views": 2}',
+                targets=[matrix_to_pose_msg(p, "body") for p in ring_poses(4)[[0, 2]]])
+    got = SelectRequest.model_validate(select_body(sel, Binding("s", camera_frame="cam_link")))
+    assert got.config is not None and got.config.objective == "target"
+    assert got.targets is not None and len(got.targets) == 2
+    np.testing.assert_allclose(got.targets[1].to_matrix(), ring_poses(4)[2], atol=1e-12)
+    for bad in ("[1]", "{"):
+        with pytest.raises(FieldError) as err:
+            select_body(m.msg(m.request_type(m.SELECT), config_json=bad), Binding("s"))
+        assert err.value.field == "config_json"
 
 
 def test_a_decision_as_messages() -> None:

@@ -9,48 +9,16 @@ import math
 import numpy as np
 import pytest
 import torch
+from conftest import camera, random_map
 
 from agilegs.config.selection import FIELD_NAMES
-from agilegs.service.nbv.camera import Camera, look_at
-from agilegs.service.nbv.gaussians import GaussianMap
-from agilegs.service.nbv.information import (
-    fisher_diag,
-    projection_jacobians,
-    screen_second_moments,
-)
+from agilegs.service.nbv import GaussianMap, fisher_diag, render
+from agilegs.service.nbv.information import projection_jacobians, screen_second_moments
 from agilegs.service.nbv.kernels import backend
 from agilegs.service.nbv.methods.fisherrf import fisherrf_hessian
-from agilegs.service.nbv.rasterize import render
 
 F64 = torch.float64
 F32 = torch.float32
-
-
-def random_map(n: int, *, seed: int = 0, deg: int = 1, dtype: torch.dtype = F64,
-               scale: tuple[float, float] = (0.04, 0.14), opaque: int = 6) -> GaussianMap:
-    """n Gaussians in a unit cube; the first ``opaque`` nearly opaque (α clamped at 0.99 and
-    transmittance stops), some behind the camera or off screen."""
-    g = torch.Generator().manual_seed(seed)
-    lo, hi = scale
-    means = torch.rand(n, 3, generator=g, dtype=F64) - 0.5
-    means[-2] = torch.tensor([0.0, 0.0, -3.0], dtype=F64)  # behind the camera
-    means[-1] = torch.tensor([5.0, 0.0, 0.0], dtype=F64)  # off screen
-    logits = torch.randn(n, generator=g, dtype=F64)
-    logits[:opaque] += 6.0
-    return GaussianMap(
-        means=means,
-        log_scales=torch.log(torch.rand(n, 3, generator=g, dtype=F64) * (hi - lo) + lo),
-        quats=torch.randn(n, 4, generator=g, dtype=F64),
-        opacity_logits=logits,
-        sh=torch.randn(n, (deg + 1) ** 2, 3, generator=g, dtype=F64) * 0.4,
-    ).to(dtype=dtype)
-
-
-def camera(w: int = 21, h: int = 18, dtype: torch.dtype = F64,
-           eye: tuple[float, float, float] = (0.3, -0.4, -2.0)) -> Camera:
-    c2w = look_at(torch.tensor(eye, dtype=dtype), torch.zeros(3, dtype=dtype))
-    return Camera.from_c2w(c2w, fx=0.9 * w, fy=0.95 * w, cx=w / 2 + 0.3, cy=h / 2 - 0.2,
-                           width=w, height=h)
 
 
 def tol(dtype: torch.dtype) -> dict[str, float]:
@@ -284,12 +252,12 @@ def test_reference_paths_stay_torch() -> None:
 
 
 def test_workspace_reuses_and_aligns_its_buffers() -> None:
-    ws = backend._Workspace()
+    ws = backend.Workspace()
     for n in (67, 55, 67, 300, 1, 299):  # smaller after larger, and a buffer grown in place
         a = ws.take("x", (n, 3), np.float32, zero=True)
         assert a.shape == (n, 3) and a.ctypes.data % 64 == 0 and float(np.abs(a).sum()) == 0.0
         a.fill(1.0)
-    big = backend._Workspace(limit=1000).take("y", (1000,), np.float64)  # above the limit
+    big = backend.Workspace(limit=1000).take("y", (1000,), np.float64)  # above the limit
     assert big.shape == (1000,)
 
 

@@ -234,7 +234,7 @@ def test_raw_splat_upload(api: InProcess, tmp_path: object) -> None:
 
     import torch
 
-    from agilegs.service.nbv.gaussians import GaussianMap
+    from agilegs.service.nbv import GaussianMap
 
     path = Path(str(tmp_path)) / "m.splat"
     GaussianMap.from_points(torch.rand(30, 3) - 0.5, torch.rand(30, 3), scale=0.05).save(path)

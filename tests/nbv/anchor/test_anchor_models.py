@@ -9,15 +9,21 @@ import torch
 from torch import Tensor
 
 from agilegs.config.selection import FIELD_NAMES, AnchorConfig
+from agilegs.service.nbv import (
+    Camera,
+    GaussianMap,
+    Intrinsics,
+    accumulate_information,
+    fisher_diag,
+    init_information,
+    look_at,
+)
 from agilegs.service.nbv.anchor.ascent import optimize_anchor
 from agilegs.service.nbv.anchor.fitting import directional_rates, slot_kinds
 from agilegs.service.nbv.anchor.proxy import DIRECTION_KINDS, ProxyPsi, direction_factors
 from agilegs.service.nbv.anchor.unexplored import unexplored_space
 from agilegs.service.nbv.anchor.visibility import OpacityMaps
-from agilegs.service.nbv.camera import Camera, Intrinsics, look_at
 from agilegs.service.nbv.candidates import capture_pool, scene_center_radius
-from agilegs.service.nbv.gaussians import GaussianMap
-from agilegs.service.nbv.information import accumulate_information, fisher_diag, init_information
 
 INTR = Intrinsics.from_fov(55.0, 32, 32)
 F64 = torch.float64
@@ -130,7 +136,7 @@ def test_the_directional_anchor_looks_across_the_acquired_views() -> None:
                           generator=torch.Generator().manual_seed(0))
     assert res.pool_psi is not None
     assert float(res.pool_psi[1]) > 1.2 * float(res.pool_psi[0])
-    assert res.extra["model"] == "directional"
+    assert res.diagnostics.model.model == "directional"
 
 
 def _half_shell(n: int = 400) -> GaussianMap:
@@ -251,7 +257,7 @@ def test_the_unexplored_term_draws_the_anchor_to_the_unseen_side() -> None:
                               generator=torch.Generator().manual_seed(0))
         assert res.pool_psi is not None
         gains[flag] = float(res.pool_psi[behind].mean() / res.pool_psi[~behind].mean())
-        assert ("unexplored_points" in res.extra) == flag
+        assert (res.diagnostics.model.unexplored_points is not None) == flag
     assert gains[True] > gains[False]
 
 
@@ -281,8 +287,8 @@ def test_distinct_best_keeps_the_best_and_spreads_the_rest() -> None:
 
 def test_several_anchors_come_from_distinct_modes_and_span_the_shortlist() -> None:
     from agilegs.config.selection import SelectConfig
+    from agilegs.service.nbv import select
     from agilegs.service.nbv.se3 import pose_distance
-    from agilegs.service.nbv.selectors import select
 
     gmap = _blob(300)
     lam = 1e-3

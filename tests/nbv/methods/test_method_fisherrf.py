@@ -6,13 +6,18 @@ import pytest
 import torch
 
 from agilegs.config.selection import FISHERRF_FIELDS, FisherRFConfig, SelectConfig
-from agilegs.service.nbv.camera import Camera, Intrinsics, look_at
-from agilegs.service.nbv.gaussians import GaussianMap
-from agilegs.service.nbv.information import fisher_diag, init_information
+from agilegs.service.nbv import (
+    Camera,
+    GaussianMap,
+    Intrinsics,
+    fisher_diag,
+    init_information,
+    look_at,
+    select,
+)
 from agilegs.service.nbv.methods.fisherrf import fisherrf_hessian, fisherrf_hessian_bruteforce
 from agilegs.service.nbv.projection import project_map
 from agilegs.service.nbv.rasterize import ALPHA_MIN
-from agilegs.service.nbv.selectors import select
 
 F64 = torch.float64
 

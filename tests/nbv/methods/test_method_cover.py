@@ -6,8 +6,7 @@ import math
 
 import torch
 
-from agilegs.service.nbv.camera import Camera, Intrinsics, look_at
-from agilegs.service.nbv.gaussians import GaussianMap
+from agilegs.service.nbv import Camera, GaussianMap, Intrinsics, look_at, render
 from agilegs.service.nbv.methods.cover import (
     cover_scores,
     fibonacci_sphere,
@@ -15,7 +14,6 @@ from agilegs.service.nbv.methods.cover import (
     gaussian_coverage,
     kept_by_projection,
 )
-from agilegs.service.nbv.rasterize import render
 
 INTR = Intrinsics.from_fov(60.0, 32, 32)
 

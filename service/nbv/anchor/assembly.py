@@ -1,0 +1,191 @@
+"""The anchor's proxy psi (:class:`.proxy.ProxyPsi`) assembled for one event, from the
+anchor's settings: its visibility (the deep opacity maps, ``visibility="transmittance"``, or
+the z-buffer's occluders), its observation model's weights and rates (``model``: the
+``"typical"`` Fisher, or the ``"fitted"`` / ``"directional"`` rates fitted over the acquired
+views, :mod:`.fitting`) and, with a fitted model, the unexplored space (:mod:`.unexplored`);
+or the previous event's proxy, carried over while ``carry_over_tolerance`` allows
+(:mod:`.carry`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from agilegs.config.selection import AnchorConfig
+
+from ..camera import Intrinsics
+from ..candidates import scene_center_radius
+from .carry import fingerprint, pack, settings_key, unpack
+from .fitting import (
+    directional_rates,
+    information_weights,
+    observation_rates,
+    typical_fisher_from_h_acc,
+)
+from .proxy import ProxyPsi, pick_occluders
+from .records import AnchorInputs, ModelDiagnostics
+from .unexplored import unexplored_space
+from .visibility import OpacityMaps
+
+__all__ = ["AssembledProxy", "assemble_proxy", "build_proxy", "proxy_intrinsics"]
+
+
+@dataclass
+class AssembledProxy:
+    """The proxy of one event.
+
+    Attributes:
+        proxy: the proxy psi.
+        model: what its model is.
+        carried: whether it is the previous event's.
+        carry: the parts to keep for the next event (with ``carry_over_tolerance`` > 0 and
+            no given typical Fisher; the carried parts themselves when reused), else None.
+    """
+
+    proxy: ProxyPsi
+    model: ModelDiagnostics
+    carried: bool
+    carry: Any = None
+
+
+def proxy_intrinsics(intrinsics: Intrinsics, config: AnchorConfig) -> Intrinsics:
+    """The proxy's image: the candidates' at ``config.resolution`` pixels wide (the aspect
+    kept), or as they are."""
+    if config.resolution is None:
+        return intrinsics
+    return intrinsics.scaled(
+        config.resolution,
+        max(1, round(config.resolution * intrinsics.height / intrinsics.width)),
+    )
+
+
+def assemble_proxy(inputs: AnchorInputs, radius: float,
+                   lap: Callable[[str], None]) -> AssembledProxy:
+    """The proxy of ``inputs`` for a pool of ``radius``: the carried parts
+    (``inputs.carried``) when they may serve, else :func:`build_proxy`; ``lap`` called after
+    each stage (``visibility``, ``rates``, ``unexplored``; at once for carried parts)."""
+    cfg = inputs.config
+    prox_intr = proxy_intrinsics(inputs.intrinsics, cfg)
+    now: dict[str, Any] | None = None
+    key = ""
+    if cfg.carry_over_tolerance > 0 and inputs.typical is None:
+        now = fingerprint(inputs.gmap, inputs.h_acc, inputs.fields, radius)
+        key = settings_key(cfg, prox_intr, inputs.fields)
+        reused = unpack(inputs.carried, now=now, key=key, tolerance=cfg.carry_over_tolerance,
+                        intrinsics=prox_intr, dtype=inputs.gmap.dtype)
+        if reused is not None:
+            for stage in ("visibility", "rates", "unexplored"):
+                lap(stage)
+            return AssembledProxy(reused[0], reused[1], carried=True, carry=inputs.carried)
+    proxy, model = build_proxy(inputs, prox_intr, radius, lap)
+    carry = pack(proxy, model.as_dict(), now, key) if now is not None else None
+    return AssembledProxy(proxy, model, carried=False, carry=carry)
+
+
+def build_proxy(inputs: AnchorInputs, prox_intr: Intrinsics, radius: float,
+                lap: Callable[[str], None]) -> tuple[ProxyPsi, ModelDiagnostics]:
+    """The proxy psi of the anchor's settings on the image ``prox_intr``: its visibility,
+    the model's rates and the unexplored space (``lap`` after each stage), and what its
+    model is."""
+    cfg = inputs.config
+    common: dict[str, Any] = dict(
+        near=cfg.near_fraction * radius,
+        edge=cfg.edge_softness * prox_intr.width,
+        generator=inputs.generator,
+    )
+    common.update(_visibility(inputs, prox_intr))
+    lap("visibility")
+    acquired = inputs.acquired
+    if (inputs.typical is not None or cfg.model not in ("fitted", "directional")
+            or acquired is None or acquired.shape[0] == 0):
+        proxy, model = _typical_model(inputs, prox_intr, common)
+        lap("rates")
+        lap("unexplored")
+        return proxy, model
+    rated = _directional_model if cfg.model == "directional" else _fitted_model
+    proxy, model, prior_rate, per_gaussian = rated(inputs, acquired, prox_intr, common)
+    lap("rates")
+    if cfg.unexplored:
+        space = unexplored_space(inputs.gmap, acquired, proxy, cells=cfg.unexplored_cells,
+                                 shells=cfg.unexplored_shells,
+                                 count_inside=cfg.unexplored_inside,
+                                 generator=inputs.generator)
+        n = int(space.means.shape[0])
+        if n:
+            rates = prior_rate.to(inputs.gmap.dtype).expand(n, *prior_rate.shape)
+            proxy = proxy.extended(space.means, space.cov, per_gaussian * space.weight, rates)
+        model = dataclasses.replace(model, unexplored_fraction=space.unexplored_fraction,
+                                    unexplored_points=n)
+    lap("unexplored")
+    return proxy, model
+
+
+def _visibility(inputs: AnchorInputs, prox_intr: Intrinsics) -> dict[str, Any]:
+    """The proxy's visibility arguments: the deep opacity maps (``grid``), or the z-buffer's
+    occluders and its settings."""
+    cfg = inputs.config
+    if cfg.visibility == "transmittance":
+        center, r98 = scene_center_radius(inputs.gmap.means)
+        return {"grid": OpacityMaps.build(
+            inputs.gmap, prox_intr, center, r98, cells=cfg.transmittance_cells,
+            bins=cfg.transmittance_bins, max_occluders=cfg.occluders,
+            generator=inputs.generator)}
+    return dict(
+        num_occluders=cfg.occluders,
+        occ_grid=cfg.occlusion_grid,
+        occ_tests=cfg.occlusion_tests,
+        occluders=pick_occluders(inputs.gmap, cfg.occluders, inputs.generator),
+    )
+
+
+def _typical_model(inputs: AnchorInputs, prox_intr: Intrinsics, common: dict[str, Any]
+                   ) -> tuple[ProxyPsi, ModelDiagnostics]:
+    """The typical model: every view adds the typical Fisher m_q (given, or from Hhat)."""
+    typical = inputs.typical
+    source = "given"
+    if typical is None:
+        typical = typical_fisher_from_h_acc(inputs.h_acc, inputs.num_acquired, inputs.fields,
+                                            lam=inputs.lam)
+        source = "h_acc"
+    c = information_weights(inputs.h_acc, typical, inputs.fields)
+    proxy = ProxyPsi.build(inputs.gmap, c, prox_intr, num_samples=inputs.config.num_gaussians,
+                           **common)
+    return proxy, ModelDiagnostics("typical", typical_source=source)
+
+
+def _directional_model(inputs: AnchorInputs, acquired: Tensor, prox_intr: Intrinsics,
+                       common: dict[str, Any]
+                       ) -> tuple[ProxyPsi, ModelDiagnostics, Tensor, float]:
+    """The directional model fitted over the acquired views [A, 4, 4]; with the unexplored
+    points' rates [Q] and weight scale."""
+    drate = directional_rates(inputs.gmap, inputs.h_acc, acquired, prox_intr, inputs.fields,
+                              lam=inputs.lam, near=common["near"], edge=common["edge"],
+                              grid=common.get("grid"), generator=inputs.generator)
+    c = torch.log1p(drate.rate * drate.typical).sum(1)
+    proxy = ProxyPsi.build(
+        inputs.gmap, c, prox_intr, num_samples=inputs.config.num_gaussians, rate=drate.rate,
+        slot_kinds=drate.kinds, **common,
+    )
+    return (proxy, ModelDiagnostics("directional", typical_term=drate.typical),
+            drate.prior_rate, 1.0)
+
+
+def _fitted_model(inputs: AnchorInputs, acquired: Tensor, prox_intr: Intrinsics,
+                  common: dict[str, Any]) -> tuple[ProxyPsi, ModelDiagnostics, Tensor, float]:
+    """The fitted model over the acquired views [A, 4, 4]; with the unexplored points'
+    rate [] and weight scale."""
+    fit = observation_rates(inputs.gmap, inputs.h_acc, acquired, prox_intr, inputs.fields,
+                            lam=inputs.lam, unseen=inputs.config.unseen, **common)
+    c = fit.slots * torch.log1p(fit.rate * fit.typical)
+    proxy = ProxyPsi.build(
+        inputs.gmap, c, prox_intr, num_samples=inputs.config.num_gaussians, rate=fit.rate,
+        slots=fit.slots, **common,
+    )
+    return (proxy, ModelDiagnostics("fitted", typical_term=fit.typical),
+            torch.tensor(fit.prior_rate, dtype=inputs.gmap.dtype), float(fit.slots))

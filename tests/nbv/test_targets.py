@@ -1,0 +1,158 @@
+"""The target objective: a view's worth on the target views' renders, against a brute-force
+reference (per-pixel Jacobians, float64), its use by full_eig and agile_plus, and the paper's
+EIG left the default."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from agilegs.config.selection import SelectConfig
+from agilegs.service.nbv import (
+    Camera,
+    GaussianMap,
+    Intrinsics,
+    accumulate_information,
+    eig_scores,
+    fisher_diag,
+    init_information,
+    select,
+)
+from agilegs.service.nbv.candidates import capture_pool
+from agilegs.service.nbv.targets import (
+    target_gain,
+    target_gain_bruteforce,
+    target_information,
+    target_scores_keeping_best,
+    target_subsample,
+)
+
+INTR = Intrinsics.from_fov(55.0, 10, 8)
+
+
+def tiny(n: int = 12, seed: int = 0):
+    """A few float64 Gaussians, a pool, Hhat from two views (lambda 1e-3)."""
+    g = torch.Generator().manual_seed(seed)
+    pts = 0.25 * torch.randn(n, 3, generator=g, dtype=torch.float64)
+    cols = torch.rand(n, 3, generator=g, dtype=torch.float64)
+    gmap = GaussianMap.from_points(pts, cols, scale=0.12, opacity=0.6)
+    pool = capture_pool([0.0, 0.0, 0.0], 1.6, 10, seed=seed, dtype=torch.float64)
+    h = init_information(gmap, 1e-3)
+    for p in pool[[0, 5]]:
+        h = accumulate_information(h, fisher_diag(gmap, Camera(c2w=p, intrinsics=INTR)))
+    return gmap, pool, h
+
+
+def test_target_gain_matches_the_per_pixel_brute_force() -> None:
+    gmap, pool, h = tiny()
+    targets, view = pool[[2, 7]], pool[4]
+    fields = tuple(k for k, _ in gmap.items())
+    t_info = target_information(gmap, targets, INTR, fields=fields)
+    h_v = fisher_diag(gmap, Camera(c2w=view, intrinsics=INTR))
+    fast = target_gain(h_v, h, t_info)
+    slow = target_gain_bruteforce(gmap, h, view, targets, INTR)
+    assert fast > 0
+    assert fast == pytest.approx(slow, rel=1e-6)
+    # with a background too
+    bg = torch.tensor([0.2, 0.5, 0.9], dtype=torch.float64)
+    t_bg = target_information(gmap, targets[:1], INTR, fields=fields, background=bg)
+    h_bg = fisher_diag(gmap, Camera(c2w=view, intrinsics=INTR), background=bg)
+    assert target_gain(h_bg, h, t_bg) == pytest.approx(
+        target_gain_bruteforce(gmap, h, view, targets[:1], INTR, background=bg), rel=1e-6)
+
+
+def test_a_view_is_worth_nothing_where_no_target_looks() -> None:
+    gmap, pool, h = tiny()
+    fields = tuple(k for k, _ in gmap.items())
+    t_info = {f: torch.zeros_like(getattr(gmap, f)) for f in fields}
+    h_v = fisher_diag(gmap, Camera(c2w=pool[3], intrinsics=INTR))
+    assert target_gain(h_v, h, t_info) == 0.0
+    # and a target's own view, acquired, removes its variance more than a far view does
+    t_own = target_information(gmap, pool[[3]], INTR, fields=fields)
+    own = target_gain(h_v, h, t_own)
+    far = target_gain(fisher_diag(gmap, Camera(c2w=pool[8], intrinsics=INTR)), h, t_own)
+    assert own > far >= 0
+
+
+def test_scores_keep_the_winners_fisher() -> None:
+    gmap, pool, h = tiny()
+    fields = tuple(k for k, _ in gmap.items())
+    t_info = target_information(gmap, pool[[1, 6]], INTR, fields=fields)
+    scores, best = target_scores_keeping_best(gmap, h, pool[[2, 3, 4]], INTR, t_info,
+                                              fields=fields)
+    i = int(torch.argmax(scores))
+    assert best is not None
+    ref = fisher_diag(gmap, Camera(c2w=pool[[2, 3, 4]][i], intrinsics=INTR))
+    for f in fields:
+        torch.testing.assert_close(best[f], ref[f])
+    for k, pose in enumerate(pool[[2, 3, 4]]):
+        hv = fisher_diag(gmap, Camera(c2w=pose, intrinsics=INTR))
+        assert float(scores[k]) == pytest.approx(target_gain(hv, h, t_info), rel=1e-12)
+
+
+def test_the_subsample_spreads_over_the_targets() -> None:
+    pool = capture_pool([0.0, 0.0, 0.0], 1.6, 30, seed=1, dtype=torch.float64)
+    picks = target_subsample(pool, 1.6, 6)
+    assert picks[0] == 0 and len(set(picks)) == 6
+    assert target_subsample(pool, 1.6, 100) == target_subsample(pool, 1.6, 30)
+
+
+def _full_target_scores(gmap, h, cands, targets, fields=None):
+    fields = fields or tuple(k for k, _ in gmap.items())
+    t_info = target_information(gmap, targets, INTR, fields=fields)
+    return [target_gain(fisher_diag(gmap, Camera(c2w=p, intrinsics=INTR)), h, t_info)
+            for p in cands]
+
+
+def test_full_eig_with_the_target_objective() -> None:
+    gmap, pool, h = tiny()
+    cands = pool[[1, 2, 3, 4, 6, 7, 8, 9]]
+    default = select("full_eig", gmap, h, cands, INTR)
+    assert SelectConfig().objective == "eig"
+    phi = eig_scores(gmap, h, cands, INTR)
+    assert default.index == int(torch.argmax(phi))
+    # the targets given: T from config.target_views of them, spread
+    targets = pool[[0, 5]]
+    cfg = SelectConfig(objective="target", target_views=2)
+    sel = select("full_eig", gmap, h, cands, INTR, config=cfg, targets=targets)
+    want = _full_target_scores(gmap, h, cands, targets)
+    assert sel.index == max(range(len(want)), key=lambda i: (want[i], -i))
+    for i, s in sel.scores.items():
+        assert s == pytest.approx(want[i], rel=1e-9)
+    assert sel.latency_ms["scoring.targets"] > 0
+    assert sel.chosen_information is not None
+    # no targets: the pool's farthest-point subsample
+    cfg = SelectConfig(objective="target", target_views=3)
+    sel = select("full_eig", gmap, h, cands, INTR, config=cfg)
+    from agilegs.service.nbv.candidates import pool_radius, scene_center_radius
+    w = pool_radius(cands, scene_center_radius(gmap.means)[0])
+    sub = cands[target_subsample(cands, w, 3)]
+    want = _full_target_scores(gmap, h, cands, sub)
+    assert sel.index == max(range(len(want)), key=lambda i: (want[i], -i))
+
+
+def test_agile_plus_reranks_by_the_objective() -> None:
+    gmap, pool, h = tiny()
+    cands = pool[[1, 2, 3, 4, 6, 7, 8, 9]]
+    targets = pool[[0, 5]]
+    cfg = SelectConfig(objective="target", target_views=2, shortlist_size=4)
+    sel = select("agile_plus", gmap, h, cands, INTR, config=cfg, targets=targets,
+                 acquired=pool[[0, 5]], lam=1e-3)
+    want = _full_target_scores(gmap, h, cands[sel.shortlist], targets)
+    best = max(range(len(want)), key=lambda i: (want[i], -i))
+    assert sel.index == sel.shortlist[best]
+    assert sel.latency_ms["rerank.targets"] > 0
+    for v, s in sel.scores.items():
+        assert s == pytest.approx(want[sel.shortlist.index(v)], rel=1e-9)
+
+
+def test_targets_are_checked() -> None:
+    gmap, pool, h = tiny()
+    cfg = SelectConfig(objective="target")
+    bad = pool[[0]].clone()
+    bad[0, 0, 0] = math.nan
+    for targets in (bad, pool[:0], pool[0]):
+        with pytest.raises(ValueError, match="targets"):
+            select("full_eig", gmap, h, pool, INTR, config=cfg, targets=targets)
