@@ -13,6 +13,7 @@ from agilegs.schemas.codec import GAUSSIAN_FILE_TYPES
 
 from ._ops import AsyncOperations, SyncOperations
 from ._requests import Call, query_params
+from ._retry import RETRY_WINDOW, retry_async, retry_sync
 from .errors import ProtocolError, RequestTimeout, TransportError, error_from_body
 
 __all__ = ["AsyncClient", "Client"]
@@ -74,6 +75,9 @@ class Client(_HTTPBase, SyncOperations):
         timeout: seconds per request (selections can take seconds on large pools).
         encoding: request and response bodies, ``"msgpack"`` (compact) or ``"json"``.
         transport: an httpx transport (e.g. ``httpx.MockTransport`` in tests).
+        retry_window: seconds an operation answered ``session_unavailable`` with a
+            ``retry_after`` (a fleet handing the session over) is retried, with backoff
+            (:mod:`agilegs.client._retry`); 0: never.
     """
 
     def __init__(
@@ -84,11 +88,16 @@ class Client(_HTTPBase, SyncOperations):
         timeout: float = 120.0,
         encoding: Encoding = "msgpack",
         transport: httpx.BaseTransport | None = None,
+        retry_window: float = RETRY_WINDOW,
     ) -> None:
         super().__init__(token=token, encoding=encoding)
         self._http = httpx.Client(base_url=base_url, timeout=timeout, transport=transport)
+        self.retry_window = retry_window
 
     def _send(self, call: Call) -> BaseModel | bytes:
+        return retry_sync(lambda: self._send_once(call), self.retry_window)
+
+    def _send_once(self, call: Call) -> BaseModel | bytes:
         try:
             r = self._http.request(**self._request_args(call))
         except httpx.TimeoutException as exc:
@@ -118,11 +127,16 @@ class AsyncClient(_HTTPBase, AsyncOperations):
         timeout: float = 120.0,
         encoding: Encoding = "msgpack",
         transport: httpx.AsyncBaseTransport | None = None,
+        retry_window: float = RETRY_WINDOW,
     ) -> None:
         super().__init__(token=token, encoding=encoding)
         self._http = httpx.AsyncClient(base_url=base_url, timeout=timeout, transport=transport)
+        self.retry_window = retry_window
 
     async def _send(self, call: Call) -> BaseModel | bytes:
+        return await retry_async(lambda: self._send_once(call), self.retry_window)
+
+    async def _send_once(self, call: Call) -> BaseModel | bytes:
         try:
             r = await self._http.request(**self._request_args(call))
         except httpx.TimeoutException as exc:

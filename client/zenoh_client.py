@@ -27,6 +27,7 @@ from agilegs.schemas import ErrorBody, codec, keys
 from . import _requests as rq
 from ._ops import ObservationLike, PoolLike, SyncOperations
 from ._requests import Call
+from ._retry import RETRY_WINDOW, retry_sync
 from .errors import (
     ProtocolError,
     RequestTimeout,
@@ -63,6 +64,10 @@ class ZenohClient(SyncOperations):
             state folder, ``<state-dir>/zenoh/client.json``: its endpoints, the Zenoh user
             and password it made (and its CA); ``user`` / ``password`` / ``tls_root_ca``
             given here win.
+        retry_window: seconds an operation is retried, with backoff, while its session is
+            handed over in a fleet (no instance answers for it, or it answers
+            ``session_unavailable`` with a ``retry_after``); 0: never
+            (:mod:`agilegs.client._retry`).
     """
 
     def __init__(
@@ -80,6 +85,7 @@ class ZenohClient(SyncOperations):
         tls_certificate: str | Path | None = None,
         tls_private_key: str | Path | None = None,
         credentials: str | Path | None = None,
+        retry_window: float = RETRY_WINDOW,
     ) -> None:
         try:
             import zenoh
@@ -99,6 +105,7 @@ class ZenohClient(SyncOperations):
         if connect is None:
             connect = ("tcp/127.0.0.1:7447",)
         self.timeout = timeout
+        self.retry_window = retry_window
         self._connect = list(connect)
         self._attachment = f"Bearer {token}".encode() if token else None
         self._session: Any = None
@@ -144,6 +151,9 @@ class ZenohClient(SyncOperations):
             raise ValidationError(422, "invalid", str(exc), "session") from None
 
     def _send(self, call: Call, parameters: str | None = None) -> BaseModel | bytes:
+        return retry_sync(lambda: self._send_once(call, parameters), self.retry_window)
+
+    def _send_once(self, call: Call, parameters: str | None = None) -> BaseModel | bytes:
         if parameters is None:
             # the server gives up on the work once this client stops waiting for it
             params = {**(call.params or {}), "deadline_ms": f"{self.timeout * 1e3:.0f}"}
@@ -174,10 +184,14 @@ class ZenohClient(SyncOperations):
         if timed_out:
             raise RequestTimeout(f"{call.op.name}: no reply on {key} within {self.timeout} s")
         if call.op.scope == "session" and self._any_server():
+            # in a fleet, a live instance takes a dead owner's sessions over: a read is worth
+            # a retry (a write may have been applied by an owner that died answering it)
+            read = call.op.http_method == "GET"
             raise SessionUnavailableError(
                 404, "session_unavailable",
                 f"{call.op.name}: no instance answers for session {call.session!r}: it does not "
-                "exist, or the instance that owns it is down", "path.session")
+                "exist, or the instance that owns it is down", "path.session",
+                retry_after=0.05 if read and self._in_fleet() else None)
         if not self._linked():
             raise TransportError(
                 f"{call.op.name}: no Zenoh peer reached at {', '.join(self._connect)}: no server "
@@ -195,6 +209,14 @@ class ZenohClient(SyncOperations):
             return any(True for _ in info.peers_zid()) or any(True for _ in info.routers_zid())
         except Exception:  # an API without it: say nothing more
             return True
+
+    def _in_fleet(self) -> bool:
+        """Whether the instances answering form a fleet (they declare member tokens)."""
+        try:
+            return any(True for _ in self._session.liveliness().get(
+                f"{keys.PREFIX}/{keys.MEMBERS}/*", timeout=min(self.timeout, 1.0)))
+        except Exception:
+            return False
 
     def _any_server(self) -> bool:
         """Whether some server instance answers ``health`` (every instance does)."""

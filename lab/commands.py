@@ -23,11 +23,13 @@ COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
      "a fresh server's first selection against its tenth (the kernels' compile)"),
     (("bench", "coverage"), "agilegs.lab.bench.coverage_report",
      "where a bench run's picks went, the test views' coverage, and their EIG's mass"),
+    (("bench", "fleet"), "agilegs.lab.bench.fleet",
+     "instances sharing an object store, killed and paused under load: takeover, losses"),
 ]
 
 GROUPS: dict[str, str] = {
     "bench": "the benchmarks: render, latency, run, service, bigmap, edge, value, proxy, "
-             "firstcall, coverage",
+             "firstcall, coverage, fleet",
 }
 """The help of each command that groups subcommands."""
 

@@ -43,6 +43,8 @@ __all__ = [
     "INSTANCES",
     "INSTANCE_ID_PATTERN",
     "INSTANCE_OPS",
+    "LEASES",
+    "MEMBERS",
     "PREFIX",
     "SERVICE",
     "SERVICE_OPS",
@@ -50,7 +52,10 @@ __all__ = [
     "check_instance_id",
     "instance_key",
     "instances_wildcard",
+    "lease_key",
+    "member_key",
     "parse_instance_key",
+    "parse_lease_key",
     "parse_session_key",
     "service_key",
     "session_key",
@@ -158,3 +163,32 @@ def parse_instance_key(key: str) -> tuple[str, str]:
     if len(parts) != 4 or parts[0] != PREFIX or parts[1] != INSTANCES:
         raise ValueError(f"key {key!r} is not {PREFIX}/{INSTANCES}/<instance>/<op>")
     return check_instance_id(parts[2], "key"), parts[3]
+
+
+# ---------------------------------------------------------------------------- a fleet's leases
+LEASES = "@leases"
+"""Liveliness tokens of a fleet (instances sharing an object store): ``agilegs/@leases/<session>
+/<instance>`` while an instance owns a session, ``agilegs/@members/<instance>`` while an
+instance is up (a chunk beginning with ``@`` is matched by no wildcard: two prefixes)."""
+MEMBERS = "@members"
+
+
+def lease_key(session: str, instance: str) -> str:
+    """``agilegs/@leases/<session>/<instance>``: ``instance`` owns ``session``."""
+    return f"{PREFIX}/{LEASES}/{_check_session(session)}/{check_instance_id(instance)}"
+
+
+def member_key(instance: str) -> str:
+    """``agilegs/@members/<instance>``: ``instance`` is up."""
+    return f"{PREFIX}/{MEMBERS}/{check_instance_id(instance)}"
+
+
+def parse_lease_key(key: str) -> tuple[str, str]:
+    """``(session, instance)`` of a lease key, ``(MEMBERS, instance)`` of a member key;
+    ValueError otherwise."""
+    parts = str(key).split("/")
+    if len(parts) == 3 and parts[0] == PREFIX and parts[1] == MEMBERS:
+        return MEMBERS, check_instance_id(parts[2], "key")
+    if len(parts) != 4 or parts[0] != PREFIX or parts[1] != LEASES:
+        raise ValueError(f"key {key!r} is not {PREFIX}/{LEASES}/<session>/<instance>")
+    return _check_session(parts[2]), check_instance_id(parts[3], "key")

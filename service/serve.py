@@ -187,7 +187,7 @@ def run(args: argparse.Namespace) -> int:
         sock.close()
         return failed
     log.info("agilegs serve: http://%s:%d (state in %s, zenoh %s)", settings.host, settings.port,
-             settings.state_dir, "on" if settings.zenoh else "off")
+             settings.state_location(), "on" if settings.zenoh else "off")
     from .transports.http.edge import uvicorn_config
 
     raise_file_limit(settings.max_connections)
@@ -234,7 +234,7 @@ def _serve_zenoh_only(server: Server) -> int:
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
     log.info("agilegs serve: zenoh only, instance %r (state in %s)",
-             server.cluster.instance_id, server.settings.state_dir)
+             server.cluster.instance_id, server.settings.state_location())
     try:
         stop.wait()
     finally:

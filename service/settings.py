@@ -142,6 +142,15 @@ class Settings(Credentials):
         default=8000, ge=0, le=65535, description="HTTP port (0: any free port)")
     state_dir: Annotated[Path, Flag("execution", metavar="DIR")] = Field(
         default=Path("agilegs-state"), description="persistent state folder")
+    state_url: Annotated[str | None, Flag("execution", metavar="URL")] = Field(
+        default=None, pattern=r"^(s3://[^/]+(/.*)?|file://.+)$", description="where the "
+        "sessions are kept: s3://bucket/prefix (an object store, any S3 API, shared by a "
+        "fleet; credentials and region from the AWS_* variables) or file:///path (a folder, "
+        "as --state-dir); default the state folder. The state folder still holds this "
+        "instance's scratch files and Zenoh credentials")
+    state_endpoint: Annotated[str | None, Flag("execution", metavar="URL")] = Field(
+        default=None, description="the S3 API's URL of an s3:// --state-url (MinIO, Ceph, "
+        "R2; default AWS_ENDPOINT_URL, else AWS)")
     http: Annotated[bool, Flag("network")] = Field(default=True, description="serve over HTTP")
     zenoh: Annotated[bool, Flag("network")] = Field(
         default=True, description="serve over Zenoh as well")
@@ -308,6 +317,23 @@ class Settings(Credentials):
                 return json.loads(text)
             return [v.strip() for v in text.split(",") if v.strip()]
         return value
+
+    @model_validator(mode="after")
+    def _state_folder_url(self) -> Settings:
+        if self.state_url is not None and self.state_url.startswith("file://"):
+            from urllib.parse import unquote, urlsplit
+
+            parts = urlsplit(self.state_url)
+            if parts.netloc not in ("", "localhost"):
+                raise ValueError(f"state_url {self.state_url!r}: a file:// URL names a local "
+                                 "folder (file:///path)")
+            object.__setattr__(self, "state_dir", Path(unquote(parts.path)))
+            object.__setattr__(self, "state_url", None)
+        return self
+
+    def state_location(self) -> str:
+        """Where the sessions are kept, in words: the object store's URL, or the folder."""
+        return self.state_url or str(self.state_dir)
 
     @model_validator(mode="after")
     def _some_transport(self) -> Settings:

@@ -15,7 +15,7 @@ import re
 import threading
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import replace
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
@@ -29,6 +29,7 @@ from agilegs.schemas import DecisionsOut, DecisionsRequest
 from agilegs.schemas.config import patch_dict
 
 from ..errors import (
+    ServiceError,
     conflict,
     invalid,
     is_disk_full,
@@ -40,8 +41,11 @@ from ..errors import (
 from ..errors import validation_error as _validation_error
 from ..nbv import cancel
 from ..settings import Settings
+from ..store.blobs import BlobError
 from ..store.integrity import Damage, FileProblem
-from ..store.write import SessionStore, StoreError
+from ..store.objects import AnyStore, Fenced, ObjectSessionStore, open_store
+from ..store.records import SessionRecord
+from ..store.write import StoreError
 from .convert import (
     empty_map,
     gaussians_from_depth,
@@ -54,7 +58,7 @@ from .decisions import DecisionLog
 from .listing import damaged_error, damaged_summary
 from .mapper_state import initial_mapper_state, mapper_config
 from .selection import check_render_widths
-from .session import Session, SessionEnv
+from .session import Session, SessionEnv, store_unavailable
 from .trainer import Trainer
 from .transitions import Limits, integrate_frames, new_record, set_pool
 
@@ -76,14 +80,19 @@ class SessionRegistry:
     refused with 409 ``session_damaged`` but for ``repair_session`` and ``delete_session``.
 
     Args:
-        settings: the server's settings (limits, state folder, mapper schedule).
+        settings: the server's settings (limits, state folder or URL, mapper schedule).
+        store: the session store (default: the one the settings name, :func:`open_store
+            <agilegs.service.store.objects.open_store>`).
     """
 
-    def __init__(self, settings: Settings) -> None:
+    def __init__(self, settings: Settings, store: AnyStore | None = None) -> None:
         self.settings = settings
-        self.store = SessionStore(settings.state_dir, fsync=settings.fsync)
+        self.store = store if store is not None else open_store(
+            settings.state_url or settings.state_dir, fsync=settings.fsync,
+            endpoint=settings.state_endpoint)
         self.sessions: dict[str, Session] = {}
         self.damaged: dict[str, Damage] = {}
+        self.lost: dict[str, str] = {}  # sessions another instance took over: why
         self.lock = threading.Lock()
         self._repairing = threading.Lock()  # one repair or deletion of a damaged session
         self.started = time.time()
@@ -95,7 +104,7 @@ class SessionRegistry:
                                      max_waiters=max(1, settings.workers // 2))
         self.env = SessionEnv(settings=settings, store=self.store,
                               tmp_dir=Path(settings.state_dir) / "tmp",
-                              report_damage=self.report_damage)
+                              report_damage=self.report_damage, report_lost=self.drop_lost)
         if settings.torch_threads:
             torch.set_num_threads(settings.torch_threads)
 
@@ -112,12 +121,15 @@ class SessionRegistry:
             if not is_disk_full(exc):
                 raise
             log.warning("the state folder is full: %s", exc)
-        records, damaged = self.store.load_all()
+        records: list[SessionRecord] = []
+        damaged: list[Damage] = []
+        if not self.fleet:  # a fleet's node takes the sessions no live instance owns
+            records, damaged = self.store.load_all()
         for rec in records:
             self.sessions[rec.id] = Session(rec, self.env)
         for d in damaged:
             self.damaged[d.session] = d
-        log.info("loaded %d session(s) from %s%s", len(self.sessions), self.settings.state_dir,
+        log.info("loaded %d session(s) from %s%s", len(self.sessions), self.store.where,
                  f" ({len(damaged)} damaged: {', '.join(sorted(self.damaged))})"
                  if damaged else "")
         if self.settings.mapper:
@@ -161,6 +173,11 @@ class SessionRegistry:
             d = self.damaged.get(sid)
             if d is not None:
                 raise damaged_error(d)
+            why = self.lost.get(sid)
+            if why is not None:
+                raise ServiceError(404, "session_unavailable", f"session {sid!r} moved to "
+                                   f"another instance ({why}): retry", "path.session",
+                                   retry_after=0.2)
             raise not_found("session", f"session {sid!r} does not exist")
         return s
 
@@ -205,6 +222,89 @@ class SessionRegistry:
             self.sessions.pop(session.id, None)
             self.damaged[session.id] = got
         log.error("session %s is damaged: %s (repair: %s)", session.id, got.reason(), got.plan())
+
+    @property
+    def fleet(self) -> bool:
+        """Whether this instance is one of a fleet: its sessions are in an object store and
+        it joins Zenoh, where the instances hand the sessions over by lease
+        (:mod:`agilegs.service.transports.zenoh.fleet`)."""
+        return isinstance(self.store, ObjectSessionStore) and self.settings.zenoh
+
+    def in_store(self, sid: str) -> bool:
+        """Whether session ``sid`` is in the store (a folder store: held here)."""
+        if isinstance(self.store, ObjectSessionStore):
+            return self.store.exists(sid)
+        return self.holds(sid)
+
+    def set_owner(self, instance_id: str) -> None:
+        """This instance's id, recorded in the leases it takes."""
+        if isinstance(self.store, ObjectSessionStore):
+            self.store.owner = instance_id
+
+    def take_over(self, sid: str, live: Iterable[str] = ()) -> bool:
+        """Take session ``sid`` over from the store (its lease, epoch + 1) and serve it; False
+        when it is here already, gone, or another instance took it first (its lease names
+        one of the ``live`` instances, or it changed while being taken)."""
+        if not isinstance(self.store, ObjectSessionStore):
+            return False
+        with self.lock:
+            if self.holds(sid):
+                return False
+        try:
+            got = self.store.take_over(sid, unless=live)
+        except (FileNotFoundError, Fenced):
+            return False
+        with self.lock:
+            if self.holds(sid):
+                return False
+            self.lost.pop(sid, None)
+            if isinstance(got, Damage):
+                self.damaged[sid] = got
+                log.error("session %s (taken over) is damaged: %s", sid, got.reason())
+            else:
+                s = Session(got, self.env)
+                if self.trainer is not None:
+                    self.trainer.attach(s)
+                self.sessions[sid] = s
+                self.decisions.open(sid)
+        if self.trainer is not None:
+            self.trainer.wake()
+        log.info("session %s taken over (version %s)", sid,
+                 got.version if isinstance(got, Damage) else got.version)
+        return True
+
+    def check_leases(self) -> list[str]:
+        """Drop the sessions whose lease another instance took (their manifest changed in
+        the store); the ids dropped."""
+        if not isinstance(self.store, ObjectSessionStore):
+            return []
+        out = []
+        for s in list(self.sessions.values()):
+            if not self.store.still_owned(s.id):
+                with s.lock:
+                    if not s.closed and not self.store.still_owned(s.id):
+                        self.drop_lost(s, "another instance holds it now")
+                        out.append(s.id)
+        for sid in list(self.damaged):
+            if not self.store.still_owned(sid):
+                with self.lock:
+                    self.damaged.pop(sid, None)
+                self.store.forget(sid)
+                out.append(sid)
+        return out
+
+    def drop_lost(self, session: Session, why: str) -> None:
+        """``session``'s commit was fenced: another instance owns it now. It leaves this
+        instance (the store forgets it; its operations go to the new owner)."""
+        log.warning("session %s: lost the lease (%s); dropping it here", session.id, why)
+        session.lost = why
+        session.closed = True
+        with self.lock:
+            self.lost[session.id] = why
+            if self.sessions.get(session.id) is session:
+                self.sessions.pop(session.id, None)
+        self.store.forget(session.id)
+        self.decisions.close(session.id)
 
     def repair_session(self, sid: str | None) -> m.Repaired:
         """Bring a damaged session back (:meth:`SessionStore.repair
@@ -364,6 +464,8 @@ class SessionRegistry:
                 rec = self.store.create(rec, blobs)
             except FileExistsError:
                 raise conflict("body.id", f"session {sid!r} already exists") from None
+            except BlobError as exc:
+                raise store_unavailable(exc) from None
             s = Session(rec, self.env)
             if self.trainer is not None:
                 self.trainer.attach(s)

@@ -35,13 +35,14 @@ from torch import Tensor
 from agilegs import schemas as m
 from agilegs.schemas import Intrinsics as WireIntrinsics
 
-from ..errors import not_found, session_damaged
+from ..errors import ServiceError, not_found, session_damaged
 from ..nbv import GaussianMap
 from ..nbv.cancel import checkpoint
 from ..settings import Settings
+from ..store.blobs import BlobError
 from ..store.integrity import DamagedFile, FileProblem
+from ..store.objects import AnyStore, Fenced
 from ..store.records import SessionRecord, ViewRecord
-from ..store.write import SessionStore
 from . import transitions as tr
 from .convert import (
     Frame,
@@ -56,19 +57,28 @@ from .listing import record_summary
 from .mapper_state import mapper_options, mapper_status
 from .selection import select_response, select_step
 
-__all__ = ["MapperHook", "Session", "SessionEnv", "changed_roles"]
+__all__ = ["MapperHook", "Session", "SessionEnv", "changed_roles", "store_unavailable"]
+
+
+def store_unavailable(exc: BaseException) -> ServiceError:
+    """503 ``unavailable``: the object store could not be written (nothing was changed)."""
+    return ServiceError(503, "unavailable", f"the session store could not be written ({exc}): "
+                        "nothing was changed, retry", retry_after=1.0)
 
 
 @dataclass(frozen=True)
 class SessionEnv:
-    """What every session shares: the server's settings, the store, a scratch folder, and
-    whom to tell when a file read back does not check out (``report_damage(session,
-    problem)``: the registry marks the session damaged)."""
+    """What every session shares: the server's settings, the store, a scratch folder, whom
+    to tell when a file read back does not check out (``report_damage(session, problem)``:
+    the registry marks the session damaged), and whom to tell when a commit is fenced
+    because another instance took the session over (``report_lost(session, why)``: the
+    registry drops it)."""
 
     settings: Settings
-    store: SessionStore
+    store: AnyStore
     tmp_dir: Path
     report_damage: Callable[[Session, FileProblem], None] | None = None
+    report_lost: Callable[[Session, str], None] | None = None
 
 
 class MapperHook(Protocol):
@@ -106,6 +116,7 @@ class Session:
         self.lock = threading.Lock()
         self.closed = False
         self.damaged: str | None = None  # why, once a file read back did not check out
+        self.lost: str | None = None  # why, once another instance took the session over
         self.mapper: MapperHook | None = None  # the trainer plugs in (on_observation)
         self.pending: tr.PendingSelection | None = None  # the last selection without commit
         self._frames: dict[int, tuple[np.ndarray | None, np.ndarray | None]] = {}
@@ -124,6 +135,10 @@ class Session:
         if self.damaged is not None:
             raise session_damaged("path.session", f"session {self.id!r} is damaged: "
                                                   f"{self.damaged}")
+        if self.lost is not None:
+            raise ServiceError(404, "session_unavailable", f"session {self.id!r} moved to "
+                               f"another instance ({self.lost}): retry", "path.session",
+                               retry_after=0.2)
         if self.closed:
             raise not_found("session", f"session {self.id!r} was deleted")
 
@@ -133,7 +148,18 @@ class Session:
         old = self.record
         if new is old:
             return old
-        saved = self.env.store.save(new, changed_roles(old, new), blobs)
+        try:
+            saved = self.env.store.save(new, changed_roles(old, new), blobs)
+        except Fenced as exc:
+            self.closed = True
+            self.lost = str(exc)
+            if self.env.report_lost is not None:
+                self.env.report_lost(self, str(exc))
+            raise ServiceError(404, "session_unavailable", f"session {self.id!r} moved to "
+                               "another instance while this change was made (nothing was "
+                               "changed): retry", "path.session", retry_after=0.2) from None
+        except BlobError as exc:
+            raise store_unavailable(exc) from None
         self.record = saved
         return saved
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 import hashlib
 import json
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -90,12 +91,14 @@ def check(data: bytes, expected: str | None) -> str | None:
     return None
 
 
-def read_checked(path: Path, rel: str, expected: str | None
+def read_checked(path: Path | Callable[[], bytes], rel: str, expected: str | None
                  ) -> tuple[bytes | None, FileProblem | None]:
-    """The bytes of ``path`` if they check out against ``expected``; else the problem
-    (``rel``: the file's name in reports)."""
+    """The bytes of ``path`` (a file, or a function reading them: an object in an object
+    store) if they check out against ``expected``; else the problem (``rel``: the file's name
+    in reports). A reader raises FileNotFoundError for a missing file, OSError when it cannot
+    read it."""
     try:
-        data = path.read_bytes()
+        data = path.read_bytes() if isinstance(path, Path) else path()
     except FileNotFoundError:
         return None, FileProblem(rel, "missing")
     except OSError as exc:

@@ -1,11 +1,13 @@
-"""Reading a session's folder back and checking it: every file against the checksums of
-its manifest, every tensor file against the shapes it must have (see
+"""Reading a session back and checking it: every file against the checksums of its
+manifest, every tensor file against the shapes it must have (see
 :mod:`agilegs.service.store.integrity`).
 
-:func:`inspect_folder` gives the session's record when everything checks out, else a
+:func:`inspect_session` gives the session's record when everything checks out, else a
 :class:`~agilegs.service.store.integrity.Damage`: which files, what is wrong, and the state a
 repair starts from (the current version when only frames are damaged, else the previous
-version, ``manifest.prev.json``, when that one checks out).
+version, ``manifest.prev.json``, when that one checks out). It reads through a
+:class:`Source`: a session folder (:func:`inspect_folder`) or a session's objects in an object
+store (:mod:`agilegs.service.store.objects`); both give the same answers.
 """
 
 from __future__ import annotations
@@ -13,8 +15,9 @@ from __future__ import annotations
 import io
 import logging
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import torch
@@ -23,7 +26,8 @@ from ..nbv import GaussianMap
 from .integrity import Damage, FileProblem, ManifestError, checksum, decode_manifest, read_checked
 from .records import MANIFEST, PREVIOUS, REQUIRED, VIEWS, SessionRecord, ViewRecord, view_id
 
-__all__ = ["Version", "inspect_folder", "read_version"]
+__all__ = ["FolderSource", "Source", "Version", "inspect_folder", "inspect_session",
+           "read_version"]
 
 log = logging.getLogger(__name__)
 
@@ -41,37 +45,69 @@ class Version:
         return [p for p in self.problems if p.file.startswith(VIEWS + "/")]
 
 
+class Source(Protocol):
+    """Where a session's files are read from: ``session`` is its id, ``read(rel)`` the bytes
+    of the file ``rel`` (``manifest.json``, ``gaussians.3.pt``, ``views/<name>``;
+    FileNotFoundError when it is missing, OSError when it cannot be read)."""
+
+    @property
+    def session(self) -> str: ...
+
+    def read(self, rel: str) -> bytes: ...
+
+
+class FolderSource:
+    """A session folder as a :class:`Source`."""
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = folder
+
+    @property
+    def session(self) -> str:
+        return self.folder.name
+
+    def read(self, rel: str) -> bytes:
+        return (self.folder / rel).read_bytes()
+
+
 def inspect_folder(folder: Path) -> SessionRecord | Damage:
-    """The session in ``folder``, read back and checked: its record when every file checks
+    """The session in ``folder``, read back and checked (:func:`inspect_session`)."""
+    return inspect_session(FolderSource(folder))
+
+
+def inspect_session(source: Source) -> SessionRecord | Damage:
+    """The session of ``source``, read back and checked: its record when every file checks
     out (a damaged warm-start state is dropped: a cold start), else what is damaged and what
     a repair would restore."""
-    cur = read_version(folder, MANIFEST)
+    cur = read_version(source, MANIFEST)
     if not cur.problems:
         assert cur.record is not None
         return cur.record
     version = int(cur.manifest["version"]) if cur.manifest is not None else None
     target, rollback, frames = cur.record, None, cur.frame_problems
     if target is None:
-        prev = read_version(folder, PREVIOUS)
+        prev = read_version(source, PREVIOUS)
         if prev.record is not None:
             target, rollback, frames = prev.record, prev.record.version, prev.frame_problems
         else:
             frames = []
     drop = sorted({i for i in (view_id(p.file) for p in frames) if i is not None})
-    return Damage(folder.name, tuple(cur.problems), version=version, rollback_to=rollback,
+    return Damage(source.session, tuple(cur.problems), version=version, rollback_to=rollback,
                   drop_frames=tuple(drop), frame_files=tuple(p.file for p in frames),
                   record=target, manifest=cur.manifest)
 
 
-def read_version(folder: Path, name: str) -> Version:
-    """The manifest ``name`` of ``folder`` and every file it names, checked."""
-    data, problem = read_checked(folder / name, name, None)
+def read_version(source: Source | Path, name: str) -> Version:
+    """The manifest ``name`` of ``source`` (a session folder, or any :class:`Source`) and
+    every file it names, checked."""
+    src: Source = FolderSource(source) if isinstance(source, Path) else source
+    data, problem = read_checked(partial(src.read, name), name, None)
     if problem is not None or data is None:
         return Version(problems=[problem or FileProblem(name, "unreadable")])
     try:
         m = decode_manifest(data)
-        if m.get("id") != folder.name:
-            raise ManifestError(f"names session {m.get('id')!r}, not {folder.name!r}")
+        if m.get("id") != src.session:
+            raise ManifestError(f"names session {m.get('id')!r}, not {src.session!r}")
         files: dict[str, str] = dict(m["files"])
         views = tuple(ViewRecord.from_json(v) for v in m["views"])
         version = int(m["version"])
@@ -89,7 +125,7 @@ def read_version(folder: Path, name: str) -> Version:
             if role != "warm":
                 out.problems.append(FileProblem(name, f"names no {role} file"))
             continue
-        raw, problem = read_checked(folder / fname, fname, sums.get(fname))
+        raw, problem = read_checked(partial(src.read, fname), fname, sums.get(fname))
         if raw is not None:
             try:
                 obj = torch.load(io.BytesIO(raw), map_location="cpu", weights_only=True)
@@ -101,14 +137,14 @@ def read_version(folder: Path, name: str) -> Version:
         if problem is None:
             continue
         if role == "warm":
-            log.warning("ignoring the warm-start state of %s: %s", folder.name, problem)
+            log.warning("ignoring the warm-start state of %s: %s", src.session, problem)
         else:
             out.problems.append(problem)
     for v in views:
         for fname in (v.image_file, v.depth_file):
             if fname:
                 rel = f"{VIEWS}/{fname}"
-                raw, problem = read_checked(folder / VIEWS / fname, rel, sums.get(rel))
+                raw, problem = read_checked(partial(src.read, rel), rel, sums.get(rel))
                 if problem is not None:
                     out.problems.append(problem)
                 elif legacy and raw is not None:

@@ -68,7 +68,7 @@ from .records import (
 )
 
 __all__ = ["MANIFEST", "PREVIOUS", "ROLES", "Repair", "SessionRecord", "SessionStore",
-           "StoreError", "ViewRecord"]
+           "StoreError", "ViewRecord", "role_payload", "without_files"]
 
 log = logging.getLogger(__name__)
 
@@ -140,23 +140,17 @@ class SessionStore:
     def session_dir(self, sid: str) -> Path:
         return self.sessions_dir / sid
 
+    @property
+    def where(self) -> str:
+        """The state folder, for logs and reports."""
+        return str(self.root)
+
     @staticmethod
     def _role_name(role: str, version: int) -> str:
         return f"{role}.{version}.pt"
 
     def _role_payload(self, record: SessionRecord, role: str) -> Any:
-        if role == "gaussians":
-            return {k: v.detach().cpu().contiguous() for k, v in record.gmap.items()}
-        if role == "information":
-            return {k: v.detach().cpu().contiguous() for k, v in record.h_acc.items()}
-        if role == "pool":
-            return {
-                "ids": torch.from_numpy(np.ascontiguousarray(record.pool_ids, dtype=np.int64)),
-                "poses": torch.from_numpy(np.ascontiguousarray(record.pool_poses, np.float64)),
-            }
-        if role == "warm":
-            return record.warm_state or {}
-        raise ValueError(f"unknown role {role!r}")
+        return role_payload(record, role)
 
     def _write_files(self, folder: Path, record: SessionRecord, roles: Iterable[str],
                      blobs: dict[str, bytes], written: list[Path]
@@ -313,6 +307,9 @@ class SessionStore:
         return records, damaged
 
     # ------------------------------------------------------------------ checking
+    def forget(self, sid: str) -> None:
+        """Nothing to forget: the folder has one server, which holds every session in it."""
+
     def inspect(self, sid: str) -> SessionRecord | Damage:
         """Session ``sid`` read back and checked (see
         :func:`~agilegs.service.store.read.inspect_folder`)."""
@@ -333,7 +330,7 @@ class SessionStore:
             raise StoreError(f"session {sid!r}: {got.plan()}")
         folder = self.session_dir(sid)
         bad = set(got.frame_files)
-        views = tuple(_without(v, bad) for v in target.views)
+        views = tuple(without_files(v, bad) for v in target.views)
         seen = [target.version, got.version or 0, *self._file_versions(folder)]
         new = replace(target, version=max(seen) + 1, updated_at=time.time(), views=views)
         written: list[Path] = []
@@ -398,7 +395,23 @@ class SessionStore:
                     entry.unlink(missing_ok=True)
 
 
-def _without(view: ViewRecord, bad: set[str]) -> ViewRecord:
+def role_payload(record: SessionRecord, role: str) -> Any:
+    """What the file of ``role`` holds for ``record`` (what ``torch.save`` writes)."""
+    if role == "gaussians":
+        return {k: v.detach().cpu().contiguous() for k, v in record.gmap.items()}
+    if role == "information":
+        return {k: v.detach().cpu().contiguous() for k, v in record.h_acc.items()}
+    if role == "pool":
+        return {
+            "ids": torch.from_numpy(np.ascontiguousarray(record.pool_ids, dtype=np.int64)),
+            "poses": torch.from_numpy(np.ascontiguousarray(record.pool_poses, np.float64)),
+        }
+    if role == "warm":
+        return record.warm_state or {}
+    raise ValueError(f"unknown role {role!r}")
+
+
+def without_files(view: ViewRecord, bad: set[str]) -> ViewRecord:
     """``view`` without its files in ``bad`` (``views/<name>``)."""
     changes: dict[str, Any] = {}
     if view.image_file and f"{VIEWS}/{view.image_file}" in bad:

@@ -309,34 +309,50 @@ def test_zenoh_rejects_what_the_config_check_relies_on(tmp_path: Path) -> None:
 
 
 # ============================================================================ compose
-def test_compose_wires_the_router_and_the_service(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_compose_wires_the_router_the_object_store_and_two_instances(
+        monkeypatch: pytest.MonkeyPatch) -> None:
     import yaml
 
     doc = yaml.safe_load((DEPLOY / "compose.yaml").read_text())
     services = doc["services"]
-    assert set(services) == {"zenoh-router", "agilegs"}
-    router, svc = services["zenoh-router"], services["agilegs"]
+    assert set(services) == {"zenoh-router", "minio", "minio-bucket", "agilegs-1", "agilegs-2"}
+    router = services["zenoh-router"]
     assert router["image"].startswith("eclipse/zenoh:")
     mount = router["volumes"][0].split(":")
     assert (DEPLOY / mount[0]).resolve() == DEPLOY / "zenoh-router.json5"
     assert router["command"] == ["-c", mount[1]]
     assert "7447:7447" in router["ports"]
+    minio = services["minio"]
+    assert minio["image"].startswith("minio/minio:") and minio["command"][0] == "server"
+    assert "mc mb --ignore-existing m/agilegs" in services["minio-bucket"]["entrypoint"][-1]
 
-    build = svc["build"]
-    context = (DEPLOY / build["context"]).resolve()
-    assert context == ROOT and (context / build["dockerfile"]).is_file()
-    assert set(build["args"]) <= set(arg_defaults(dockerfile()))
-    env = {k: re.sub(r"\$\{AGILEGS_TOKEN:\?[^}]*\}", "compose-token", str(v))
-           for k, v in svc["environment"].items()}
-    assert svc["environment"]["AGILEGS_TOKEN"].startswith("${AGILEGS_TOKEN:?")  # required
-    s = settings_from_env(env, monkeypatch)
-    assert s.zenoh_mode == "client" and s.zenoh_connect == ["tcp/zenoh-router:7447"]
-    assert s.instance_id and s.token is not None
-    assert svc["depends_on"] == ["zenoh-router"]
     image_settings = build_settings(serve_args(image_command()))
-    assert f"8000:{image_settings.port}" in svc["ports"]
-    assert svc["volumes"] == [f"agilegs-state:{image_settings.state_dir}"]
-    assert "agilegs-state" in doc["volumes"]
+    ids, ports = set(), set()
+    for name in ("agilegs-1", "agilegs-2"):
+        svc = services[name]
+        build = svc["build"]
+        context = (DEPLOY / build["context"]).resolve()
+        assert context == ROOT and (context / build["dockerfile"]).is_file()
+        assert set(build["args"]) <= set(arg_defaults(dockerfile()))
+        env = {k: re.sub(r"\$\{(AGILEGS_TOKEN|MINIO_ROOT_PASSWORD):\?[^}]*\}", "compose-secret",
+                         str(v)) for k, v in svc["environment"].items()}
+        assert svc["environment"]["AGILEGS_TOKEN"].startswith("${AGILEGS_TOKEN:?")  # required
+        s = settings_from_env(env, monkeypatch)
+        assert s.zenoh_mode == "client" and s.zenoh_connect == ["tcp/zenoh-router:7447"]
+        assert s.instance_id and s.token is not None
+        assert s.state_url == "s3://agilegs/state" and s.state_endpoint == "http://minio:9000"
+        assert env["AWS_ACCESS_KEY_ID"] == minio["environment"]["MINIO_ROOT_USER"]
+        assert svc["environment"]["AWS_SECRET_ACCESS_KEY"] == (
+            minio["environment"]["MINIO_ROOT_PASSWORD"])
+        assert svc["depends_on"]["minio-bucket"]["condition"] == (
+            "service_completed_successfully")
+        assert "zenoh-router" in svc["depends_on"]
+        ids.add(s.instance_id)
+        ports.update(p.split(":")[0] for p in svc["ports"])
+        assert all(p.endswith(f":{image_settings.port}") for p in svc["ports"])
+        volume = svc["volumes"][0].split(":")
+        assert volume[1] == str(image_settings.state_dir) and volume[0] in doc["volumes"]
+    assert len(ids) == 2 and len(ports) == 2  # one id and one host port each
 
 
 def test_the_environment_file_joins_the_router(monkeypatch: pytest.MonkeyPatch) -> None:

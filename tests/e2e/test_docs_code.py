@@ -105,9 +105,17 @@ HOW: dict[tuple[str, str], How] = {
     ("docs/deploy.md", "docker build -f deploy/Dockerfile -t agilegs:cuda --build-arg "
      "BASE=nvidia/cuda:12.8.1-runtime-ubuntu24.04 --build-arg TORCH_INDEX=https://download."
      "pytorch.org/whl/cu128 ."): How("skip", "needs Docker and a GPU"),
-    ("docs/deploy.md", "AGILEGS_TOKEN=$(openssl rand -hex 32) docker compose -f "
-     "deploy/compose.yaml up -d --build"):
+    ("docs/deploy.md", "export AGILEGS_TOKEN=$(openssl rand -hex 32) "
+     "MINIO_ROOT_PASSWORD=$(openssl rand -hex 16)"):
         How("skip", "needs a Docker daemon (the compose file: tests/e2e/test_deploy_files.py)"),
+    ("docs/benchmarks.md", "OMP_NUM_THREADS=1 agilegs bench fleet --sessions 10 --kills 20 "
+     "--json fleet.json"):
+        How("parse", "three servers killed twenty times, minutes (the fleet on loopback: "
+                     "tests/e2e/test_fleet.py)"),
+    ("docs/deploy.md", "export AWS_ACCESS_KEY_ID=... AWS_SECRET_ACCESS_KEY=... "
+     "AWS_REGION=us-east-1"):
+        How("parse", "an instance of a fleet on a lab's object store and router, running until "
+                     "stopped (a fleet on loopback: tests/e2e/test_fleet.py)"),
     ("docs/deploy.md", "pip install -e '.[service,cuda]'"):
         How("skip", "needs an NVIDIA GPU and CUDA torch (the setting without CUDA: "
                     "tests/sessions/test_device.py)"),

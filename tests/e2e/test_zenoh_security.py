@@ -46,7 +46,8 @@ def test_settings_give_zenoh_its_own_security(tmp_path: Path) -> None:
     acl = got["access_control"]
     assert acl["enabled"] and acl["default_permission"] == "deny"
     assert acl["rules"][0]["key_exprs"] == ["agilegs/**", "agilegs/@service/**",
-                                            "agilegs/@instances/**", "bot1/agilegs/**"]
+                                            "agilegs/@instances/**", "agilegs/@leases/**",
+                                            "agilegs/@members/**", "bot1/agilegs/**"]
     assert acl["subjects"] == [{"id": "agilegs-users", "usernames": ["robot", "viewer"]}]
     mtls = zenoh_settings(Settings(zenoh_mtls=True, zenoh_dev_certs=tmp_path / "certs"))
     assert mtls["transport/link/tls/enable_mtls"] is True

@@ -61,11 +61,16 @@ Topology
     to one peer instance reaches the others through it, while a Zenoh *peer* reaches only the
     instances it connects to.
 
-Known limits: two instances creating the same explicit session id at the same moment may
-both succeed (the check-then-create is not atomic); a session created while an instance
-that owns the same id is down collides with it when that instance comes back (both declare
-it; avoid reusing ids). Instances sharing a token (``AGILEGS_TOKEN``) forward with it; all
-instances of a cluster must use the same token.
+A fleet (the sessions in an object store, ``--state-url s3://...``): an instance owns the
+sessions whose lease it holds, not those it created, and a live instance takes over the
+sessions of one that died (:mod:`agilegs.service.transports.zenoh.fleet`); creating a session is a
+conditional create in the store, so of two instances creating one id at once exactly one
+succeeds. Known limits of instances with state folders of their own: two instances creating
+the same explicit session id at the same moment may both succeed (the check-then-create is
+not atomic); a session created while an instance that owns the same id is down collides with
+it when that instance comes back (both declare it; avoid reusing ids). Instances sharing a
+token (``AGILEGS_TOKEN``) forward with it; all instances of a cluster must use the same
+token.
 """
 
 from __future__ import annotations
@@ -94,6 +99,7 @@ from agilegs.schemas.keys import (
 
 from ...errors import ServiceError
 from ..gateway import Forwarded
+from .fleet import Fleet
 
 if TYPE_CHECKING:
     from concurrent.futures import Executor
@@ -118,6 +124,8 @@ log = logging.getLogger(__name__)
 
 PROBE_TIMEOUT = 2.0
 """Seconds to wait for the live instances' health replies (they answer inline)."""
+
+HANDOVER_RETRY = 0.2  # the retry_after of a fleet's session_unavailable (s)
 
 SYNC_INTERVAL = 1.0
 """Seconds between two checks that the declared sessions match the loaded ones."""
@@ -153,12 +161,16 @@ def placement_order(loads: Mapping[str, int]) -> list[str]:
     return sorted(loads, key=lambda iid: (int(loads[iid]), iid))
 
 
-def session_unavailable(session: str, instances: list[str]) -> ServiceError:
+def session_unavailable(session: str, instances: list[str], *, fleet: bool = False
+                        ) -> ServiceError:
+    """404 ``session_unavailable``; in a fleet with ``retry_after`` (a live instance takes a
+    dead owner's sessions over: the client retries)."""
     live = ", ".join(sorted(instances))
     return ServiceError(
         404, "session_unavailable",
         f"no instance answers for session {session!r}: it does not exist, or the instance that "
-        f"owns it is down (live instances: {live})", "path.session")
+        f"owns it is down (live instances: {live})", "path.session",
+        retry_after=HANDOVER_RETRY if fleet else None)
 
 
 def instance_unavailable(instance: str) -> ServiceError:
@@ -202,6 +214,8 @@ class ClusterNode:
         self._stop = threading.Event()
         self._syncer: threading.Thread | None = None
         self._seen_others = False
+        self.fleet: Fleet | None = None  # sessions handed over by lease (an object store)
+        registry.set_owner(self.instance_id)
 
     # ------------------------------------------------------------------ lifecycle
     def attach(self, zsession: Any, *, on_query: QueryHandler,
@@ -231,6 +245,9 @@ class ClusterNode:
             self._fixed.append(zsession.declare_queryable(
                 reply_key, lambda q, op=op, rk=reply_key: on_query(q, op, None, True, rk)))
         self.sync()
+        if self.registry.fleet:
+            self.fleet = Fleet(self.registry, self.instance_id, self.sync)
+            self.fleet.attach(zsession)
         self._stop.clear()
         self._syncer = threading.Thread(target=self._sync_loop, name="agilegs-cluster-sync",
                                          daemon=True)
@@ -239,6 +256,9 @@ class ClusterNode:
 
     def detach(self) -> None:
         """Undeclare everything this node declared (before the Zenoh session closes)."""
+        if self.fleet is not None:
+            self.fleet.detach()
+            self.fleet = None
         self._stop.set()
         if self._syncer is not None:
             self._syncer.join(timeout=10)
@@ -288,6 +308,8 @@ class ClusterNode:
                     z.declare_subscriber(keys.session_key(sid, keys.CANDIDATES), self._on_sample),
                 ]
                 log.debug("cluster: %s served here", sid)
+        if self.fleet is not None:
+            self.fleet.sync_tokens()
 
     def _sync_loop(self) -> None:
         ticks = 0
@@ -320,7 +342,7 @@ class ClusterNode:
         """Whether this instance is part of a cluster: it connects to other Zenoh nodes, or
         it has seen another instance since it started. A session that no instance answers
         for is then ``session_unavailable`` (its owner may be down), not ``not_found``."""
-        return bool(self.settings.zenoh_connect) or self._seen_others
+        return bool(self.settings.zenoh_connect) or self._seen_others or self.fleet is not None
 
     def coordinator(self) -> str:
         """The live instance that answers ``@service`` creates and listings: the smallest id."""
@@ -384,24 +406,43 @@ class ClusterNode:
         answer comes in ``kind``), as it came; None when no instance answers and this one is
         not in a cluster (a lone server: the session does not exist, and it says so)."""
         spec = OPERATIONS[op]
+        sent_to_owner = self.fleet is not None and self.fleet.owned(session)
         ans = self._ask(keys.session_key(session, op), body, spec, kind)
         if ans is not None:
             return Forwarded(ans.ok, ans.payload, ans.kind)
         live = sorted(self.instances())
-        if not self.in_cluster:
+        if not self.in_cluster or not self._may_exist(session):
             return None
-        raise session_unavailable(session, live)
+        raise self._unanswered(spec, session, live, sent_to_owner)
 
     def _forward_session(self, spec: Operation, session: str, req: BaseModel | None,
                          run_local: Callable[[], BaseModel]) -> BaseModel:
         body = codec.dump(req, codec.MSGPACK) if req is not None else None
+        sent_to_owner = self.fleet is not None and self.fleet.owned(session)
         got = self._forward(keys.session_key(session, spec.name), body, spec)
         if got is not None:
             return got
         live = sorted(self.instances())
-        if not self.in_cluster:  # a lone server: the session simply does not exist
+        if not self.in_cluster or not self._may_exist(session):  # it simply does not exist
             return self._local(spec.name, run_local)
-        raise session_unavailable(session, live)
+        raise self._unanswered(spec, session, live, sent_to_owner)
+
+    def _unanswered(self, spec: Operation, session: str, live: list[str], sent_to_owner: bool
+                    ) -> ServiceError:
+        """The error of an operation no instance answered. In a fleet it is retryable
+        (``retry_after``) unless it may have changed the session: a write that went to an
+        owner that then went away may have been committed (503, no ``retry_after``: read the
+        session to know)."""
+        if self.fleet is not None and sent_to_owner and spec.http_method != "GET":
+            return ServiceError(
+                503, "unavailable", f"{spec.name}: the instance that owned session "
+                f"{session!r} went away while answering; the change may or may not have been "
+                "made: read the session to know", "path.session")
+        return session_unavailable(session, live, fleet=self.fleet is not None)
+
+    def _may_exist(self, session: str) -> bool:
+        """Whether a session no instance answers for may exist (in a fleet: in the store)."""
+        return self.fleet is None or self.registry.in_store(session)
 
     def _create_on(self, instance: str, body: bytes | None) -> BaseModel:
         got = self._forward(instance_key(instance, "create_session"), body,

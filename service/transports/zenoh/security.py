@@ -109,10 +109,12 @@ def acl_config(key_exprs: list[str], usernames: list[str], tls_peers: bool) -> d
 
 
 def agilegs_keys(ros2: list[str]) -> list[str]:
-    """The key expressions of every agilegs key: ``agilegs/**``, the verbatim ``@service``
-    and ``@instances`` chunks (which ``**`` does not match) and the ROS 2 namespaces."""
+    """The key expressions of every agilegs key: ``agilegs/**``, the verbatim ``@service``,
+    ``@instances``, ``@leases`` and ``@members`` chunks (which ``**`` does not match; the
+    last two: a fleet's liveliness tokens) and the ROS 2 namespaces."""
     return ([f"{keys.PREFIX}/**", f"{keys.PREFIX}/{keys.SERVICE}/**",
-             f"{keys.PREFIX}/{keys.INSTANCES}/**"] + [f"{ns.strip('/')}/**" for ns in ros2])
+             f"{keys.PREFIX}/{keys.INSTANCES}/**", f"{keys.PREFIX}/{keys.LEASES}/**",
+             f"{keys.PREFIX}/{keys.MEMBERS}/**"] + [f"{ns.strip('/')}/**" for ns in ros2])
 
 
 OWN_USER = "agilegs"

@@ -67,8 +67,13 @@ def test_settings_and_flags(tmp_path: Path) -> None:
 class _FakeRegistry:
     """What ClusterNode needs of a SessionRegistry."""
 
+    fleet = False  # its sessions are in a state folder, not shared by a fleet
+
     def __init__(self) -> None:
         self.sessions: dict[str, Any] = {}
+
+    def set_owner(self, instance_id: str) -> None:
+        pass
 
     def health(self) -> m.Health:
         return m.Health(version="0", sessions=len(self.sessions), zenoh=False, uptime_s=0.0)
