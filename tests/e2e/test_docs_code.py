@@ -157,6 +157,8 @@ HOW: dict[tuple[str, str], How] = {
     ("docs/benchmarks.md", "for s in boot bob fish koala penguin skull spot stanford_bunny "
      "teapot violin; do"): BENCH,
     ("docs/benchmarks.md", "for c in skull_photos tankard flowerpot caliterra; do"): BENCH,
+    ("docs/benchmarks.md", "agilegs bench run --profile cpu --seeds 0,1 --threads 1 --out "
+     "runs/cpu-spread \\"): BENCH,
     ("docs/benchmarks.md", "agilegs bench run $(for s in skull_photos tankard flowerpot "
      "caliterra; do echo --scene $S/$s; \\"): BENCH,
     ("docs/benchmarks.md", "agilegs bench latency --scene $S/plant/plant.splat --max-gaussians "
