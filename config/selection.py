@@ -178,6 +178,16 @@ class AnchorConfig:
         description="pool candidates used as starts, the best under the proxy")
     warm_start: Bool = Field(default=True,
                              description="also start from the previous anchor (warm state)")
+    start_samples: Count = Field(default=256,
+        description="the pool is first ranked by a coarse psi over this many of the proxy's "
+        "samples (drawn in proportion to their share of psi, reweighted: an unbiased "
+        "estimate), and the full psi is evaluated only on the start_refined best under it "
+        "(0: the full psi over the whole pool)")
+    start_refined: Annotated[int, Strict(), Field(ge=1, le=100_000),
+                             BeforeValidator(integral)] = Field(
+        default=24,
+        description="pool candidates, the best under the coarse psi, whose full psi is "
+        "evaluated and among which the starts are chosen (with start_samples > 0)")
     num_gaussians: Count = Field(default=2000,
         description="Gaussians importance-sampled for the proxy (0: all)")
     resolution: Width | None = Field(

@@ -116,6 +116,8 @@ OPTIONS: dict[str, tuple[str, Callable[[SelectConfig], SelectConfig]]] = {
     "carry_over": ("the anchor's pose-independent parts (the proxy) reused from the last event "
                    "while the map's and Hhat's per-field sums are within 20% of theirs at the "
                    "build", _anchor(carry_over_tolerance=0.2)),
+    "full_starts": ("the anchor's starts ranked by the full proxy psi over the whole pool "
+                    "(no coarse pass)", _anchor(start_samples=0)),
     "modes": ("three anchors from distinct modes of psi (starts spread alike), the shortlist "
               "drawn across their support samples", _anchor(anchors=3)),
     "one_anchor": ("one anchor, the shortlist drawn around it", _anchor(anchors=1)),
