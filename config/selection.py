@@ -190,6 +190,12 @@ class AnchorConfig:
         "evaluated and among which the starts are chosen (with start_samples > 0)")
     num_gaussians: Count = Field(default=2000,
         description="Gaussians importance-sampled for the proxy (0: all)")
+    fit_gaussians: Count = Field(default=16384,
+        description="the fitted and directional models read a seeded uniform sample of this "
+        "many of the map's Gaussians, each standing for N / fit_gaussians of them: the "
+        "visibility's occluders and the rates are drawn and fitted over it, and the proxy's "
+        "importance sample drawn from it, so that their cost does not grow with the map "
+        "(0: every Gaussian)")
     resolution: Width | None = Field(
         default=None,
         description="anchor image width in pixels (None: the proxy uses the candidates' "

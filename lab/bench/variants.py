@@ -118,6 +118,8 @@ OPTIONS: dict[str, tuple[str, Callable[[SelectConfig], SelectConfig]]] = {
                    "build", _anchor(carry_over_tolerance=0.2)),
     "full_starts": ("the anchor's starts ranked by the full proxy psi over the whole pool "
                     "(no coarse pass)", _anchor(start_samples=0)),
+    "full_fit": ("the proxy's visibility and rates over every Gaussian of the map (no fixed-"
+                 "size sample)", _anchor(fit_gaussians=0)),
     "modes": ("three anchors from distinct modes of psi (starts spread alike), the shortlist "
               "drawn across their support samples", _anchor(anchors=3)),
     "one_anchor": ("one anchor, the shortlist drawn around it", _anchor(anchors=1)),

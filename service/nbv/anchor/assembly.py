@@ -33,7 +33,7 @@ from .records import AnchorInputs, ModelDiagnostics
 from .unexplored import unexplored_space
 from .visibility import OpacityMaps
 
-__all__ = ["AssembledProxy", "assemble_proxy", "build_proxy", "proxy_intrinsics"]
+__all__ = ["AssembledProxy", "assemble_proxy", "build_proxy", "fit_sample", "proxy_intrinsics"]
 
 
 @dataclass
@@ -99,23 +99,30 @@ def build_proxy(inputs: AnchorInputs, prox_intr: Intrinsics, radius: float,
         edge=cfg.edge_softness * prox_intr.width,
         generator=inputs.generator,
     )
-    common.update(_visibility(inputs, prox_intr))
-    lap("visibility")
     acquired = inputs.acquired
-    if (inputs.typical is not None or cfg.model not in ("fitted", "directional")
-            or acquired is None or acquired.shape[0] == 0):
+    fitted = (inputs.typical is None and cfg.model in ("fitted", "directional")
+              and acquired is not None and acquired.shape[0] > 0)
+    # the fitted models read a sample of the map of fixed size (each Gaussian of it standing
+    # for `share` of the map's): the visibility's occluders and the rates
+    sample, share = (fit_sample(inputs, cfg.fit_gaussians) if fitted
+                     else (inputs, 1.0))
+    common.update(_visibility(sample, prox_intr, share))
+    lap("visibility")
+    if not fitted or acquired is None:
         proxy, model = _typical_model(inputs, prox_intr, common)
         lap("rates")
         lap("unexplored")
         return proxy, model
     rated = _directional_model if cfg.model == "directional" else _fitted_model
-    proxy, model, prior_rate, per_gaussian = rated(inputs, acquired, prox_intr, common)
+    proxy, model, prior_rate, per_gaussian = rated(sample, acquired, prox_intr, common)
+    if share != 1.0:
+        proxy = dataclasses.replace(proxy, weight=proxy.weight * share)
     lap("rates")
     if cfg.unexplored:
-        space = unexplored_space(inputs.gmap, acquired, proxy, cells=cfg.unexplored_cells,
+        space = unexplored_space(sample.gmap, acquired, proxy, cells=cfg.unexplored_cells,
                                  shells=cfg.unexplored_shells,
                                  count_inside=cfg.unexplored_inside,
-                                 generator=inputs.generator)
+                                 generator=inputs.generator, share=share)
         n = int(space.means.shape[0])
         if n:
             rates = prior_rate.to(inputs.gmap.dtype).expand(n, *prior_rate.shape)
@@ -126,16 +133,36 @@ def build_proxy(inputs: AnchorInputs, prox_intr: Intrinsics, radius: float,
     return proxy, model
 
 
-def _visibility(inputs: AnchorInputs, prox_intr: Intrinsics) -> dict[str, Any]:
-    """The proxy's visibility arguments: the deep opacity maps (``grid``), or the z-buffer's
-    occluders and its settings."""
+def fit_sample(inputs: AnchorInputs, size: int) -> tuple[AnchorInputs, float]:
+    """``inputs`` with the map and Hhat cut to a seeded uniform sample of ``size`` of the
+    map's Gaussians (drawn by ``inputs.generator``), and the number of the map's Gaussians
+    each stands for (N / size); ``inputs`` as they are and 1 when ``size`` is 0 or at least
+    the map's count."""
+    n = inputs.gmap.num_gaussians
+    if size <= 0 or size >= n:
+        return inputs, 1.0
+    pick = torch.randperm(n, generator=inputs.generator)[:size]
+    idx = torch.sort(pick).values.to(inputs.gmap.means.device)
+    h_acc = {k: v[idx] if isinstance(v, Tensor) and v.shape[:1] == (n,) else v
+             for k, v in inputs.h_acc.items()}
+    return dataclasses.replace(inputs, gmap=inputs.gmap.subset(idx), h_acc=h_acc), n / size
+
+
+def _visibility(inputs: AnchorInputs, prox_intr: Intrinsics, share: float = 1.0
+                ) -> dict[str, Any]:
+    """The proxy's visibility arguments: the deep opacity maps (``grid``; each occluder's
+    mass times ``share``, the map's Gaussians each of ``inputs``' stands for), or the
+    z-buffer's occluders and its settings."""
     cfg = inputs.config
     if cfg.visibility == "transmittance":
         center, r98 = scene_center_radius(inputs.gmap.means)
-        return {"grid": OpacityMaps.build(
+        grid = OpacityMaps.build(
             inputs.gmap, prox_intr, center, r98, cells=cfg.transmittance_cells,
             bins=cfg.transmittance_bins, max_occluders=cfg.occluders,
-            generator=inputs.generator)}
+            generator=inputs.generator)
+        if share != 1.0:
+            grid = dataclasses.replace(grid, mass=grid.mass * share)
+        return {"grid": grid}
     return dict(
         num_occluders=cfg.occluders,
         occ_grid=cfg.occlusion_grid,
