@@ -257,6 +257,10 @@ class ScoringConfig:
         description="extra support samples along the anchor ray per surface sample")
     ray_min_fraction: HalfOpenUnit = Field(
         default=0.5, description="ray samples lie in [this, 1) x the surface depth")
+    support_gaussians: Count = Field(default=65536,
+        description="the support samples' surface points are the nearest means per grid "
+        "cell among a seeded uniform sample of this many of the map's Gaussians, so that "
+        "their cost does not grow with the map (0: every Gaussian)")
     max_samples: SupportSamples = Field(default=2048,
         description="K, at most this many support samples (a seeded subset beyond)")
     min_opacity: UnitFloat = Field(default=0.05,

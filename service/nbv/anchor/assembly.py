@@ -33,7 +33,8 @@ from .records import AnchorInputs, ModelDiagnostics
 from .unexplored import unexplored_space
 from .visibility import OpacityMaps
 
-__all__ = ["AssembledProxy", "assemble_proxy", "build_proxy", "fit_sample", "proxy_intrinsics"]
+__all__ = ["AssembledProxy", "assemble_proxy", "build_proxy", "fit_sample", "proxy_intrinsics",
+           "uniform_subset"]
 
 
 @dataclass
@@ -133,16 +134,33 @@ def build_proxy(inputs: AnchorInputs, prox_intr: Intrinsics, radius: float,
     return proxy, model
 
 
+def uniform_subset(n: int, size: int, generator: torch.Generator | None) -> Tensor:
+    """A uniform random subset of ``size`` of ``range(n)`` (``size`` < n), increasing, in
+    O(size log size) where ``size`` <= n / 2: the first ``size`` distinct values of 2 ``size``
+    uniform draws (the order in which an i.i.d. sequence meets new values makes every subset
+    of a size equally likely); a permutation of ``range(n)`` otherwise, or when the draws
+    meet fewer distinct values."""
+    if 2 * size <= n:
+        m = 2 * size
+        draws = torch.randint(0, n, (m,), generator=generator)
+        uniq, inv = torch.unique(draws, return_inverse=True)
+        if uniq.numel() >= size:
+            first = torch.full((uniq.numel(),), m, dtype=torch.long).scatter_reduce(
+                0, inv, torch.arange(m), reduce="amin")
+            return torch.sort(uniq[torch.argsort(first)[:size]]).values
+    return torch.sort(torch.randperm(n, generator=generator)[:size]).values
+
+
 def fit_sample(inputs: AnchorInputs, size: int) -> tuple[AnchorInputs, float]:
     """``inputs`` with the map and Hhat cut to a seeded uniform sample of ``size`` of the
-    map's Gaussians (drawn by ``inputs.generator``), and the number of the map's Gaussians
+    map's Gaussians (:func:`uniform_subset`, drawn by ``inputs.generator``), and the
+    number of the map's Gaussians
     each stands for (N / size); ``inputs`` as they are and 1 when ``size`` is 0 or at least
     the map's count."""
     n = inputs.gmap.num_gaussians
     if size <= 0 or size >= n:
         return inputs, 1.0
-    pick = torch.randperm(n, generator=inputs.generator)[:size]
-    idx = torch.sort(pick).values.to(inputs.gmap.means.device)
+    idx = uniform_subset(n, size, inputs.generator).to(inputs.gmap.means.device)
     h_acc = {k: v[idx] if isinstance(v, Tensor) and v.shape[:1] == (n,) else v
              for k, v in inputs.h_acc.items()}
     return dataclasses.replace(inputs, gmap=inputs.gmap.subset(idx), h_acc=h_acc), n / size

@@ -25,6 +25,7 @@ import torch
 from torch import Tensor
 
 from ..anchor.ascent import find_anchor
+from ..anchor.assembly import uniform_subset
 from ..anchor.envelope import PoolEnvelope
 from ..anchor.fitting import typical_fisher_from_views
 from ..anchor.records import AnchorInputs
@@ -128,6 +129,18 @@ def _knearest(ctx: SelectionContext, anchor_c2w: Tensor, n_short: int, lat: dict
     return shortlist, scores
 
 
+def _support_map(ctx: SelectionContext) -> tuple[Tensor, Tensor]:
+    """The means [M, 3] and opacities [M] the support samples are drawn from: the map's, or
+    a seeded uniform sample of ``scoring.support_gaussians`` of them (at large maps: the
+    nearest mean of each support grid cell is then the sample's)."""
+    g = ctx.gmap
+    n, m = g.num_gaussians, int(ctx.config.scoring.support_gaussians)
+    if 0 < m < n:
+        idx = uniform_subset(n, m, ctx.generator(5)).to(g.means.device)
+        return g.means.detach()[idx], torch.sigmoid(g.opacity_logits.detach()[idx])
+    return g.means, g.opacities.detach()
+
+
 def _rows(ctx: SelectionContext, anchors: list[tuple[Tensor, float]], lat: dict[str, float],
           details: dict[str, Any]) -> tuple[Tensor, Tensor]:
     """B = M Pi of the eligible candidates [E, d], and of the acquired views that condition
@@ -156,13 +169,14 @@ def _rows(ctx: SelectionContext, anchors: list[tuple[Tensor, float]], lat: dict[
             rows = torch.cat([rows, acquired.detach().to(dt)])
         blocks: list[Tensor] = []
         rho: Tensor | None = None
+        means, opacities = _support_map(ctx)
         for a, (pose, weight) in enumerate(anchors):
             checkpoint()
             x = support_samples(
-                ctx.gmap.means,
+                means,
                 pose,
                 ctx.intrinsics,
-                opacities=ctx.gmap.opacities.detach(),
+                opacities=opacities,
                 grid=sc.grid,
                 ray_samples=sc.ray_samples,
                 ray_min_fraction=sc.ray_min_fraction,

@@ -116,3 +116,17 @@ def test_the_fit_sample_estimates_the_whole_map() -> None:
     assert float(((b - a) / a).abs().max()) < 0.15
     ra, rb = a.argsort().argsort().double(), b.argsort().argsort().double()
     assert float(torch.corrcoef(torch.stack([ra, rb]))[0, 1]) > 0.9
+
+
+def test_the_fit_sample_is_a_uniform_subset() -> None:
+    from agilegs.service.nbv.anchor.assembly import uniform_subset
+
+    gen = torch.Generator().manual_seed(0)
+    counts = torch.zeros(40)
+    for _ in range(4000):
+        idx = uniform_subset(40, 8, gen)  # the draws' path
+        assert idx.numel() == 8 and bool((idx[1:] > idx[:-1]).all())
+        counts[idx] += 1
+    # every index drawn with probability 8 / 40: 800 times each, binomial sd ~25
+    assert float((counts - 800).abs().max()) < 125
+    assert uniform_subset(10, 7, gen).unique().numel() == 7  # the permutation's path
