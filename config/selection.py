@@ -178,6 +178,14 @@ class AnchorConfig:
         description="pool candidates used as starts, the best under the proxy")
     warm_start: Bool = Field(default=True,
                              description="also start from the previous anchor (warm state)")
+    refit_every: Annotated[int, Strict(), Field(ge=1, le=1000),
+                           BeforeValidator(integral)] = Field(
+        default=4,
+        description="the directional model's terms accumulated over the acquired views are "
+        "kept in the warm state and extended by the new views' terms; they are recomputed "
+        "over every acquired view every this many events, and whenever the map's Gaussian "
+        "count changes or the acquired views are not the kept ones followed by new ones "
+        "(1: every event)")
     start_samples: Count = Field(default=256,
         description="the pool is first ranked by a coarse psi over this many of the proxy's "
         "samples (drawn in proportion to their share of psi, reweighted: an unbiased "

@@ -120,6 +120,8 @@ OPTIONS: dict[str, tuple[str, Callable[[SelectConfig], SelectConfig]]] = {
                     "(no coarse pass)", _anchor(start_samples=0)),
     "full_fit": ("the proxy's visibility and rates over every Gaussian of the map (no fixed-"
                  "size sample)", _anchor(fit_gaussians=0)),
+    "refit": ("the directional model's terms recomputed over every acquired view at every "
+              "event (none carried over)", _anchor(refit_every=1)),
     "modes": ("three anchors from distinct modes of psi (starts spread alike), the shortlist "
               "drawn across their support samples", _anchor(anchors=3)),
     "one_anchor": ("one anchor, the shortlist drawn around it", _anchor(anchors=1)),

@@ -71,6 +71,8 @@ class AnchorResult:
         mode_psi: psi at each of ``modes``.
         carry: the parts to keep for the next event (with ``carry_over_tolerance`` > 0,
             :mod:`.carry`), else None.
+        rates_carry: the directional model's accumulated terms for the next event (with
+            ``refit_every`` > 1), else None.
     """
 
     c2w: Tensor
@@ -85,6 +87,7 @@ class AnchorResult:
     modes: Tensor | None = None
     mode_psi: list[float] = field(default_factory=list)
     carry: Any = None
+    rates_carry: Any = None
 
     def report(self, eligible: list[int], config: AnchorConfig
                ) -> tuple[dict[str, float], dict[str, Any]]:
@@ -119,6 +122,8 @@ class AnchorResult:
         )
         if config.carry_over_tolerance > 0:
             details["anchor_carried"] = bool(d.carried)
+        if config.refit_every > 1:
+            details["rates_carried"] = bool(d.rates_carried)
         if self.pool_refined is not None:
             details["anchor_refined"] = int(self.pool_refined.numel())
         if self.pool_psi is not None:
@@ -434,7 +439,8 @@ def find_anchor(inputs: AnchorInputs) -> AnchorResult:
     modes = distinct_best(poses, vals, cfg.anchors, cfg.mode_separation * radius, radius)
     stages.lap("ascent")
     diagnostics = AnchorDiagnostics(
-        model=built.model, carried=built.carried, timings_s=stages.seconds,
+        model=built.model, carried=built.carried, rates_carried=built.rates_carried,
+        timings_s=stages.seconds,
         ascent=ascent.tally, start_indices=[int(i) for i in best],
         proxy_samples=int(proxy.means.shape[0]),
     )
@@ -451,6 +457,7 @@ def find_anchor(inputs: AnchorInputs) -> AnchorResult:
         modes=poses[modes].detach(),
         mode_psi=[float(vals[i]) for i in modes],
         carry=built.carry,
+        rates_carry=built.rates_carry,
     )
 
 

@@ -103,10 +103,13 @@ def _anchor(ctx: SelectionContext, lat: dict[str, float], out: dict[str, Any]) -
             lam=ctx.lam,
             background=ctx.background,
             carried=ctx.state.get("anchor_parts"),
+            rates_carried=ctx.state.get("anchor_rates"),
         ))
         out["state"]["anchor_c2w"] = res.c2w.clone()
         if res.carry is not None:
             out["state"]["anchor_parts"] = res.carry
+        if res.rates_carry is not None:
+            out["state"]["anchor_rates"] = res.rates_carry
     stages, details = res.report(ctx.eligible, cfg.anchor)
     lat.update(stages)  # within "anchor", not added to it
     out["details"].update(details)

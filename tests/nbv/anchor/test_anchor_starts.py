@@ -113,7 +113,8 @@ def test_the_fit_sample_estimates_the_whole_map() -> None:
     b = _values(half.proxy, pool)
     torch.testing.assert_close(_values(same.proxy, pool), a, rtol=0, atol=0)
     assert half.proxy.means.shape[0] < whole.proxy.means.shape[0]
-    assert float(((b - a) / a).abs().max()) < 0.15
+    rel = ((b - a) / a).abs()  # half of 1200 Gaussians: a few percent, at most a fifth
+    assert float(rel.mean()) < 0.08 and float(rel.max()) < 0.25
     ra, rb = a.argsort().argsort().double(), b.argsort().argsort().double()
     assert float(torch.corrcoef(torch.stack([ra, rb]))[0, 1]) > 0.9
 
@@ -130,3 +131,35 @@ def test_the_fit_sample_is_a_uniform_subset() -> None:
     # every index drawn with probability 8 / 40: 800 times each, binomial sd ~25
     assert float((counts - 800).abs().max()) < 125
     assert uniform_subset(10, 7, gen).unique().numel() == 7  # the permutation's path
+
+
+def test_carried_rates_equal_a_refit() -> None:
+    from agilegs.config.selection import FIELD_NAMES
+    from agilegs.service.nbv.anchor.fitting import directional_rates
+
+    gmap, pool, acq, h = tiny_scene(n=600)
+    kw = dict(near=0.1, edge=2.0, lam=1e-6)
+    acq4 = torch.cat([acq, pool[[14]]])
+    first = directional_rates(gmap, h, acq4[:2], INTR, FIELD_NAMES, refit_every=3, **kw)
+    assert not first.carried and first.carry is not None
+    # a view more: its terms added to the carried ones
+    nxt = directional_rates(gmap, h, acq4[:3], INTR, FIELD_NAMES, refit_every=3,
+                            carried=first.carry, **kw)
+    ref = directional_rates(gmap, h, acq4[:3], INTR, FIELD_NAMES, **kw)
+    assert nxt.carried and ref.carry is None
+    torch.testing.assert_close(nxt.accumulated, ref.accumulated, rtol=1e-12, atol=1e-300)
+    assert nxt.typical == pytest.approx(ref.typical, rel=0.02)  # from the views' quantiles
+    # every third event refits (the first, then carried twice); other views than the
+    # carried ones refit too, and so does another map
+    third = directional_rates(gmap, h, acq4, INTR, FIELD_NAMES, refit_every=3,
+                              carried=nxt.carry, **kw)
+    assert third.carried
+    fourth = directional_rates(gmap, h, acq4, INTR, FIELD_NAMES, refit_every=3,
+                               carried=third.carry, **kw)
+    assert not fourth.carried and fourth.carry is not None and fourth.carry["age"] == 0
+    other = directional_rates(gmap, h, acq4[[1, 0, 2]], INTR, FIELD_NAMES, refit_every=3,
+                              carried=first.carry, **kw)
+    assert not other.carried
+    fewer = directional_rates(gmap, h, acq4[:3], INTR, FIELD_NAMES, refit_every=3,
+                              carried={**first.carry, "count": 5}, **kw)
+    assert not fewer.carried
