@@ -340,8 +340,9 @@ def directional_rates(
     w_slot = w_sum[:, kinds]  # [N, Q]
     seen_slot = w_slot >= floor[kinds]
     g = excess / w_slot.clamp_min(1e-30)
+    g_rows, seen_rows = g.T.contiguous(), seen_slot.T.contiguous()  # a slot per row [Q, N]
     g_med = torch.stack([
-        lower_median(g[seen_slot[:, q], q]) if bool(seen_slot[:, q].any())
+        lower_median(g_rows[q][seen_rows[q]]) if bool(seen_rows[q].any())
         else torch.zeros((), dtype=dt, device=dev)
         for q in range(flat.shape[1])
     ])
@@ -363,7 +364,7 @@ def view_quantiles(w: Tensor) -> tuple[Tensor, Tensor]:
     pos = w[w > 1e-6].detach().to(torch.float64).cpu()
     if pos.numel() == 0:
         return torch.zeros(QUANTILES, dtype=torch.float64), torch.zeros((), dtype=torch.float64)
-    srt = torch.sort(pos).values
+    srt = torch.from_numpy(np.sort(pos.numpy()))
     at = ((torch.arange(QUANTILES, dtype=torch.float64) + 0.5) * (pos.numel() / QUANTILES))
     return srt[at.long().clamp_max(pos.numel() - 1)], torch.tensor(float(pos.numel()),
                                                                   dtype=torch.float64)
