@@ -48,7 +48,7 @@ def coarse_proxy(proxy: ProxyPsi, samples: int, typical: float | None) -> ProxyP
     if not total > 0:
         return None
     p = share / total
-    u = (torch.arange(samples, dtype=torch.float64) + 0.5) / samples
+    u = (torch.arange(samples, dtype=torch.float64, device=p.device) + 0.5) / samples
     idx = torch.searchsorted(torch.cumsum(p, 0), u).clamp_max(n - 1)
     uniq, counts = torch.unique(idx, return_counts=True)
     uniq = uniq[p[uniq] > 0]
