@@ -34,6 +34,8 @@ __all__ = [
     "observation_rates",
     "prior_floor",
     "slot_kinds",
+    "terms_from_state",
+    "terms_to_state",
     "typical_fisher_from_h_acc",
     "typical_fisher_from_views",
 ]
@@ -382,6 +384,32 @@ def weighted_lower_median(quantiles: Tensor, counts: Tensor) -> float:
     cum = torch.cumsum(wts[order], 0)
     k = int(torch.searchsorted(cum, torch.tensor(0.5 * total, dtype=cum.dtype)))
     return float(vals[order[min(k, vals.numel() - 1)]])
+
+
+_STATE_PARTS = ("w_sum", "poses", "quantiles", "counts")
+
+
+def terms_to_state(carry: dict[str, Any]) -> dict[str, Tensor]:
+    """:func:`directional_rates`' ``carry`` as flat warm-state entries, tensors only
+    (``rates_<part>``, and ``rates_meta``: the Gaussians' count, the views, the age)."""
+    out = {f"rates_{k}": carry[k] for k in _STATE_PARTS}
+    out["rates_meta"] = torch.tensor([int(carry["count"]), int(carry["views"]),
+                                      int(carry["age"])], dtype=torch.long)
+    return out
+
+
+def terms_from_state(state: Any) -> dict[str, Any] | None:
+    """The ``carry`` :func:`terms_to_state` flattened into ``state`` (a warm state), or None
+    when an entry is missing."""
+    if not hasattr(state, "get"):
+        return None
+    parts = {k: state.get(f"rates_{k}") for k in _STATE_PARTS}
+    meta = state.get("rates_meta")
+    if not isinstance(meta, Tensor) or meta.numel() != 3 or any(
+            not isinstance(v, Tensor) for v in parts.values()):
+        return None
+    count, views, age = (int(v) for v in meta.tolist())
+    return {**parts, "count": count, "views": views, "age": age}
 
 
 def _carried_terms(carried: Any, poses: Tensor, n: int, refit_every: int

@@ -27,7 +27,7 @@ from torch import Tensor
 from ..anchor.ascent import find_anchor
 from ..anchor.assembly import uniform_subset
 from ..anchor.envelope import PoolEnvelope
-from ..anchor.fitting import typical_fisher_from_views
+from ..anchor.fitting import terms_from_state, terms_to_state, typical_fisher_from_views
 from ..anchor.records import AnchorInputs
 from ..camera import Camera
 from ..cancel import checkpoint
@@ -103,13 +103,16 @@ def _anchor(ctx: SelectionContext, lat: dict[str, float], out: dict[str, Any]) -
             lam=ctx.lam,
             background=ctx.background,
             carried=ctx.state.get("anchor_parts"),
-            rates_carried=ctx.state.get("anchor_rates"),
+            rates_carried=terms_from_state(
+                {k[len("anchor_"):]: v for k, v in ctx.state.items()
+                 if isinstance(k, str) and k.startswith("anchor_rates_")}),
         ))
         out["state"]["anchor_c2w"] = res.c2w.clone()
         if res.carry is not None:
             out["state"]["anchor_parts"] = res.carry
-        if res.rates_carry is not None:
-            out["state"]["anchor_rates"] = res.rates_carry
+        if res.rates_carry is not None:  # flat entries, tensors only
+            out["state"].update({f"anchor_{k}": v
+                                 for k, v in terms_to_state(res.rates_carry).items()})
     stages, details = res.report(ctx.eligible, cfg.anchor)
     lat.update(stages)  # within "anchor", not added to it
     out["details"].update(details)

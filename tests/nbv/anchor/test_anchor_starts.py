@@ -163,3 +163,28 @@ def test_carried_rates_equal_a_refit() -> None:
     fewer = directional_rates(gmap, h, acq4[:3], INTR, FIELD_NAMES, refit_every=3,
                               carried={**first.carry, "count": 5}, **kw)
     assert not fewer.carried
+
+
+def test_agile_carries_the_rates_in_its_warm_state() -> None:
+    from agilegs.config.selection import SelectConfig
+    from agilegs.service.nbv import select
+
+    gmap, pool, acq, h = tiny_scene(n=600)
+    cfg = SelectConfig(shortlist_size=4, anchor=AnchorConfig(refit_every=3))
+    first = select("agile", gmap, h, pool, INTR, config=cfg, acquired=acq, lam=1e-6)
+    assert first.details["rates_carried"] is False
+    assert {"anchor_rates_w_sum", "anchor_rates_meta"} <= set(first.state)
+    assert all(isinstance(v, torch.Tensor) for k, v in first.state.items()
+               if k.startswith("anchor_rates_"))
+    more = torch.cat([acq, pool[[first.index]]])
+    nxt = select("agile", gmap, h, pool, INTR, config=cfg, acquired=more, lam=1e-6,
+                 state=first.state)
+    assert nxt.details["rates_carried"] is True
+    # without the warm state, or with refit_every=1, a refit
+    cold = select("agile", gmap, h, pool, INTR, config=cfg, acquired=more, lam=1e-6)
+    assert cold.details["rates_carried"] is False
+    every = SelectConfig(shortlist_size=4, anchor=AnchorConfig(refit_every=1))
+    again = select("agile", gmap, h, pool, INTR, config=every, acquired=more, lam=1e-6,
+                   state=first.state)
+    assert "rates_carried" not in again.details
+    assert not any(k.startswith("anchor_rates_") for k in again.state)
