@@ -42,7 +42,7 @@ from agilegs.config.selection import (
 from agilegs.config.types import validate_config
 
 from .camera import Intrinsics, check_pose
-from .candidates import pool_radius, scene_center
+from .candidates import pool_radius, scene_center_radius
 from .errors import InputError
 from .gaussians import GaussianMap
 from .information import eig_scores
@@ -320,7 +320,7 @@ def select_from(inputs: SelectInputs, *, state: dict[str, Any] | None = None,
     gmap = inputs.gmap
     dt = gmap.dtype
     pool = inputs.candidates.detach().to(dt)
-    aim = scene_center(gmap.means)
+    aim, _ = scene_center_radius(gmap.means)
     radius = pool_radius(pool, aim)
     sc = config.scoring
     rot_weight = sc.rot_weight if sc.rot_weight is not None else radius
