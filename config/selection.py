@@ -186,8 +186,32 @@ class AnchorConfig:
         description="pool candidates used as starts, the best under the proxy")
     warm_start: Bool = Field(default=True,
                              description="also start from the previous anchor (warm state)")
+    refit_every: Annotated[int, Strict(), Field(ge=1, le=1000),
+                           BeforeValidator(integral)] = Field(
+        default=4,
+        description="the directional model's terms accumulated over the acquired views are "
+        "kept in the warm state and extended by the new views' terms; they are recomputed "
+        "over every acquired view every this many events, and whenever the map's Gaussian "
+        "count changes or the acquired views are not the kept ones followed by new ones "
+        "(1: every event)")
+    start_samples: Count = Field(default=256,
+        description="the pool is first ranked by a coarse psi over this many of the proxy's "
+        "samples (drawn in proportion to their share of psi, reweighted: an unbiased "
+        "estimate), and the full psi is evaluated only on the start_refined best under it "
+        "(0: the full psi over the whole pool)")
+    start_refined: Annotated[int, Strict(), Field(ge=1, le=100_000),
+                             BeforeValidator(integral)] = Field(
+        default=24,
+        description="pool candidates, the best under the coarse psi, whose full psi is "
+        "evaluated and among which the starts are chosen (with start_samples > 0)")
     num_gaussians: Count = Field(default=2000,
         description="Gaussians importance-sampled for the proxy (0: all)")
+    fit_gaussians: Count = Field(default=16384,
+        description="the fitted and directional models read a seeded uniform sample of this "
+        "many of the map's Gaussians, each standing for N / fit_gaussians of them: the "
+        "visibility's occluders and the rates are drawn and fitted over it, and the proxy's "
+        "importance sample drawn from it, so that their cost does not grow with the map "
+        "(0: every Gaussian)")
     resolution: Width | None = Field(
         default=None,
         description="anchor image width in pixels (None: the proxy uses the candidates' "
@@ -249,6 +273,10 @@ class ScoringConfig:
         description="extra support samples along the anchor ray per surface sample")
     ray_min_fraction: HalfOpenUnit = Field(
         default=0.5, description="ray samples lie in [this, 1) x the surface depth")
+    support_gaussians: Count = Field(default=65536,
+        description="the support samples' surface points are the nearest means per grid "
+        "cell among a seeded uniform sample of this many of the map's Gaussians, so that "
+        "their cost does not grow with the map (0: every Gaussian)")
     max_samples: SupportSamples = Field(default=2048,
         description="K, at most this many support samples (a seeded subset beyond)")
     min_opacity: UnitFloat = Field(default=0.05,

@@ -8,9 +8,10 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 ANCHOR_STAGES = ("envelope", "visibility", "rates", "unexplored", "starts", "ascent")
-"""The anchor's stages, in order: the pool's envelope, the visibility (opacity maps), the
-model's rates (fitted over the acquired views, and the importance sample), unexplored space,
-the starts (psi of the pool), the ascent."""
+"""The anchor's stages, in order: the pool's envelope, the visibility (the map's sample and
+the opacity maps), the model's rates (fitted over the acquired views, the new ones' terms
+added to the carried ones between refits, and the importance sample), unexplored space, the
+starts (the coarse psi of the pool, the full psi of the refined candidates), the ascent."""
 RUN_STAGES = ANCHOR_STAGES + ("ascent.gradients", "ascent.values")
 """The same and, within the ascent, its evaluations with their gradient and of values alone."""
 
@@ -40,8 +41,9 @@ def anchor_split_table(results: Mapping[str, Any], keys: list[str],
         "## Where the anchor's time goes",
         "",
         "The anchor's stages, ms per event (means over events, then scenes): the pool's "
-        "envelope, the visibility (opacity maps), the model's rates (fitted over the acquired "
-        "views), unexplored space, the starts (ψ of the pool), the ascent, and within it the "
+        "envelope, the visibility (the map's sample, opacity maps), the model's rates (fitted "
+        "over the acquired views), unexplored space, the starts (the coarse ψ of the pool, "
+        "the full ψ of the best), the ascent, and within it the "
         "evaluations with their gradient and those of values alone.",
         "",
         "| Method | anchor | " + " | ".join(RUN_STAGES) + " |",

@@ -120,6 +120,12 @@ OPTIONS: dict[str, tuple[str, Callable[[SelectConfig], SelectConfig]]] = {
     "carry_over": ("the anchor's pose-independent parts (the proxy) reused from the last event "
                    "while the map's and Hhat's per-field sums are within 20% of theirs at the "
                    "build", _anchor(carry_over_tolerance=0.2)),
+    "full_starts": ("the anchor's starts ranked by the full proxy psi over the whole pool "
+                    "(no coarse pass)", _anchor(start_samples=0)),
+    "full_fit": ("the proxy's visibility and rates over every Gaussian of the map (no fixed-"
+                 "size sample)", _anchor(fit_gaussians=0)),
+    "refit": ("the directional model's terms recomputed over every acquired view at every "
+              "event (none carried over)", _anchor(refit_every=1)),
     "modes": ("three anchors from distinct modes of psi (starts spread alike), the shortlist "
               "drawn across their support samples", _anchor(anchors=3)),
     "one_anchor": ("one anchor, the shortlist drawn around it", _anchor(anchors=1)),

@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -120,10 +121,24 @@ def capture_pool(
     return c2w.to(dtype)
 
 
-def scene_center_radius(means: Tensor, quantile: float = 0.98) -> tuple[Tensor, float]:
-    """Robust centre (per-axis median) [3] and radius (``quantile`` of distances) of [N, 3]."""
+def scene_center(means: Tensor) -> Tensor:
+    """Robust centre of points [N, 3] (N > 0): the per-axis median [3] (the lower of the two
+    middle values, as ``median(dim=0)``), by a selection on the CPU (numpy's introselect on
+    each axis) instead of torch's; other devices and dtypes go to torch."""
     m = means.detach()
-    center = m.median(dim=0).values
+    if m.device.type != "cpu" or m.dtype not in (torch.float32, torch.float64) or (
+            m.shape[0] == 0 or bool(torch.isnan(m).any())):
+        return m.median(dim=0).values
+    a = m.T.contiguous().numpy()
+    k = (a.shape[1] - 1) // 2
+    return torch.from_numpy(np.partition(a, k, axis=1)[:, k].copy())
+
+
+def scene_center_radius(means: Tensor, quantile: float = 0.98) -> tuple[Tensor, float]:
+    """Robust centre (per-axis median, :func:`scene_center`) [3] and radius (``quantile`` of
+    distances) of [N, 3]."""
+    m = means.detach()
+    center = scene_center(m)
     dist = (m - center).norm(dim=1)
     k = max(1, min(dist.numel(), int(round(quantile * dist.numel()))))
     radius = float(dist.kthvalue(k).values) if dist.numel() else 1.0

@@ -203,3 +203,13 @@ def test_coverage_kernel_equals_the_torch_reference(dtype: torch.dtype) -> None:
         backend.set_default_backend(None)
     torch.testing.assert_close(full.m, slow.m, rtol=tol, atol=tol)
     assert torch.equal(full.chi, slow.chi)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("n", [1, 2, 1001, 1002])
+def test_scene_center_is_torch_s_per_axis_median(dtype: torch.dtype, n: int) -> None:
+    from agilegs.service.nbv.candidates import scene_center
+
+    pts = torch.randn(n, 3, generator=torch.Generator().manual_seed(n), dtype=dtype)
+    pts[: n // 3, 1] = 0.25  # ties
+    torch.testing.assert_close(scene_center(pts), pts.median(dim=0).values, rtol=0, atol=0)

@@ -459,7 +459,7 @@ def test_the_anchor_reports_under_the_wire_s_names(world) -> None:
         "anchor.starts", "anchor.ascent", "anchor.ascent.gradients", "anchor.ascent.values"]
     anchor_keys = ["ascent_evaluations", "anchor_modes", "anchor_psi", "best_candidate_psi",
                    "psi_evaluations", "anchor_starts", "proxy_samples", "anchor_carried",
-                   "pool_proxy_psi"]
+                   "rates_carried", "pool_proxy_psi"]
     assert list(sel.details)[:len(anchor_keys)] == anchor_keys
     # the same anchor, found directly: its diagnostics are the selection's entries
     aim, _ = scene_center_radius(gmap.means)
@@ -477,6 +477,7 @@ def test_the_anchor_reports_under_the_wire_s_names(world) -> None:
     assert details["anchor_starts"] == d.start_indices
     assert details["proxy_samples"] == d.proxy_samples
     assert details["anchor_carried"] is d.carried is False
+    assert details["rates_carried"] is d.rates_carried is False
     assert details["psi_evaluations"] == res.evaluations
     assert stages["anchor.ascent.values"] == d.ascent.value_s * 1e3
 

@@ -13,7 +13,9 @@ pool's envelope (:mod:`.envelope`). Two psi behind one option (``AnchorConfig.ps
   the twist. Faithful, but a Fisher pass per value and rough (the rasterizer's hard
   cut-offs).
 
-The proxy of an event is assembled in :mod:`.assembly` (or carried over, :mod:`.carry`); a
-call's inputs and its typed diagnostics are the records of :mod:`.records`. The settings are
+The proxy of an event is assembled in :mod:`.assembly` (or carried over, :mod:`.carry`), over
+a sample of the map of fixed size; the pool's psi, from which the starts are drawn, is ranked
+by a coarse psi first (:mod:`.starts`); a call's inputs and its typed diagnostics are the
+records of :mod:`.records`. The settings are
 :class:`~agilegs.config.selection.AnchorConfig`.
 """

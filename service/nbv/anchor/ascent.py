@@ -39,6 +39,7 @@ from .exact import ExactPsi, exact_psi_fn
 from .line_search import CompiledLineSearch
 from .proxy import ProxyPsi
 from .records import AnchorDiagnostics, AnchorInputs, AscentTally
+from .starts import two_pass_pool_psi
 
 __all__ = ["AnchorResult", "Ascent", "ascend", "distinct_best", "find_anchor",
            "optimize_anchor"]
@@ -62,12 +63,16 @@ class AnchorResult:
         evaluations: psi evaluations (batched proxy calls count once per pose).
         diagnostics: the model, the stages' seconds, the ascent's split, the starts.
         pool_psi: the proxy psi of every pool candidate scored for the starts [D] (None for
-            the exact psi without a proxy).
+            the exact psi without a proxy): the full psi where ``pool_refined`` says, the
+            coarse one elsewhere (:mod:`.starts`).
+        pool_refined: the candidates whose full psi was evaluated [K] (None: every one).
         modes: the anchors of distinct modes [M, 4, 4], best first (``c2w`` first; only it
             unless ``config.anchors`` > 1).
         mode_psi: psi at each of ``modes``.
         carry: the parts to keep for the next event (with ``carry_over_tolerance`` > 0,
             :mod:`.carry`), else None.
+        rates_carry: the directional model's accumulated terms for the next event (with
+            ``refit_every`` > 1), else None.
     """
 
     c2w: Tensor
@@ -78,9 +83,11 @@ class AnchorResult:
     evaluations: int
     diagnostics: AnchorDiagnostics
     pool_psi: Tensor | None = None
+    pool_refined: Tensor | None = None
     modes: Tensor | None = None
     mode_psi: list[float] = field(default_factory=list)
     carry: Any = None
+    rates_carry: Any = None
 
     def report(self, eligible: list[int], config: AnchorConfig
                ) -> tuple[dict[str, float], dict[str, Any]]:
@@ -100,7 +107,9 @@ class AnchorResult:
         if self.modes is not None and self.modes.shape[0] > 1:
             details["anchor_modes"] = len(self.mode_psi)
         if config.psi == "proxy" and self.pool_psi is not None and self.pool_psi.numel():
-            best_psi: float | None = float(self.pool_psi.max())
+            full = (self.pool_psi if self.pool_refined is None
+                    else self.pool_psi[self.pool_refined])
+            best_psi: float | None = float(full.max())
         else:
             firsts = [tr[0] for tr in self.traces[:len(d.start_indices)] if tr]
             best_psi = max(firsts) if firsts else None
@@ -113,6 +122,10 @@ class AnchorResult:
         )
         if config.carry_over_tolerance > 0:
             details["anchor_carried"] = bool(d.carried)
+        if config.refit_every > 1:
+            details["rates_carried"] = bool(d.rates_carried)
+        if self.pool_refined is not None:
+            details["anchor_refined"] = int(self.pool_refined.numel())
         if self.pool_psi is not None:
             details["pool_proxy_psi"] = {v: float(p) for v, p in zip(eligible, self.pool_psi)}
         return stages, details
@@ -410,7 +423,8 @@ def find_anchor(inputs: AnchorInputs) -> AnchorResult:
     radius = inputs.radius
     built = assemble_proxy(inputs, radius, stages.lap)
     proxy = built.proxy
-    pool, pool_psi, best, starts = _starts(inputs, proxy, radius)
+    pool, pool_psi, refined, best, starts = _starts(inputs, proxy, radius,
+                                                     built.model.typical_term)
     stages.lap("starts")
     if cfg.psi == "proxy":
         ascent = Ascent(proxy, starts, config=cfg, envelope=inputs.envelope, radius=radius,
@@ -425,7 +439,8 @@ def find_anchor(inputs: AnchorInputs) -> AnchorResult:
     modes = distinct_best(poses, vals, cfg.anchors, cfg.mode_separation * radius, radius)
     stages.lap("ascent")
     diagnostics = AnchorDiagnostics(
-        model=built.model, carried=built.carried, timings_s=stages.seconds,
+        model=built.model, carried=built.carried, rates_carried=built.rates_carried,
+        timings_s=stages.seconds,
         ascent=ascent.tally, start_indices=[int(i) for i in best],
         proxy_samples=int(proxy.means.shape[0]),
     )
@@ -438,35 +453,49 @@ def find_anchor(inputs: AnchorInputs) -> AnchorResult:
         evaluations=ascent.evaluations,
         diagnostics=diagnostics,
         pool_psi=pool_psi.detach(),
+        pool_refined=refined,
         modes=poses[modes].detach(),
         mode_psi=[float(vals[i]) for i in modes],
         carry=built.carry,
+        rates_carry=built.rates_carry,
     )
 
 
-def _starts(inputs: AnchorInputs, proxy: ProxyPsi, radius: float
-            ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """The pool [D, 4, 4] in the map's dtype, its proxy psi [D], the best candidates under
-    it [K] (``config.num_starts``; of distinct modes with ``config.anchors`` > 1) and the
-    start poses [S, 4, 4] (theirs, and the previous anchor's with ``config.warm_start``)."""
+def _starts(inputs: AnchorInputs, proxy: ProxyPsi, radius: float, typical: float | None
+            ) -> tuple[Tensor, Tensor, Tensor | None, Tensor, Tensor]:
+    """The pool [D, 4, 4] in the map's dtype, its proxy psi [D] (full, or coarse outside the
+    refined candidates: :func:`.starts.two_pass_pool_psi` with ``config.start_samples`` and
+    ``config.start_refined``, ``typical`` the model's typical term), the refined candidates
+    [K] (None: all), the best candidates under the full psi [k] (``config.num_starts``; of
+    distinct modes with ``config.anchors`` > 1) and the start poses [S, 4, 4] (theirs, and
+    the previous anchor's with ``config.warm_start``)."""
     cfg = inputs.config
     dt = inputs.gmap.dtype
+    k = min(cfg.num_starts, inputs.candidates.shape[0])
+    sep = cfg.mode_separation * radius
+
+    def values(psi: ProxyPsi, poses: Tensor) -> Tensor:
+        return psi.values_in_parts(poses, POOL_CHUNK, checkpoint)  # a check per chunk
+
     with torch.no_grad():
         pool = inputs.candidates.detach().to(dt)
         placed = inputs.envelope.project(pool) if inputs.envelope is not None else pool
-        # a cancellation check per chunk
-        pool_psi = proxy.values_in_parts(placed, POOL_CHUNK, checkpoint)
-    k = min(cfg.num_starts, pool.shape[0])
+        pool_psi, refined = two_pass_pool_psi(
+            proxy, placed, samples=cfg.start_samples, refined=cfg.start_refined,
+            typical=typical, values=values,
+            also=(lambda rough: distinct_best(pool, rough, k, sep, radius))
+            if cfg.anchors > 1 else None)
+    among = torch.arange(pool.shape[0], device=pool.device) if refined is None else refined
     if cfg.anchors > 1:
-        best = distinct_best(pool, pool_psi, k, cfg.mode_separation * radius, radius)
+        best = among[distinct_best(pool[among], pool_psi[among], k, sep, radius)]
     else:
-        best = torch.topk(pool_psi, k).indices
+        best = among[torch.topk(pool_psi[among], min(k, among.numel())).indices]
     starts = pool[best]
     if cfg.warm_start and inputs.warm_c2w is not None:
         starts = torch.cat([starts, inputs.warm_c2w.detach().to(dt).reshape(1, 4, 4)])
     # the ascent moves on SE(3): poses within the wire's tolerance start from the nearest
     # rigid transform
-    return pool, pool_psi, best, project_to_se3(starts)
+    return pool, pool_psi, refined, best, project_to_se3(starts)
 
 def distinct_best(poses: Tensor, scores: Tensor, k: int, separation: float,
                   radius: float) -> Tensor:

@@ -23,6 +23,7 @@ from ..camera import Intrinsics
 from ..candidates import scene_center_radius
 from .carry import fingerprint, pack, settings_key, unpack
 from .fitting import (
+    DirectionalRates,
     directional_rates,
     information_weights,
     observation_rates,
@@ -33,7 +34,8 @@ from .records import AnchorInputs, ModelDiagnostics
 from .unexplored import unexplored_space
 from .visibility import OpacityMaps
 
-__all__ = ["AssembledProxy", "assemble_proxy", "build_proxy", "proxy_intrinsics"]
+__all__ = ["AssembledProxy", "assemble_proxy", "build_proxy", "fit_sample", "proxy_intrinsics",
+           "uniform_subset"]
 
 
 @dataclass
@@ -46,12 +48,18 @@ class AssembledProxy:
         carried: whether it is the previous event's.
         carry: the parts to keep for the next event (with ``carry_over_tolerance`` > 0 and
             no given typical Fisher; the carried parts themselves when reused), else None.
+        rates_carry: the directional model's accumulated terms over the acquired views, for
+            the next event (``refit_every`` > 1, :func:`.fitting.directional_rates`), else
+            None.
+        rates_carried: whether this event's rates extended carried terms.
     """
 
     proxy: ProxyPsi
     model: ModelDiagnostics
     carried: bool
     carry: Any = None
+    rates_carry: Any = None
+    rates_carried: bool = False
 
 
 def proxy_intrinsics(intrinsics: Intrinsics, config: AnchorConfig) -> Intrinsics:
@@ -82,40 +90,51 @@ def assemble_proxy(inputs: AnchorInputs, radius: float,
         if reused is not None:
             for stage in ("visibility", "rates", "unexplored"):
                 lap(stage)
-            return AssembledProxy(reused[0], reused[1], carried=True, carry=inputs.carried)
-    proxy, model = build_proxy(inputs, prox_intr, radius, lap)
+            return AssembledProxy(reused[0], reused[1], carried=True, carry=inputs.carried,
+                                  rates_carry=inputs.rates_carried)
+    proxy, model, rates = build_proxy(inputs, prox_intr, radius, lap)
     carry = pack(proxy, model.as_dict(), now, key) if now is not None else None
-    return AssembledProxy(proxy, model, carried=False, carry=carry)
+    return AssembledProxy(proxy, model, carried=False, carry=carry,
+                          rates_carry=None if rates is None else rates.carry,
+                          rates_carried=rates is not None and rates.carried)
 
 
 def build_proxy(inputs: AnchorInputs, prox_intr: Intrinsics, radius: float,
-                lap: Callable[[str], None]) -> tuple[ProxyPsi, ModelDiagnostics]:
+                lap: Callable[[str], None]
+                ) -> tuple[ProxyPsi, ModelDiagnostics, DirectionalRates | None]:
     """The proxy psi of the anchor's settings on the image ``prox_intr``: its visibility,
-    the model's rates and the unexplored space (``lap`` after each stage), and what its
-    model is."""
+    the model's rates and the unexplored space (``lap`` after each stage), what its model
+    is, and the directional model's fit (None for the others)."""
     cfg = inputs.config
     common: dict[str, Any] = dict(
         near=cfg.near_fraction * radius,
         edge=cfg.edge_softness * prox_intr.width,
         generator=inputs.generator,
     )
-    common.update(_visibility(inputs, prox_intr))
-    lap("visibility")
     acquired = inputs.acquired
-    if (inputs.typical is not None or cfg.model not in ("fitted", "directional")
-            or acquired is None or acquired.shape[0] == 0):
+    fitted = (inputs.typical is None and cfg.model in ("fitted", "directional")
+              and acquired is not None and acquired.shape[0] > 0)
+    # the fitted models read a sample of the map of fixed size (each Gaussian of it standing
+    # for `share` of the map's): the visibility's occluders and the rates
+    sample, share = (fit_sample(inputs, cfg.fit_gaussians) if fitted
+                     else (inputs, 1.0))
+    common.update(_visibility(sample, prox_intr, share))
+    lap("visibility")
+    if not fitted or acquired is None:
         proxy, model = _typical_model(inputs, prox_intr, common)
         lap("rates")
         lap("unexplored")
-        return proxy, model
+        return proxy, model, None
     rated = _directional_model if cfg.model == "directional" else _fitted_model
-    proxy, model, prior_rate, per_gaussian = rated(inputs, acquired, prox_intr, common)
+    proxy, model, prior_rate, per_gaussian, fit = rated(sample, acquired, prox_intr, common)
+    if share != 1.0:
+        proxy = dataclasses.replace(proxy, weight=proxy.weight * share)
     lap("rates")
     if cfg.unexplored:
-        space = unexplored_space(inputs.gmap, acquired, proxy, cells=cfg.unexplored_cells,
+        space = unexplored_space(sample.gmap, acquired, proxy, cells=cfg.unexplored_cells,
                                  shells=cfg.unexplored_shells,
                                  count_inside=cfg.unexplored_inside,
-                                 generator=inputs.generator)
+                                 generator=inputs.generator, share=share)
         n = int(space.means.shape[0])
         if n:
             rates = prior_rate.to(inputs.gmap.dtype).expand(n, *prior_rate.shape)
@@ -123,19 +142,59 @@ def build_proxy(inputs: AnchorInputs, prox_intr: Intrinsics, radius: float,
         model = dataclasses.replace(model, unexplored_fraction=space.unexplored_fraction,
                                     unexplored_points=n)
     lap("unexplored")
-    return proxy, model
+    return proxy, model, fit
 
 
-def _visibility(inputs: AnchorInputs, prox_intr: Intrinsics) -> dict[str, Any]:
-    """The proxy's visibility arguments: the deep opacity maps (``grid``), or the z-buffer's
-    occluders and its settings."""
+def uniform_subset(n: int, size: int, generator: torch.Generator | None) -> Tensor:
+    """A uniform random subset of ``size`` of ``range(n)`` (``size`` < n), increasing, in
+    O(size log size) where ``size`` <= n / 2: the first ``size`` distinct values of 2 ``size``
+    uniform draws (the order in which an i.i.d. sequence meets new values makes every subset
+    of a size equally likely); a permutation of ``range(n)`` otherwise, or when the draws
+    meet fewer distinct values."""
+    if 2 * size <= n:
+        m = 2 * size
+        draws = torch.randint(0, n, (m,), generator=generator)
+        uniq, inv = torch.unique(draws, return_inverse=True)
+        if uniq.numel() >= size:
+            first = torch.full((uniq.numel(),), m, dtype=torch.long).scatter_reduce(
+                0, inv, torch.arange(m), reduce="amin")
+            return torch.sort(uniq[torch.argsort(first)[:size]]).values
+    return torch.sort(torch.randperm(n, generator=generator)[:size]).values
+
+
+def fit_sample(inputs: AnchorInputs, size: int) -> tuple[AnchorInputs, float]:
+    """``inputs`` with the map and Hhat cut to a seeded uniform sample of ``size`` of the
+    map's Gaussians (:func:`uniform_subset`, seeded by the map's count), and the
+    number of the map's Gaussians
+    each stands for (N / size); ``inputs`` as they are and 1 when ``size`` is 0 or at least
+    the map's count."""
+    n = inputs.gmap.num_gaussians
+    if size <= 0 or size >= n:
+        return inputs, 1.0
+    # seeded by the map's count alone: the same sample at every event of an unchanged map
+    # (the carried rates' terms are its Gaussians')
+    gen = torch.Generator().manual_seed(n)
+    idx = uniform_subset(n, size, gen).to(inputs.gmap.means.device)
+    h_acc = {k: v[idx] if isinstance(v, Tensor) and v.shape[:1] == (n,) else v
+             for k, v in inputs.h_acc.items()}
+    return dataclasses.replace(inputs, gmap=inputs.gmap.subset(idx), h_acc=h_acc), n / size
+
+
+def _visibility(inputs: AnchorInputs, prox_intr: Intrinsics, share: float = 1.0
+                ) -> dict[str, Any]:
+    """The proxy's visibility arguments: the deep opacity maps (``grid``; each occluder's
+    mass times ``share``, the map's Gaussians each of ``inputs``' stands for), or the
+    z-buffer's occluders and its settings."""
     cfg = inputs.config
     if cfg.visibility == "transmittance":
         center, r98 = scene_center_radius(inputs.gmap.means)
-        return {"grid": OpacityMaps.build(
+        grid = OpacityMaps.build(
             inputs.gmap, prox_intr, center, r98, cells=cfg.transmittance_cells,
             bins=cfg.transmittance_bins, max_occluders=cfg.occluders,
-            generator=inputs.generator)}
+            generator=inputs.generator)
+        if share != 1.0:
+            grid = dataclasses.replace(grid, mass=grid.mass * share)
+        return {"grid": grid}
     return dict(
         num_occluders=cfg.occluders,
         occ_grid=cfg.occlusion_grid,
@@ -161,23 +220,27 @@ def _typical_model(inputs: AnchorInputs, prox_intr: Intrinsics, common: dict[str
 
 def _directional_model(inputs: AnchorInputs, acquired: Tensor, prox_intr: Intrinsics,
                        common: dict[str, Any]
-                       ) -> tuple[ProxyPsi, ModelDiagnostics, Tensor, float]:
-    """The directional model fitted over the acquired views [A, 4, 4]; with the unexplored
-    points' rates [Q] and weight scale."""
+                       ) -> tuple[ProxyPsi, ModelDiagnostics, Tensor, float, DirectionalRates]:
+    """The directional model fitted over the acquired views [A, 4, 4] (extending the
+    carried terms, ``inputs.rates_carried``, while ``refit_every`` allows); with the
+    unexplored points' rates [Q], weight scale and the fit."""
     drate = directional_rates(inputs.gmap, inputs.h_acc, acquired, prox_intr, inputs.fields,
                               lam=inputs.lam, near=common["near"], edge=common["edge"],
-                              grid=common.get("grid"), generator=inputs.generator)
+                              grid=common.get("grid"), generator=inputs.generator,
+                              carried=inputs.rates_carried,
+                              refit_every=inputs.config.refit_every)
     c = torch.log1p(drate.rate * drate.typical).sum(1)
     proxy = ProxyPsi.build(
         inputs.gmap, c, prox_intr, num_samples=inputs.config.num_gaussians, rate=drate.rate,
         slot_kinds=drate.kinds, **common,
     )
     return (proxy, ModelDiagnostics("directional", typical_term=drate.typical),
-            drate.prior_rate, 1.0)
+            drate.prior_rate, 1.0, drate)
 
 
 def _fitted_model(inputs: AnchorInputs, acquired: Tensor, prox_intr: Intrinsics,
-                  common: dict[str, Any]) -> tuple[ProxyPsi, ModelDiagnostics, Tensor, float]:
+                  common: dict[str, Any]
+                  ) -> tuple[ProxyPsi, ModelDiagnostics, Tensor, float, None]:
     """The fitted model over the acquired views [A, 4, 4]; with the unexplored points'
     rate [] and weight scale."""
     fit = observation_rates(inputs.gmap, inputs.h_acc, acquired, prox_intr, inputs.fields,
@@ -188,4 +251,4 @@ def _fitted_model(inputs: AnchorInputs, acquired: Tensor, prox_intr: Intrinsics,
         slots=fit.slots, **common,
     )
     return (proxy, ModelDiagnostics("fitted", typical_term=fit.typical),
-            torch.tensor(fit.prior_rate, dtype=inputs.gmap.dtype), float(fit.slots))
+            torch.tensor(fit.prior_rate, dtype=inputs.gmap.dtype), float(fit.slots), None)

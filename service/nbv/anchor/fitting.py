@@ -12,6 +12,7 @@ log(1 + m_q / Hhat_iq) (:func:`information_weights`) and psi(T) ~ sum_i c_i w_i(
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -33,6 +34,8 @@ __all__ = [
     "observation_rates",
     "prior_floor",
     "slot_kinds",
+    "terms_from_state",
+    "terms_to_state",
     "typical_fisher_from_h_acc",
     "typical_fisher_from_views",
 ]
@@ -239,6 +242,8 @@ class DirectionalRates:
             acquired poses [N, 7].
         typical: f, the median proxy term of the (Gaussian, acquired view) pairs that see it.
         prior_rate: the rates of a Gaussian no view has seen (Hhat = lambda) [Q]: g_q / lambda_q.
+        carry: the accumulated terms to carry to the next event (:func:`directional_rates`).
+        carried: whether the terms of earlier views were carried, not recomputed.
     """
 
     rate: Tensor
@@ -246,6 +251,8 @@ class DirectionalRates:
     accumulated: Tensor
     typical: float
     prior_rate: Tensor
+    carry: dict[str, Any] | None = None
+    carried: bool = False
 
 
 @torch.no_grad()
@@ -262,6 +269,8 @@ def directional_rates(
     generator: torch.Generator | None = None,
     chunk: int = 16,
     lam: float | None = None,
+    carried: Any = None,
+    refit_every: int = 1,
 ) -> DirectionalRates:
     """Fit the directional observation model to Hhat over the acquired poses [A, 4, 4].
 
@@ -278,6 +287,12 @@ def directional_rates(
     typical view would give it. Then ``a_iq = g_iq / Hhat_iq``: the model's diagonal EIG of a
     view at T is ``sum_iq log(1 + a_iq w_i(T) f_q)``, and a slot that the acquired views left
     unconstrained (Hhat_iq ~ lambda_q) is worth a view that sees it across.
+
+    The accumulated terms W_ik over the acquired views are returned in ``carry`` (tensors
+    and numbers, for the warm state); given back as ``carried`` at a later event they are
+    extended by the new views' terms instead of recomputed over all views (the typical term
+    f then from each view's quantiles), while :func:`_carried_terms` allows: a refit every
+    ``refit_every`` events (1: every event).
     """
     n = gmap.num_gaussians
     dt = gmap.dtype
@@ -286,15 +301,36 @@ def directional_rates(
                           num_samples=0, near=near, edge=edge, generator=generator, grid=grid)
     axes = local_axes(gmap.quats.detach().to(dt))
     poses = acquired.detach().to(dt)
-    w_sum = torch.zeros(n, len(DIRECTION_KINDS), dtype=dt, device=dev)
+    kept = _carried_terms(carried, poses, n, refit_every)
+    start = 0 if kept is None else int(kept["views"])
+    w_sum = (torch.zeros(n, len(DIRECTION_KINDS), dtype=dt, device=dev) if kept is None
+             else kept["w_sum"].to(device=dev, dtype=dt).clone())
     seen: list[Tensor] = []
-    for i in range(0, poses.shape[0], chunk):
+    quant: list[Tensor] = []
+    npos: list[Tensor] = []
+    for i in range(start, poses.shape[0], chunk):
         checkpoint()
-        w, wf = full.terms_and_factors(poses[i : i + chunk], axes)  # [B, N], [N, 7]
-        w_sum += wf
-        seen.append(w[w > 1e-6])
-    pos = torch.cat(seen) if seen else torch.zeros(0, dtype=dt, device=dev)
-    f_typ = float(lower_median(pos)) if pos.numel() else 1.0
+        w, wf = full.terms_and_factors(poses[i : i + min(chunk, poses.shape[0] - i)], axes)
+        w_sum += wf  # [N, 7]
+        seen.append(w[w > 1e-6])  # w: [B, N]
+        for row in w if refit_every > 1 else ():
+            q, c = view_quantiles(row)
+            quant.append(q)
+            npos.append(c)
+    quantiles = torch.stack(quant) if quant else torch.zeros(0, QUANTILES, dtype=torch.float64)
+    counts = torch.stack(npos) if npos else torch.zeros(0, dtype=torch.float64)
+    if kept is None:
+        pos = torch.cat(seen) if seen else torch.zeros(0, dtype=dt, device=dev)
+        f_typ = float(lower_median(pos)) if pos.numel() else 1.0
+        age = 0
+    else:  # the views' terms from their quantiles: the carried views' and the new ones'
+        quantiles = torch.cat([kept["quantiles"].to(torch.float64), quantiles])
+        counts = torch.cat([kept["counts"].to(torch.float64), counts])
+        f_typ = weighted_lower_median(quantiles, counts)
+        age = int(kept["age"]) + 1
+    carry = None if refit_every <= 1 else {"count": n, "views": int(poses.shape[0]), "poses": poses.detach().cpu().clone(),
+             "w_sum": w_sum.detach().clone(), "quantiles": quantiles, "counts": counts,
+             "age": age}
     # the floor of each factor: a quarter of a typical view, at the factor's mean over a
     # uniform direction (2/3 for 1 - c^2)
     floor = 0.25 * f_typ * torch.tensor([1.0] + [2.0 / 3.0] * 6, dtype=dt, device=dev)
@@ -306,15 +342,98 @@ def directional_rates(
     w_slot = w_sum[:, kinds]  # [N, Q]
     seen_slot = w_slot >= floor[kinds]
     g = excess / w_slot.clamp_min(1e-30)
+    g_rows, seen_rows = g.T.contiguous(), seen_slot.T.contiguous()  # a slot per row [Q, N]
     g_med = torch.stack([
-        lower_median(g[seen_slot[:, q], q]) if bool(seen_slot[:, q].any())
+        lower_median(g_rows[q][seen_rows[q]]) if bool(seen_rows[q].any())
         else torch.zeros((), dtype=dt, device=dev)
         for q in range(flat.shape[1])
     ])
     g = torch.where(seen_slot, g, g_med.unsqueeze(0))
     rate = g / flat.clamp_min(1e-30)
     return DirectionalRates(rate=rate, kinds=kinds, accumulated=w_sum, typical=f_typ,
-                            prior_rate=g_med / prior[0].clamp_min(1e-30))
+                            prior_rate=g_med / prior[0].clamp_min(1e-30), carry=carry,
+                            carried=kept is not None)
+
+
+QUANTILES = 256
+"""Quantiles of each acquired view's positive terms kept with the carried terms (the typical
+term f of later events is their weighted median)."""
+
+
+def view_quantiles(w: Tensor) -> tuple[Tensor, Tensor]:
+    """One view's positive terms [N] (above 1e-6) in brief: their :data:`QUANTILES` quantiles
+    at the midpoints of equal shares (float64; zeros without any) and their count []."""
+    pos = w[w > 1e-6].detach().to(torch.float64).cpu()
+    if pos.numel() == 0:
+        return torch.zeros(QUANTILES, dtype=torch.float64), torch.zeros((), dtype=torch.float64)
+    srt = torch.from_numpy(np.sort(pos.numpy()))
+    at = ((torch.arange(QUANTILES, dtype=torch.float64) + 0.5) * (pos.numel() / QUANTILES))
+    return srt[at.long().clamp_max(pos.numel() - 1)], torch.tensor(float(pos.numel()),
+                                                                  dtype=torch.float64)
+
+
+def weighted_lower_median(quantiles: Tensor, counts: Tensor) -> float:
+    """The lower median of the views' positive terms from their quantiles [V, Q] and counts
+    [V] (each quantile standing for count / Q terms); 1 without any term."""
+    total = float(counts.sum())
+    if not total > 0:
+        return 1.0
+    vals = quantiles.reshape(-1)
+    wts = (counts / quantiles.shape[1]).unsqueeze(1).expand_as(quantiles).reshape(-1)
+    order = torch.argsort(vals, stable=True)
+    cum = torch.cumsum(wts[order], 0)
+    k = int(torch.searchsorted(cum, torch.tensor(0.5 * total, dtype=cum.dtype)))
+    return float(vals[order[min(k, vals.numel() - 1)]])
+
+
+_STATE_PARTS = ("w_sum", "poses", "quantiles", "counts")
+
+
+def terms_to_state(carry: dict[str, Any]) -> dict[str, Tensor]:
+    """:func:`directional_rates`' ``carry`` as flat warm-state entries, tensors only
+    (``rates_<part>``, and ``rates_meta``: the Gaussians' count, the views, the age)."""
+    out = {f"rates_{k}": carry[k] for k in _STATE_PARTS}
+    out["rates_meta"] = torch.tensor([int(carry["count"]), int(carry["views"]),
+                                      int(carry["age"])], dtype=torch.long)
+    return out
+
+
+def terms_from_state(state: Any) -> dict[str, Any] | None:
+    """The ``carry`` :func:`terms_to_state` flattened into ``state`` (a warm state), or None
+    when an entry is missing."""
+    if not hasattr(state, "get"):
+        return None
+    parts = {k: state.get(f"rates_{k}") for k in _STATE_PARTS}
+    meta = state.get("rates_meta")
+    if not isinstance(meta, Tensor) or meta.numel() != 3 or any(
+            not isinstance(v, Tensor) for v in parts.values()):
+        return None
+    count, views, age = (int(v) for v in meta.tolist())
+    return {**parts, "count": count, "views": views, "age": age}
+
+
+def _carried_terms(carried: Any, poses: Tensor, n: int, refit_every: int
+                   ) -> dict[str, Any] | None:
+    """The carried accumulated terms (:func:`directional_rates`' ``carry`` of an earlier
+    event) when they may serve: fewer than ``refit_every`` - 1 events since the refit, the
+    same count of Gaussians ``n``, and the acquired poses [A, 4, 4] the carried ones followed
+    by new ones; else None (refit)."""
+    if refit_every <= 1 or not isinstance(carried, dict):
+        return None
+    try:
+        views, age = int(carried["views"]), int(carried["age"])
+        old = carried["poses"]
+        ok = (int(carried["count"]) == n and age + 1 < refit_every
+              and 0 < views <= poses.shape[0] and isinstance(old, Tensor)
+              and old.shape == (views, 4, 4)
+              and carried["w_sum"].shape == (n, len(DIRECTION_KINDS))
+              and carried["quantiles"].shape == (views, QUANTILES)
+              and bool(torch.allclose(old.to(torch.float64),
+                                      poses[:views].detach().cpu().to(torch.float64),
+                                      rtol=0, atol=1e-6)))
+    except (KeyError, AttributeError, TypeError, ValueError):
+        return None
+    return carried if ok else None
 
 
 def typical_fisher_from_views(

@@ -56,6 +56,11 @@ class AnchorInputs:
         carried: the parts a previous event kept (its :attr:`AnchorResult.carry
             <agilegs.service.nbv.anchor.ascent.AnchorResult.carry>`, through the warm
             state), reused while ``config.carry_over_tolerance`` allows (:mod:`.carry`).
+        rates_carried: the directional model's accumulated terms a previous event kept
+            (its :attr:`AnchorResult.rates_carry
+            <agilegs.service.nbv.anchor.ascent.AnchorResult.rates_carry>`), extended by the
+            new views while ``config.refit_every`` allows
+            (:func:`~agilegs.service.nbv.anchor.fitting.directional_rates`).
     """
 
     gmap: GaussianMap
@@ -73,6 +78,7 @@ class AnchorInputs:
     lam: float | None = None
     background: Tensor | None = None
     carried: Any = None
+    rates_carried: Any = None
 
     def checked(self) -> AnchorInputs:
         """These inputs with ``config`` validated (a ``ValueError`` naming the field)."""
@@ -142,6 +148,8 @@ class AnchorDiagnostics:
     Attributes:
         model: the proxy's model (:class:`ModelDiagnostics`).
         carried: whether the proxy was the previous event's (:mod:`.carry`).
+        rates_carried: whether the rates extended the accumulated terms carried from an
+            earlier event (``refit_every``).
         timings_s: the seconds of each stage, in order: ``visibility`` (the opacity maps),
             ``rates`` (the model fitted over the acquired views, the importance sample),
             ``unexplored`` (unexplored space), ``starts`` (the pool's psi, the starts),
@@ -154,6 +162,7 @@ class AnchorDiagnostics:
 
     model: ModelDiagnostics
     carried: bool
+    rates_carried: bool = False
     timings_s: dict[str, float] = field(default_factory=dict)
     ascent: AscentTally = field(default_factory=AscentTally)
     start_indices: list[int] = field(default_factory=list)

@@ -78,6 +78,7 @@ def unexplored_space(
     shells: int = 1,
     count_inside: bool = True,
     generator: torch.Generator | None = None,
+    share: float = 1.0,
 ) -> UnexploredSpace:
     """The unexplored part of ``gmap``'s extent seen from the acquired poses [A, 4, 4].
 
@@ -96,6 +97,8 @@ def unexplored_space(
         count_inside: also count the points the map encloses (:func:`enclosed`: the inside of its
             surfaces, which no view will see).
         generator: seeds the subsample.
+        share: how many of the map's Gaussians each of ``gmap``'s stands for (``gmap`` a
+            uniform sample of the map: its counts per cell are scaled by it).
     """
     dt = gmap.dtype
     dev = gmap.means.device
@@ -122,7 +125,7 @@ def unexplored_space(
     inside = ((ijk >= 0) & (ijk < cells)).all(1)
     flat = (ijk[inside, 0] * cells + ijk[inside, 1]) * cells + ijk[inside, 2]
     per_cell = torch.zeros(points.shape[0], dtype=dt, device=dev).index_add_(
-        0, flat, torch.ones(flat.shape[0], dtype=dt, device=dev))
+        0, flat, torch.full((flat.shape[0],), float(share), dtype=dt, device=dev))
     seen_cells = unexplored <= threshold
     n_seen = int(seen_cells.sum())
     density = float(per_cell[seen_cells].sum()) / n_seen if n_seen else 0.0

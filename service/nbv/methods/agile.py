@@ -25,8 +25,9 @@ import torch
 from torch import Tensor
 
 from ..anchor.ascent import find_anchor
+from ..anchor.assembly import uniform_subset
 from ..anchor.envelope import PoolEnvelope
-from ..anchor.fitting import typical_fisher_from_views
+from ..anchor.fitting import terms_from_state, terms_to_state, typical_fisher_from_views
 from ..anchor.records import AnchorInputs
 from ..camera import Camera
 from ..cancel import checkpoint
@@ -104,10 +105,16 @@ def _anchor(ctx: SelectionContext, lat: dict[str, float], out: dict[str, Any]) -
             lam=ctx.lam,
             background=ctx.background,
             carried=ctx.state.get("anchor_parts"),
+            rates_carried=terms_from_state(
+                {k[len("anchor_"):]: v for k, v in ctx.state.items()
+                 if isinstance(k, str) and k.startswith("anchor_rates_")}),
         ))
         out["state"]["anchor_c2w"] = res.c2w.clone()
         if res.carry is not None:
             out["state"]["anchor_parts"] = res.carry
+        if res.rates_carry is not None:  # flat entries, tensors only
+            out["state"].update({f"anchor_{k}": v
+                                 for k, v in terms_to_state(res.rates_carry).items()})
     stages, details = res.report(ctx.eligible, cfg.anchor)
     lat.update(stages)  # within "anchor", not added to it
     out["details"].update(details)
@@ -128,6 +135,18 @@ def _knearest(ctx: SelectionContext, anchor_c2w: Tensor, n_short: int, lat: dict
         shortlist = [ctx.eligible[i] for i in order]
         scores = {ctx.eligible[i]: float(dist[i]) for i in order}
     return shortlist, scores
+
+
+def _support_map(ctx: SelectionContext) -> tuple[Tensor, Tensor]:
+    """The means [M, 3] and opacities [M] the support samples are drawn from: the map's, or
+    a seeded uniform sample of ``scoring.support_gaussians`` of them (at large maps: the
+    nearest mean of each support grid cell is then the sample's)."""
+    g = ctx.gmap
+    n, m = g.num_gaussians, int(ctx.config.scoring.support_gaussians)
+    if 0 < m < n:
+        idx = uniform_subset(n, m, ctx.generator(5)).to(g.means.device)
+        return g.means.detach()[idx], torch.sigmoid(g.opacity_logits.detach()[idx])
+    return g.means, g.opacities.detach()
 
 
 def _rows(ctx: SelectionContext, anchors: list[tuple[Tensor, float]], lat: dict[str, float],
@@ -158,13 +177,14 @@ def _rows(ctx: SelectionContext, anchors: list[tuple[Tensor, float]], lat: dict[
             rows = torch.cat([rows, acquired.detach().to(dt)])
         blocks: list[Tensor] = []
         rho: Tensor | None = None
+        means, opacities = _support_map(ctx)
         for a, (pose, weight) in enumerate(anchors):
             checkpoint()
             x = support_samples(
-                ctx.gmap.means,
+                means,
                 pose,
                 ctx.intrinsics,
-                opacities=ctx.gmap.opacities.detach(),
+                opacities=opacities,
                 grid=sc.grid,
                 ray_samples=sc.ray_samples,
                 ray_min_fraction=sc.ray_min_fraction,
