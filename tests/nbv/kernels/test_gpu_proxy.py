@@ -1,0 +1,213 @@
+"""The anchor's proxy ψ by the Triton kernels (kernels/gpu_proxy.py) against the pure-torch
+reference: values, per-sample terms and gradients in the pose of every form the anchor
+builds, on the CPU through Triton's interpreter (in a subprocess: the interpreter is chosen
+when Triton is first imported), compiled for an sm_90 GPU without one, on CUDA (skipped
+without a GPU: through ``ProxyPsi``'s dispatch, and the ascent's decisions); which path
+serves."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+import torch
+from conftest import ROOT, proxy_scene
+
+from agilegs.config.selection import AnchorConfig
+from agilegs.service.nbv.anchor.ascent import ascend
+from agilegs.service.nbv.anchor.proxy import ProxyPsi
+from agilegs.service.nbv.kernels import backend
+from agilegs.service.nbv.kernels.gpu import triton_available
+from agilegs.service.nbv.kernels.gpu_proxy import gpu_proxy_applies, proxy_kernel
+
+F64, F32 = torch.float64, torch.float32
+HERE = ROOT / "tests"
+needs_triton = pytest.mark.skipif(not triton_available(),
+                                  reason="needs triton (the dev extra installs it)")
+
+_COMPARE = textwrap.dedent("""
+    import json, sys, torch
+    sys.path.insert(0, {here!r})
+    from agilegs.service.nbv.kernels.gpu_proxy import proxy_kernel
+    from conftest import proxy_scene
+
+    def rel(a, b):
+        return float((a.double() - b.double()).abs().max() / b.double().abs().max())
+
+    dt = getattr(torch, {dtype!r})
+    poses, proxies = proxy_scene(dt)
+    out = {{}}
+    for name, proxy in proxies:
+        c2w = poses.clone().requires_grad_(True)
+        ref = proxy.reference(c2w)
+        (g_ref,) = torch.autograd.grad(ref.sum(), c2w)
+        got, g_got = proxy_kernel(proxy, poses, want_grad=True)
+        val, none = proxy_kernel(proxy, poses, want_grad=False)
+        terms, acc = proxy_kernel(proxy, poses, want_grad=False, per_sample=True,
+                                  axes=proxy.axes)
+        with torch.no_grad():
+            t_ref = proxy.reference(poses, per_sample=True)
+            seen = proxy.seen(poses)
+        out[name] = dict(
+            psi=rel(got, ref.detach()), grad=rel(g_got, g_ref), terms=rel(terms, t_ref),
+            same=bool(torch.equal(val, got)) and none is None,
+            acc=None if acc is None else list(acc.shape),
+            dtype=str(got.dtype), grad_dtype=str(g_got.dtype),
+            last_row=float(g_got[:, 3].abs().max()),
+            hidden=float((seen < 0.9).double().mean()), shown=float((seen > 0.5).double().mean()))
+    print(json.dumps(out))
+""")
+
+TOLERANCE = {"float64": 1e-12, "float32": 2e-6}
+"""The largest difference allowed, relative to the reference's largest value (ψ, its
+gradient, the per-sample terms): float64's rounding, float32's (measured: under 7e-16 and
+under 5e-7)."""
+
+
+@needs_triton
+@pytest.mark.parametrize("dtype", ["float64", "float32"])
+def test_interpreted_kernel_matches_the_torch_path(dtype: str) -> None:
+    env = {**os.environ, "TRITON_INTERPRET": "1"}
+    proc = subprocess.run(
+        [sys.executable, "-c", _COMPARE.format(here=str(HERE), dtype=dtype)],
+        capture_output=True, text=True, env=env, timeout=300, check=False)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    results = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert set(results) == {"linear/grid", "log/grid", "directional/grid", "linear/none",
+                            "log/none", "directional/none", "directional/extended"}
+    tol = TOLERANCE[dtype]
+    for name, r in results.items():
+        assert r["psi"] < tol and r["grad"] < tol and r["terms"] < tol, (name, r)
+        assert r["same"], name  # ψ alone is ψ of the gradient's launch
+        assert r["dtype"] == r["grad_dtype"] == f"torch.{dtype}", name
+        assert r["last_row"] == 0.0, name
+        assert (r["acc"] is not None) == name.startswith("directional"), name
+    # the scene reaches every branch: samples off the image and behind occluders
+    assert results["linear/grid"]["hidden"] > 0.2 and results["linear/grid"]["shown"] > 0.2
+
+
+_COMPILE = textwrap.dedent("""
+    import triton
+    from triton.backends.compiler import GPUTarget
+    from triton.compiler import ASTSource
+    from agilegs.service.nbv.kernels import gpu_proxy_kernel as k
+
+    target = GPUTarget("cuda", 90, 32)
+
+    def build(fn, sig, const, name):
+        src = ASTSource(fn=fn, signature=dict(sig, **dict.fromkeys(const, "constexpr")),
+                        constexprs=const)
+        out = triton.compile(src, target=target, options={"num_warps": 4})
+        assert len(out.asm["cubin"]) > 1000
+        print(name, "ok")
+
+    ptrs = ("cam_ptr", "prm_ptr", "means_ptr", "sig_ptr", "w_ptr", "rate_ptr", "axes_ptr",
+            "cum_ptr", "part_ptr", "terms_ptr")
+    sig = {p: "*fp64" for p in ptrs}
+    sig.update(kinds_ptr="*i32", S="i32", Q="i32", CHUNK="i32", CELLS="i32", BINS="i32")
+    for mode, grid, grad, per in ((2, True, True, False), (1, True, False, True),
+                                  (0, False, True, False)):
+        build(k.psi_kernel, sig, dict(MODE=mode, HAS_GRID=grid, WANT_GRAD=grad,
+                                      PER_SAMPLE=per, BLOCK=128), "psi" + str(mode))
+    build(k.deposit_kernel, {"cam_ptr": "*fp64", "prm_ptr": "*fp64", "occ_ptr": "*fp64",
+                              "mass_ptr": "*fp64", "grid_ptr": "*fp64", "M": "i32",
+                              "CELLS": "i32", "BINS": "i32"}, {"BLOCK": 256}, "deposit")
+    build(k.cumulate_kernel, {"grid_ptr": "*fp64", "cum_ptr": "*fp64", "CELLS": "i32",
+                               "BINS": "i32"}, {"LANES": 256}, "cumulate")
+""")
+
+
+@needs_triton
+def test_the_kernels_compile_for_a_hopper_gpu_without_one(tmp_path: Path) -> None:
+    # Triton's frontend, its passes and its bundled ptxas run on any machine: the kernels'
+    # typing is checked here, where no GPU runs them (the interpreter does not type them)
+    env = {k: v for k, v in os.environ.items() if k != "TRITON_INTERPRET"}
+    env["TRITON_CACHE_DIR"] = str(tmp_path)  # compiled here, not read from a cache
+    proc = subprocess.run([sys.executable, "-c", _COMPILE], capture_output=True, text=True,
+                          env=env, timeout=300, check=False)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.stdout.split() == ["psi2", "ok", "psi1", "ok", "psi0", "ok", "deposit", "ok",
+                                   "cumulate", "ok"]
+
+
+def test_the_cpu_paths_serve_off_cuda() -> None:
+    poses, proxies = proxy_scene(F64, n=40, samples=20, poses=2)
+    proxy = dict(proxies)["directional/grid"]
+    assert not gpu_proxy_applies(None, poses, proxy.means)
+    assert not gpu_proxy_applies("torch", poses, proxy.means)
+    assert proxy.uses_kernel(poses) == backend.kernels_available()  # numba, as before
+
+
+@needs_triton
+def test_off_cuda_the_kernel_asks_for_the_interpreter() -> None:
+    if os.environ.get("TRITON_INTERPRET") == "1":
+        pytest.skip("this process runs Triton's interpreter")
+    poses, proxies = proxy_scene(F64, n=40, samples=20, poses=2)
+    with pytest.raises(ValueError, match="TRITON_INTERPRET"):
+        proxy_kernel(dict(proxies)["linear/grid"], poses, want_grad=False)
+
+
+cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+
+
+def _on_cuda(proxy: ProxyPsi) -> ProxyPsi:
+    """The proxy with its tensors on the GPU."""
+    def dev(t: torch.Tensor | None) -> torch.Tensor | None:
+        return None if t is None else t.cuda()
+
+    grid = proxy.grid
+    if grid is not None:
+        grid = dataclasses.replace(grid, means=grid.means.cuda(), mass=grid.mass.cuda(),
+                                   center=grid.center.cuda())
+    return dataclasses.replace(proxy, means=proxy.means.cuda(), cov=proxy.cov.cuda(),
+                               weight=proxy.weight.cuda(), grid=grid, rate=dev(proxy.rate),
+                               slot_kinds=dev(proxy.slot_kinds), axes=dev(proxy.axes))
+
+
+@pytest.mark.cuda
+@cuda
+@pytest.mark.parametrize("dtype", [F64, F32])
+def test_the_proxy_runs_the_triton_kernels_on_cuda(dtype: torch.dtype) -> None:
+    assert triton_available(), "CUDA builds of torch bring triton"
+    poses, proxies = proxy_scene(dtype, n=400, samples=300, poses=12)
+    poses = poses.cuda()
+    tol = 1e-11 if dtype == F64 else 1e-5
+    for name, cpu_proxy in proxies:
+        proxy = _on_cuda(cpu_proxy)
+        assert proxy.uses_kernel(poses), name
+        c2w = poses.clone().requires_grad_(True)
+        got = proxy(c2w)
+        (g_got,) = torch.autograd.grad(got.sum(), c2w)
+        c2w = poses.clone().requires_grad_(True)
+        ref = proxy.reference(c2w)
+        (g_ref,) = torch.autograd.grad(ref.sum(), c2w)
+        assert float((got - ref).abs().max() / ref.abs().max()) < tol, name
+        assert float((g_got - g_ref).abs().max() / g_ref.abs().max()) < tol, name
+        with torch.no_grad():
+            t = proxy(poses, per_sample=True)
+            t_ref = proxy.reference(poses, per_sample=True)
+        assert float((t - t_ref).abs().max() / t_ref.abs().max()) < tol, name
+        calls: list[int] = []
+        whole = proxy.values_in_parts(poses, 4, functools.partial(calls.append, 1))
+        assert len(calls) == 1  # every pose in one launch, one check before it
+        torch.testing.assert_close(whole, got.detach(), rtol=tol, atol=0)  # atomic adds
+        # the ascent from three starts takes the same steps either way
+        cfg = AnchorConfig(iterations=4, backtracks=3, step_size=0.3, min_rel_gain=1e-3)
+        runs = []
+        for b in ("auto", "torch"):
+            try:
+                backend.set_default_backend(b)  # type: ignore[arg-type]
+                runs.append(ascend(proxy, poses[:3].detach(), config=cfg, envelope=None,
+                                   radius=1.0))
+            finally:
+                backend.set_default_backend(None)
+        (p_k, v_k, t_k, _), (p_r, v_r, t_r, _) = runs
+        assert [len(t) for t in t_k] == [len(t) for t in t_r], name
+        torch.testing.assert_close(v_k, v_r, rtol=1e-9 if dtype == F64 else 1e-4, atol=0)
