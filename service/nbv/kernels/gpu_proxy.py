@@ -35,6 +35,8 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import Tensor
 
+from agilegs.service.settings import kernel_settings
+
 from .backend import default_backend
 from .gpu import _interpreting, _load_triton, triton_available
 
@@ -56,11 +58,13 @@ _MODES = {"linear": 0, "log": 1, "directional": 2}
 
 def gpu_proxy_applies(backend: str | None, c2w: Tensor, means: Tensor) -> bool:
     """Whether :func:`proxy_kernel` serves poses ``c2w`` of a proxy with samples ``means``:
-    both on one CUDA device, float32 or float64, Triton importable, and the backend not
-    ``"torch"`` (the reference; None: the default backend)."""
+    both on one CUDA device, float32 or float64, Triton importable, the backend not
+    ``"torch"`` (the reference; None: the default backend) and ``AGILEGS_GPU_ANCHOR`` not
+    false."""
     b = default_backend() if backend is None else backend
     return (b != "torch" and c2w.device.type == "cuda" and means.device == c2w.device
-            and c2w.dtype in (torch.float32, torch.float64) and triton_available())
+            and c2w.dtype in (torch.float32, torch.float64) and kernel_settings().gpu_anchor
+            and triton_available())
 
 
 def _kernels() -> Any:
