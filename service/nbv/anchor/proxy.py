@@ -27,8 +27,7 @@ from agilegs.config.selection import POINT_ZBUFFER
 
 from ..camera import Intrinsics
 from ..gaussians import GaussianMap
-from ..kernels import backend
-from ..kernels.gpu_proxy import gpu_proxy_applies, proxy_kernel
+from ..kernels import backend, gpu_proxy
 from ..projection import covariance_3d
 from ..rotations import quat_to_rotmat
 from .visibility import OpacityMaps
@@ -255,9 +254,8 @@ class ProxyPsi:
             return False
         if self.rate is not None and self.rate.ndim == 2 and self.axes is None:
             return False
-        if gpu_proxy_applies(None, c2w, self.means):  # CUDA: the Triton kernels
-            return True
-        return backend.resolve(None, (c2w, self.means))
+        return (gpu_proxy.gpu_proxy_applies(None, c2w, self.means)  # CUDA: Triton's
+                or backend.resolve(None, (c2w, self.means)))
 
     def __call__(self, c2w: Tensor, per_sample: bool = False) -> Tensor:
         """psi for poses [B, 4, 4] -> [B] (differentiable in the poses, but for visibility).
@@ -355,8 +353,7 @@ class ProxyPsi:
         factor [S, 7] (:meth:`terms_and_factors`). ``part`` > 0: the poses in ranges of that
         many, ``between()`` called before each."""
         if c2w.device.type == "cuda":  # the Triton kernels, every pose at once
-            return proxy_kernel(self, c2w, want_grad=want_grad, per_sample=per_sample,
-                                axes=axes, between=between)
+            return gpu_proxy.proxy_kernel(self, c2w, want_grad, per_sample, axes, between)
         kin = self._kernel_inputs()
         b = c2w.shape[0]
         pose = c2w.detach().to(torch.float64).cpu()

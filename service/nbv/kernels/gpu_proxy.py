@@ -24,13 +24,14 @@ stays the reference: the tests run these kernels through Triton's interpreter on
 
 :func:`gpu_proxy_applies` says where this path serves: CUDA tensors of float32 or float64,
 Triton importable, a backend other than ``"torch"``; ``ProxyPsi`` dispatches to
-:func:`proxy_kernel` there.
+:func:`proxy_kernel` there. (``proxy`` below is a ``ProxyPsi``: the anchor imports this module,
+not this module the anchor.)
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -39,9 +40,6 @@ from agilegs.service.settings import kernel_settings
 
 from .backend import default_backend
 from .gpu import _interpreting, _load_triton, triton_available
-
-if TYPE_CHECKING:
-    from ..anchor.proxy import ProxyPsi
 
 __all__ = ["gpu_proxy_applies", "proxy_kernel", "proxy_launch"]
 
@@ -75,7 +73,7 @@ def _kernels() -> Any:
     return gpu_proxy_kernel
 
 
-def _inputs(proxy: ProxyPsi, device: torch.device) -> dict[str, Any]:
+def _inputs(proxy: Any, device: torch.device) -> dict[str, Any]:
     """The proxy's samples, model and occluders as the kernels' float64 tensors on
     ``device`` (built once per proxy and device)."""
     cache: dict[str, dict[str, Any]] = proxy.__dict__.setdefault("_gpu_inputs", {})
@@ -116,7 +114,7 @@ def _inputs(proxy: ProxyPsi, device: torch.device) -> dict[str, Any]:
     return out
 
 
-def proxy_launch(proxy: ProxyPsi, c2w: Tensor, *, want_grad: bool = False,
+def proxy_launch(proxy: Any, c2w: Tensor, *, want_grad: bool = False,
                  per_sample: bool = False) -> tuple[Tensor, Tensor | None]:
     """The kernels at poses [B, 4, 4] (float64 results): ψ [B] (or, ``per_sample``, the
     terms footprint × inside × visible [B, S]) and with ``want_grad`` dψ/d(rotation, centre)
@@ -176,7 +174,18 @@ def triton_cdiv(a: int, b: int) -> int:
     return -(-a // b)
 
 
-def proxy_kernel(proxy: ProxyPsi, c2w: Tensor, *, want_grad: bool, per_sample: bool = False,
+def _factor_sums(terms: Tensor, points: Tensor, centres: Tensor, axes: Tensor) -> Tensor:
+    """The terms [B, S] times each direction factor of the samples ``points`` [S, 3] seen
+    from ``centres`` [B, 3] (``anchor.proxy.direction_factors``: 1, 1 - d_k² per world axis,
+    1 - (d · a_j)² per local axis of ``axes`` [S, 3, 3]), summed over the poses -> [S, 7]."""
+    d = points.unsqueeze(0) - centres.unsqueeze(1)
+    d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    c = torch.einsum("bsk,skj->bsj", d, axes)
+    f = torch.cat([torch.ones_like(d[..., :1]), 1.0 - d * d, 1.0 - c * c], dim=-1)
+    return (terms.unsqueeze(-1) * f).sum(0)
+
+
+def proxy_kernel(proxy: Any, c2w: Tensor, want_grad: bool, per_sample: bool = False,
                  axes: Tensor | None = None, between: Callable[[], None] | None = None
                  ) -> tuple[Tensor, Tensor | None]:
     """What :meth:`ProxyPsi._kernel` returns, by the Triton kernels, every pose at once
@@ -184,8 +193,6 @@ def proxy_kernel(proxy: ProxyPsi, c2w: Tensor, *, want_grad: bool, per_sample: b
     [B, S]) in the poses' dtype and, with ``want_grad``, dψ/dc2w [B, 4, 4] (zero in the last
     row); with ``per_sample`` and ``axes`` [S, 3, 3], the terms and their sum over the poses
     times each direction factor [S, 7]."""
-    from ..anchor.proxy import direction_factors  # noqa: PLC0415 (the anchor imports this)
-
     if between is not None:
         between()
     dt, dev = c2w.dtype, c2w.device
@@ -196,8 +203,8 @@ def proxy_kernel(proxy: ProxyPsi, c2w: Tensor, *, want_grad: bool, per_sample: b
         terms = val.to(dt)
         if axes is None:
             return terms, None
-        f = direction_factors(proxy.means.to(dt), c2w.detach()[:, :3, 3], axes.to(dt))
-        return terms, (terms.unsqueeze(-1) * f).sum(0)
+        return terms, _factor_sums(terms, proxy.means.to(dt), c2w.detach()[:, :3, 3],
+                                   axes.to(dt))
     out = val.to(dt)
     if grad is None:
         return out, None
