@@ -75,7 +75,7 @@ def _kernels() -> Any:
 
 def _inputs(proxy: Any, device: torch.device) -> dict[str, Any]:
     """The proxy's samples, model and occluders as the kernels' float64 tensors on
-    ``device`` (built once per proxy and device)."""
+    ``device``, a row per component (built once per proxy and device)."""
     cache: dict[str, dict[str, Any]] = proxy.__dict__.setdefault("_gpu_inputs", {})
     key = str(device)
     if key in cache:
@@ -88,25 +88,25 @@ def _inputs(proxy: Any, device: torch.device) -> dict[str, Any]:
     s = proxy.means.shape[0]
     k = proxy.intrinsics
     if proxy.rate is None:
-        mode, rate = "linear", torch.zeros(s, 1, dtype=f64, device=device)
+        mode, rate = "linear", torch.zeros(1, s, dtype=f64, device=device)
     elif proxy.rate.ndim == 1:
-        mode, rate = "log", dev(proxy.rate.reshape(-1, 1))
+        mode, rate = "log", dev(proxy.rate.reshape(1, -1))
     else:
-        mode, rate = "directional", dev(proxy.rate)
+        mode, rate = "directional", dev(proxy.rate.T)
     kinds = (proxy.slot_kinds.detach().to(device=device, dtype=torch.int32).contiguous()
              if mode == "directional" and proxy.slot_kinds is not None
              else torch.zeros(1, dtype=torch.int32, device=device))
-    axes = (dev(proxy.axes.reshape(-1, 9)) if mode == "directional" and proxy.axes is not None
-            else torch.zeros(1, 9, dtype=f64, device=device))
+    axes = (dev(proxy.axes.reshape(-1, 9).T) if mode == "directional"
+            and proxy.axes is not None else torch.zeros(9, 1, dtype=f64, device=device))
     grid = proxy.grid
     centre = [0.0, 0.0, 0.0] if grid is None else [float(v) for v in grid.center.detach().cpu()]
     prm = torch.tensor([k.fx, k.fy, k.cx, k.cy, float(k.width), float(k.height),
                         float(proxy.near), float(proxy.edge), *centre,
                         1.0 if grid is None else float(grid.half_depth)], dtype=f64)
     out: dict[str, Any] = dict(
-        mode=mode, prm=prm.to(device), means=dev(proxy.means), sigma6=dev(proxy.sigma6.T),
+        mode=mode, prm=prm.to(device), means=dev(proxy.means.T), sigma6=dev(proxy.sigma6),
         weight=dev(proxy.weight), rate=rate, kinds=kinds, axes=axes,
-        occ=None if grid is None else dev(grid.means),
+        occ=None if grid is None else dev(grid.means.T),
         mass=None if grid is None else dev(grid.mass),
         cells=1 if grid is None else int(grid.cells), bins=1 if grid is None else int(grid.bins),
     )
@@ -135,14 +135,14 @@ def proxy_launch(proxy: Any, c2w: Tensor, *, want_grad: bool = False,
     kern = _kernels()
     f64 = torch.float64
     b = c2w.shape[0]
-    s = int(kin["means"].shape[0])
+    s = int(kin["means"].shape[1])
     pose = c2w.detach().to(f64)
     cams = torch.cat([pose[:, :3, :3].reshape(b, 9), pose[:, :3, 3]], dim=1).contiguous()
     cells, bins = kin["cells"], kin["bins"]
     has_grid = kin["occ"] is not None
     if has_grid and b > 0:
         occ = kin["occ"]
-        m = int(occ.shape[0])
+        m = int(occ.shape[1])
         grid = torch.zeros(b, bins, cells, cells, dtype=f64, device=dev)
         if m > 0:
             kern.deposit_kernel[(b, triton_cdiv(m, OCC_BLOCK))](
@@ -161,7 +161,7 @@ def proxy_launch(proxy: Any, c2w: Tensor, *, want_grad: bool = False,
     if b > 0 and s > 0:
         kern.psi_kernel[(b, parts)](
             cams, kin["prm"], kin["means"], kin["sigma6"], kin["weight"], kin["rate"],
-            kin["kinds"], kin["axes"], cum, part, terms, s, int(kin["rate"].shape[1]), chunk,
+            kin["kinds"], kin["axes"], cum, part, terms, s, int(kin["rate"].shape[0]), chunk,
             cells, bins, MODE=_MODES[kin["mode"]], HAS_GRID=has_grid,
             WANT_GRAD=bool(want_grad and not per_sample), PER_SAMPLE=per_sample, BLOCK=BLOCK)
     if per_sample:

@@ -3,7 +3,9 @@ Triton imports): the deep opacity maps of every pose (a deposit, then a blur and
 sum per pose), and ψ with its pose gradient, one program per (pose, chunk of samples).
 
 Float64 arithmetic throughout (as the CPU kernel ``kernels.proxy.proxy_psi``); the per-sample
-body is that kernel's, lane by lane, its branches as selections."""
+body is that kernel's, lane by lane, its branches as selections. The per-sample arrays are
+stored a row per component (means [3, S], covariances [6, S], rates [Q, S], local axes
+[9, S]; the occluders [3, M]), so that a load of the lanes' samples reads one run of memory."""
 
 # mypy: ignore-errors
 # ruff: noqa: N803, N806
@@ -51,7 +53,7 @@ def _z0(prm_ptr, ez0, ez1, ez2, t0, t1, t2, BINS):
 @triton.jit
 def deposit_kernel(cam_ptr, prm_ptr, occ_ptr, mass_ptr, grid_ptr, M, CELLS, BINS,
                    BLOCK: tl.constexpr):
-    """Program (b, k): the occluders k·BLOCK.. of pose b added into its slices
+    """Program (b, k): the occluders k·BLOCK.. (``occ`` [3, M]) of pose b added into its slices
     ``grid`` [B, BINS, CELLS, CELLS] (the mass over depth² and a cell's pixels, in the cell
     and slice of the occluder's centre)."""
     b = tl.program_id(0)
@@ -66,9 +68,9 @@ def deposit_kernel(cam_ptr, prm_ptr, occ_ptr, mass_ptr, grid_ptr, M, CELLS, BINS
     ht = tl.load(prm_ptr + 5)
     z0, dz = _z0(prm_ptr, ez0, ez1, ez2, t0, t1, t2, BINS)
     g = CELLS * 1.0
-    px = tl.load(occ_ptr + j * 3, mask=ok, other=0.0)
-    py = tl.load(occ_ptr + j * 3 + 1, mask=ok, other=0.0)
-    pz = tl.load(occ_ptr + j * 3 + 2, mask=ok, other=0.0)
+    px = tl.load(occ_ptr + j, mask=ok, other=0.0)
+    py = tl.load(occ_ptr + M + j, mask=ok, other=0.0)
+    pz = tl.load(occ_ptr + 2 * M + j, mask=ok, other=0.0)
     ox = (ex0 * px + ex1 * py + ex2 * pz) - (ex0 * t0 + ex1 * t1 + ex2 * t2)
     oy = (ey0 * px + ey1 * py + ey2 * pz) - (ey0 * t0 + ey1 * t1 + ey2 * t2)
     oz = (ez0 * px + ez1 * py + ez2 * pz) - (ez0 * t0 + ez1 * t1 + ez2 * t2)
@@ -168,11 +170,12 @@ def _pick(k, f1, f2, f3, f4, f5, f6):
 
 
 @triton.jit
-def _local(axes_ptr, s, ok, j, d0, d1, d2):
-    """Sample s's local axis j (a column of its row-major 3 × 3) and its cosine with d."""
-    a0 = tl.load(axes_ptr + s * 9 + j, mask=ok, other=0.0)
-    a1 = tl.load(axes_ptr + s * 9 + 3 + j, mask=ok, other=0.0)
-    a2 = tl.load(axes_ptr + s * 9 + 6 + j, mask=ok, other=0.0)
+def _local(axes_ptr, s, S, ok, j, d0, d1, d2):
+    """Sample s's local axis j (a column of its row-major 3 × 3, the nine entries as rows of
+    ``axes`` [9, S]) and its cosine with d."""
+    a0 = tl.load(axes_ptr + j * S + s, mask=ok, other=0.0)
+    a1 = tl.load(axes_ptr + (3 + j) * S + s, mask=ok, other=0.0)
+    a2 = tl.load(axes_ptr + (6 + j) * S + s, mask=ok, other=0.0)
     return a0, a1, a2, d0 * a0 + d1 * a1 + d2 * a2
 
 
@@ -244,9 +247,9 @@ def psi_kernel(cam_ptr, prm_ptr, means_ptr, sig_ptr, w_ptr, rate_ptr, kinds_ptr,
     for it in range(0, CHUNK, BLOCK):
         s = p * CHUNK + it + tl.arange(0, BLOCK)
         ok = s < S
-        m0 = tl.load(means_ptr + s * 3, mask=ok, other=0.0)
-        m1 = tl.load(means_ptr + s * 3 + 1, mask=ok, other=0.0)
-        m2 = tl.load(means_ptr + s * 3 + 2, mask=ok, other=0.0)
+        m0 = tl.load(means_ptr + s, mask=ok, other=0.0)
+        m1 = tl.load(means_ptr + S + s, mask=ok, other=0.0)
+        m2 = tl.load(means_ptr + 2 * S + s, mask=ok, other=0.0)
         x = (ex0 * m0 + ex1 * m1 + ex2 * m2) - ex_t
         y = (ey0 * m0 + ey1 * m1 + ey2 * m2) - ey_t
         z = (ez0 * m0 + ez1 * m1 + ez2 * m2) - ez_t
@@ -259,12 +262,12 @@ def psi_kernel(cam_ptr, prm_ptr, means_ptr, sig_ptr, w_ptr, rate_ptr, kinds_ptr,
         tx = x / zs
         ty = y / zs
         # the footprint: the quadratic forms of the camera axes
-        sxx = tl.load(sig_ptr + s * 6, mask=ok, other=0.0)
-        syy = tl.load(sig_ptr + s * 6 + 1, mask=ok, other=0.0)
-        szz = tl.load(sig_ptr + s * 6 + 2, mask=ok, other=0.0)
-        sxy = 0.5 * tl.load(sig_ptr + s * 6 + 3, mask=ok, other=0.0)
-        sxz = 0.5 * tl.load(sig_ptr + s * 6 + 4, mask=ok, other=0.0)
-        syz = 0.5 * tl.load(sig_ptr + s * 6 + 5, mask=ok, other=0.0)
+        sxx = tl.load(sig_ptr + s, mask=ok, other=0.0)
+        syy = tl.load(sig_ptr + S + s, mask=ok, other=0.0)
+        szz = tl.load(sig_ptr + 2 * S + s, mask=ok, other=0.0)
+        sxy = 0.5 * tl.load(sig_ptr + 3 * S + s, mask=ok, other=0.0)
+        sxz = 0.5 * tl.load(sig_ptr + 4 * S + s, mask=ok, other=0.0)
+        syz = 0.5 * tl.load(sig_ptr + 5 * S + s, mask=ok, other=0.0)
         sx0 = sxx * ex0 + sxy * ex1 + sxz * ex2
         sx1 = sxy * ex0 + syy * ex1 + syz * ex2
         sx2 = sxz * ex0 + syz * ex1 + szz * ex2
@@ -331,9 +334,9 @@ def psi_kernel(cam_ptr, prm_ptr, means_ptr, sig_ptr, w_ptr, rate_ptr, kinds_ptr,
                 d0 = v0 / nrm
                 d1 = v1 / nrm
                 d2 = v2 / nrm
-                a00, a01, a02, c0 = _local(axes_ptr, s, ok, 0, d0, d1, d2)
-                a10, a11, a12, c1 = _local(axes_ptr, s, ok, 1, d0, d1, d2)
-                a20, a21, a22, c2 = _local(axes_ptr, s, ok, 2, d0, d1, d2)
+                a00, a01, a02, c0 = _local(axes_ptr, s, S, ok, 0, d0, d1, d2)
+                a10, a11, a12, c1 = _local(axes_ptr, s, S, ok, 1, d0, d1, d2)
+                a20, a21, a22, c2 = _local(axes_ptr, s, S, ok, 2, d0, d1, d2)
                 f1 = 1.0 - d0 * d0
                 f2 = 1.0 - d1 * d1
                 f3 = 1.0 - d2 * d2
@@ -351,7 +354,7 @@ def psi_kernel(cam_ptr, prm_ptr, means_ptr, sig_ptr, w_ptr, rate_ptr, kinds_ptr,
                 for q in range(Q):
                     kq = tl.load(kinds_ptr + q)
                     fq = _pick(kq, f1, f2, f3, f4, f5, f6)
-                    r = tl.load(rate_ptr + s * Q + q, mask=ok, other=0.0)
+                    r = tl.load(rate_ptr + q * S + s, mask=ok, other=0.0)
                     xq = term * fq * r
                     acc = acc + xq + acc * xq
                     if WANT_GRAD:
