@@ -352,7 +352,7 @@ class ProxyPsi:
         and ``axes`` [S, 3, 3], the terms and their sum over the poses times each direction
         factor [S, 7] (:meth:`terms_and_factors`). ``part`` > 0: the poses in ranges of that
         many, ``between()`` called before each."""
-        if c2w.device.type == "cuda":  # the Triton kernels, every pose at once
+        if gpu_proxy.gpu_proxy_applies(None, c2w, self.means):  # Triton's, all poses at once
             return gpu_proxy.proxy_kernel(self, c2w, want_grad, per_sample, axes, between)
         kin = self._kernel_inputs()
         b = c2w.shape[0]

@@ -93,6 +93,82 @@ def test_interpreted_kernel_matches_the_torch_path(dtype: str) -> None:
     assert results["linear/grid"]["hidden"] > 0.2 and results["linear/grid"]["shown"] > 0.2
 
 
+_DISPATCH = textwrap.dedent("""
+    import json, sys, torch
+    sys.path.insert(0, {here!r})
+    from agilegs.config.selection import AnchorConfig
+    from agilegs.service.nbv import se3_exp
+    from agilegs.service.nbv.anchor.ascent import ascend
+    from agilegs.service.nbv.kernels import backend, gpu_proxy
+    from conftest import proxy_scene
+
+    calls = []
+    launch = gpu_proxy.proxy_launch
+
+    def counted(*args, **kwargs):
+        calls.append(args[1].shape[0])
+        return launch(*args, **kwargs)
+
+    # what serves CUDA tensors serves these, through the interpreter
+    gpu_proxy.gpu_proxy_applies = lambda backend_, c2w, means: (
+        (backend_ or backend.default_backend()) != "torch")
+    gpu_proxy.proxy_launch = counted
+    poses, proxies = proxy_scene(torch.float64, n=60, samples=30, poses=3)
+    proxy = dict(proxies)["directional/grid"]
+    out = dict(uses=proxy.uses_kernel(poses))
+    xi = torch.zeros(3, 6, dtype=torch.float64, requires_grad=True)
+    got = proxy(poses @ se3_exp(xi))
+    (g_got,) = torch.autograd.grad(got.sum(), xi)
+    xi = torch.zeros(3, 6, dtype=torch.float64, requires_grad=True)
+    ref = proxy.reference(poses @ se3_exp(xi))
+    (g_ref,) = torch.autograd.grad(ref.sum(), xi)
+    out["psi"] = float((got - ref).abs().max() / ref.abs().max())
+    out["twist"] = float((g_got - g_ref).abs().max() / g_ref.abs().max())
+    checks = []
+    calls.clear()
+    whole = proxy.values_in_parts(poses, 1, lambda: checks.append(1))
+    out.update(parts_launches=list(calls), parts_checks=len(checks),
+               parts=float((whole - got.detach()).abs().max()))
+    terms, acc = proxy.terms_and_factors(poses, proxy.axes)
+    w = proxy.reference(poses, per_sample=True)
+    f = proxy.direction_factors(poses)
+    out["acc"] = float(((w.unsqueeze(-1) * f).sum(0) - acc).abs().max() / acc.abs().max())
+    cfg = AnchorConfig(iterations=2, backtracks=2, step_size=0.3, min_rel_gain=1e-3)
+    runs = []
+    for b in ("auto", "torch"):
+        backend.set_default_backend(b)
+        calls.clear()
+        p, v, t, e = ascend(proxy, poses[:2], config=cfg, envelope=None, radius=1.0,
+                            compiled=False)
+        runs.append(dict(v=v.tolist(), t=t, e=e, launches=len(calls)))
+    backend.set_default_backend(None)
+    out["ascents"] = runs
+    print(json.dumps(out))
+""")
+
+
+@needs_triton
+def test_the_proxy_dispatches_to_the_kernels_and_the_ascent_steps_alike() -> None:
+    # ProxyPsi's hook, its autograd function, the pool's single launch, the directional
+    # fit's sums and the ascent, with the kernels serving CPU tensors through the interpreter
+    # as they serve CUDA tensors compiled
+    env = {**os.environ, "TRITON_INTERPRET": "1"}
+    proc = subprocess.run([sys.executable, "-c", _DISPATCH.format(here=str(HERE))],
+                          capture_output=True, text=True, env=env, timeout=300, check=False)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    r = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert r["uses"]
+    assert r["psi"] < 1e-12 and r["twist"] < 1e-12 and r["acc"] < 1e-12, r
+    assert r["parts_launches"] == [3] and r["parts_checks"] == 1 and r["parts"] < 1e-12, r
+    kern, ref = r["ascents"]
+    assert kern["launches"] > 0 and ref["launches"] == 0
+    # the same steps taken, ψ alike along them
+    assert [len(t) for t in kern["t"]] == [len(t) for t in ref["t"]] and kern["e"] == ref["e"]
+    for tk, tr in zip(kern["t"] + [kern["v"]], ref["t"] + [ref["v"]], strict=True):
+        assert max(abs(a - b) / abs(b) for a, b in zip(tk, tr, strict=True)) < 1e-12, r
+    assert sum(len(t) - 1 for t in ref["t"]) > 0, r  # steps were taken
+
+
 _COMPILE = textwrap.dedent("""
     import triton
     from triton.backends.compiler import GPUTarget
