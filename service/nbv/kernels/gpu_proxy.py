@@ -59,10 +59,11 @@ def gpu_proxy_applies(backend: str | None, c2w: Tensor, means: Tensor) -> bool:
     both on one CUDA device, float32 or float64, Triton importable, the backend not
     ``"torch"`` (the reference; None: the default backend) and ``AGILEGS_GPU_ANCHOR`` not
     false."""
+    if c2w.device.type != "cuda" or means.device != c2w.device:
+        return False
     b = default_backend() if backend is None else backend
-    return (b != "torch" and c2w.device.type == "cuda" and means.device == c2w.device
-            and c2w.dtype in (torch.float32, torch.float64) and kernel_settings().gpu_anchor
-            and triton_available())
+    return (b != "torch" and c2w.dtype in (torch.float32, torch.float64)
+            and kernel_settings().gpu_anchor and triton_available())
 
 
 def _kernels() -> Any:
