@@ -146,17 +146,17 @@ def proxy_launch(proxy: Any, c2w: Tensor, *, want_grad: bool = False,
         m = int(occ.shape[1])
         grid = torch.zeros(b, bins, cells, cells, dtype=f64, device=dev)
         if m > 0:
-            kern.deposit_kernel[(b, triton_cdiv(m, OCC_BLOCK))](
+            kern.deposit_kernel[(b, _cdiv(m, OCC_BLOCK))](
                 cams, kin["prm"], occ, kin["mass"], grid, m, cells, bins, BLOCK=OCC_BLOCK)
         cum = torch.empty(b, bins + 1, cells, cells, dtype=f64, device=dev)
         lanes = 1 << max(0, (cells * cells - 1).bit_length())
         kern.cumulate_kernel[(b,)](grid, cum, cells, bins, LANES=lanes)
     else:
         cum = torch.zeros(1, dtype=f64, device=dev)
-    blocks = max(1, triton_cdiv(s, BLOCK))
+    blocks = max(1, _cdiv(s, BLOCK))
     parts = max(1, min(blocks, PROGRAMS // max(b, 1)))
-    chunk = triton_cdiv(blocks, parts) * BLOCK
-    parts = max(1, triton_cdiv(s, chunk))
+    chunk = _cdiv(blocks, parts) * BLOCK
+    parts = max(1, _cdiv(s, chunk))
     part = torch.zeros(b, parts, 13, dtype=f64, device=dev)
     terms = torch.zeros(b, s, dtype=f64, device=dev) if per_sample else part
     if b > 0 and s > 0:
@@ -171,7 +171,7 @@ def proxy_launch(proxy: Any, c2w: Tensor, *, want_grad: bool = False,
     return total[:, 0], (total[:, 1:] if want_grad else None)
 
 
-def triton_cdiv(a: int, b: int) -> int:
+def _cdiv(a: int, b: int) -> int:
     return -(-a // b)
 
 
