@@ -331,7 +331,8 @@ def proxy_scene(dtype: torch.dtype = torch.float64, *, n: int = 80, samples: int
     """Small proxies ψ of every form the anchor builds (linear, log, directional with slots
     of every direction factor; with deep opacity maps and without; with extra samples
     appended) over anisotropic, rotated Gaussians, and poses [poses, 4, 4] about them: pool
-    poses moved by small random twists, and the last turned half away."""
+    poses moved by small random twists, the last turned half away, the one before it (with
+    three poses or more) inside the cloud."""
     g = torch.Generator().manual_seed(0)
     f64 = torch.float64
     pts = 0.3 * torch.randn(n, 3, generator=g, dtype=f64)
@@ -346,7 +347,10 @@ def proxy_scene(dtype: torch.dtype = torch.float64, *, n: int = 80, samples: int
     pool = capture_pool(centre, 2.6 * r98, poses, seed=0).to(f64)
     xi = 0.1 * torch.randn(poses, 6, generator=g, dtype=f64)
     xi[-1, 3:] = torch.tensor([0.0, 1.2, 0.0], dtype=f64)
-    moved = (pool @ se3_exp(xi)).to(dtype)
+    moved = pool @ se3_exp(xi)
+    if poses > 2:  # one inside the cloud: samples behind it and at its near plane
+        moved[-2, :3, 3] = centre.to(f64) + 0.05
+    moved = moved.to(dtype)
     grid = OpacityMaps.build(gm, intr, centre, r98, cells=5, bins=6, max_occluders=60,
                              generator=g)
     c = (torch.rand(n, generator=g, dtype=f64) + 0.1).to(dtype)
