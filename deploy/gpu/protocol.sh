@@ -72,18 +72,24 @@ BUILD=$!
 
 # 2. the Triton kernels against the torch reference on this GPU, first: where the Fisher's
 #    fail, everything after runs on the pure-torch Fisher (AGILEGS_KERNELS=torch); where the
-#    anchor's proxy ψ's fail, the anchor's ψ runs in torch (AGILEGS_GPU_ANCHOR=0); each says so
+#    anchor's proxy ψ's fail, the anchor's ψ runs in torch (AGILEGS_GPU_ANCHOR=0); each says
+#    so. A test run that fails (exit 1) or times out turns its kernels off; one that cannot
+#    collect its tests (tests/conftest.py imports the whole service: a missing wheel) keeps
+#    them and says they are untested (bench render's agree columns still compare them)
+triton_tests() {  # name log file off-variable off-value
+  timeout 150 "$PY" -m pytest -q -p no:cacheprovider -m cuda -rA "$3" >"$OUT/logs/$2" 2>&1
+  local rc=$?
+  say "Triton $1 tests: exit $rc ($(tail -1 "$OUT/logs/$2"))"
+  if [ $rc = 1 ] || [ $rc = 124 ]; then
+    export "$4=$5"; say "the $1 runs in pure torch ($4=$5)"
+  elif [ $rc != 0 ]; then
+    say "the $1 tests did not run: its Triton kernels are kept, untested here"
+  fi
+}
 if [ "$DEVICE" != cpu ]; then
-  timeout 150 "$PY" -m pytest -q -p no:cacheprovider -m cuda -rA \
-    tests/nbv/kernels/test_gpu_kernel.py >"$OUT/logs/tests-triton.txt" 2>&1
-  rc=$?
-  say "Triton Fisher tests: exit $rc ($(tail -1 "$OUT/logs/tests-triton.txt"))"
-  if [ $rc != 0 ]; then export AGILEGS_KERNELS=torch; say "the Fisher runs in pure torch"; fi
-  timeout 150 "$PY" -m pytest -q -p no:cacheprovider -m cuda -rA \
-    tests/nbv/kernels/test_gpu_proxy.py >"$OUT/logs/tests-triton-anchor.txt" 2>&1
-  rc=$?
-  say "Triton anchor tests: exit $rc ($(tail -1 "$OUT/logs/tests-triton-anchor.txt"))"
-  if [ $rc != 0 ]; then export AGILEGS_GPU_ANCHOR=0; say "the anchor's ψ runs in pure torch"; fi
+  triton_tests Fisher tests-triton.txt tests/nbv/kernels/test_gpu_kernel.py AGILEGS_KERNELS torch
+  triton_tests "anchor's ψ" tests-triton-anchor.txt tests/nbv/kernels/test_gpu_proxy.py \
+    AGILEGS_GPU_ANCHOR 0
 fi
 
 # 3. selection latency at the first size while gsplat builds (no gsplat involved), with the slow
