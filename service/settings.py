@@ -97,8 +97,11 @@ class KernelSettings(_Environment):
     kernel_threads: int | None = Field(
         default=None, ge=1, description="threads each kernel runs on (default: torch's thread "
         "count)")
+    gpu_anchor: bool = Field(
+        default=True, description="on CUDA, the anchor's proxy psi by its Triton kernels "
+        "(kernels/gpu_proxy.py) where the backend is not torch; false: by the torch path")
 
-    @field_validator("kernels", "kernel_threads", mode="before")
+    @field_validator("kernels", "kernel_threads", "gpu_anchor", mode="before")
     @classmethod
     def _plain(cls, value: Any, info: Any) -> Any:
         if isinstance(value, str):

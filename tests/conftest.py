@@ -35,8 +35,11 @@ from agilegs.service.nbv import (
     init_information,
     look_at,
     render,
+    se3_exp,
 )
-from agilegs.service.nbv.candidates import capture_pool
+from agilegs.service.nbv.anchor.proxy import ProxyPsi
+from agilegs.service.nbv.anchor.visibility import OpacityMaps
+from agilegs.service.nbv.candidates import capture_pool, scene_center_radius
 from agilegs.service.sessions.registry import SessionRegistry
 from agilegs.service.settings import Settings
 from agilegs.service.transports.requests import parse_request
@@ -320,3 +323,52 @@ def stateful_toml(size: Fuzz) -> str:
             f"[phases.stateful.generation]\nmax-examples = {size.scenarios}\n")
 
 
+
+
+# ---- from nbv/kernels/test_gpu_proxy.py ----
+def proxy_scene(dtype: torch.dtype = torch.float64, *, n: int = 80, samples: int = 50,
+                poses: int = 4) -> tuple[torch.Tensor, list[tuple[str, ProxyPsi]]]:
+    """Small proxies ψ of every form the anchor builds (linear, log, directional with slots
+    of every direction factor; with deep opacity maps and without; with extra samples
+    appended) over anisotropic, rotated Gaussians, and poses [poses, 4, 4] about them: pool
+    poses moved by small random twists, the last turned half away, the one before it (with
+    three poses or more) inside the cloud."""
+    g = torch.Generator().manual_seed(0)
+    f64 = torch.float64
+    pts = 0.3 * torch.randn(n, 3, generator=g, dtype=f64)
+    gm = GaussianMap.from_points(pts, torch.rand(n, 3, generator=g, dtype=f64), scale=0.05,
+                                 opacity=0.7)
+    gm = GaussianMap(means=gm.means, log_scales=gm.log_scales
+                     + 0.5 * torch.randn(n, 3, generator=g, dtype=f64),
+                     quats=torch.randn(n, 4, generator=g, dtype=f64),
+                     opacity_logits=gm.opacity_logits, sh=gm.sh).to(dtype=dtype)
+    intr = Intrinsics.from_fov(55.0, 40, 32)
+    centre, r98 = scene_center_radius(gm.means)
+    pool = capture_pool(centre, 2.6 * r98, poses, seed=0).to(f64)
+    xi = 0.1 * torch.randn(poses, 6, generator=g, dtype=f64)
+    xi[-1, 3:] = torch.tensor([0.0, 1.2, 0.0], dtype=f64)
+    moved = pool @ se3_exp(xi)
+    if poses > 2:  # one inside the cloud: samples behind it and at its near plane
+        moved[-2, :3, 3] = centre.to(f64) + 0.05
+    moved = moved.to(dtype)
+    grid = OpacityMaps.build(gm, intr, centre, r98, cells=5, bins=6, max_occluders=60,
+                             generator=g)
+    c = (torch.rand(n, generator=g, dtype=f64) + 0.1).to(dtype)
+    rate = (2.0 * torch.rand(n, 9, generator=g, dtype=f64)).to(dtype)
+    kinds = torch.tensor([0, 1, 2, 3, 4, 5, 6, 0, 3])
+    kw: dict[str, Any] = dict(near=0.05 * float(r98), edge=2.0, generator=g)
+    out: list[tuple[str, ProxyPsi]] = []
+    for tag, vis in (("grid", grid), ("none", None)):
+        out += [
+            (f"linear/{tag}", ProxyPsi.build(gm, c, intr, num_samples=samples, grid=vis, **kw)),
+            (f"log/{tag}", ProxyPsi.build(gm, c, intr, num_samples=samples, grid=vis,
+                                          rate=rate[:, 0], slots=3, **kw)),
+            (f"directional/{tag}", ProxyPsi.build(gm, c, intr, num_samples=samples, grid=vis,
+                                                  rate=rate, slot_kinds=kinds, **kw)),
+        ]
+    last = out[2][1]
+    extra = last.means[:4] + 0.05
+    out.append(("directional/extended", last.extended(
+        extra, 1e-3 * torch.eye(3, dtype=dtype).expand(4, 3, 3), torch.ones(4, dtype=dtype),
+        last.rate[:4])))
+    return moved, out

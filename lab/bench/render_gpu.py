@@ -16,7 +16,10 @@ For each Gaussian count and image size, on the same map and camera, rounds of (t
 - ``mapper step``: one :meth:`Mapper.step` on that map and camera with its training loss (L1 +
   D-SSIM), densification statistics and learning-rate schedule, through
   ``MapperConfig.rasterizer`` ``auto`` (gsplat where it loads);
-- ``agree``: the largest and mean |rgb| difference between the two rasterizers' images.
+- ``agree``: the largest and mean |rgb| difference between the two rasterizers' images;
+- ``anchor pool``, ``anchor grad`` and their ``torch`` references: the anchor's proxy ψ at a
+  pool of 100 poses and its gradient at 4 starts (:mod:`agilegs.lab.bench.anchor_gpu`; on
+  CUDA by its Triton kernels), with ``anchor_agree``.
 
 Each timed kind also reports its peak GPU memory above the map's (``torch.cuda``'s allocator
 statistics), i.e. what a session pays per render at that size.
@@ -36,7 +39,8 @@ from typing import Any
 logger = logging.getLogger(__name__)
 
 GPU_KINDS = ("fwd", "fwd_bwd", "fisher", "moments", "fisher_torch", "gsplat_fwd",
-             "gsplat_fwd_bwd", "gsplat_step", "mapper_step")
+             "gsplat_fwd_bwd", "gsplat_step", "mapper_step", "anchor_pool", "anchor_grad",
+             "anchor_pool_torch", "anchor_grad_torch")
 SLOW_ROUNDS = {"fisher_torch": 2}
 """Kinds timed over fewer rounds than ``--repeats``."""
 
@@ -126,14 +130,18 @@ def _functions(gm: Any, cam: Any, with_gsplat: bool
 
 
 def _time_gpu(scene: str | None, n: int, width: int, height: int, repeats: int,
-              device: str) -> dict[str, Any]:
+              device: str, *, anchor_samples: int | None = None, anchor_pool: int = 100
+              ) -> dict[str, Any]:
     """One row: every kind timed on ``device`` (a CUDA device; ``"cpu"`` runs the same code
-    without gsplat and memory figures, for tests)."""
+    without gsplat and memory figures, for tests). ``anchor_samples``, ``anchor_pool``: the
+    anchor's proxy sample (default: the anchor's) and pool."""
     import torch
 
     from agilegs.service.mapper.gsplat_render import gsplat_status, render_gsplat
     from agilegs.service.nbv import render
     from agilegs.service.nbv.kernels.gpu import gpu_moments_apply
+
+    from .anchor_gpu import anchor_functions
 
     dev = torch.device(device)
     cuda = dev.type == "cuda"
@@ -152,6 +160,8 @@ def _time_gpu(scene: str | None, n: int, width: int, height: int, repeats: int,
     sync()
     base_mem = allocated()
     fns, mapper_rasterizer = _functions(gm, cam, why is None)
+    anchor_fns, anchor = anchor_functions(gm, cam, samples=anchor_samples, pool=anchor_pool)
+    fns.update(anchor_fns)
     kinds = [k for k in GPU_KINDS if k in fns]
     wall: dict[str, list[float]] = {k: [] for k in kinds}
     peak: dict[str, float] = {}
@@ -182,7 +192,10 @@ def _time_gpu(scene: str | None, n: int, width: int, height: int, repeats: int,
         "gsplat": why is None, "gsplat_unavailable": why,
         "mapper_rasterizer": mapper_rasterizer,
         "fisher_path": "triton" if gpu_moments_apply(None, gm.means) else "torch",
+        "anchor_samples": anchor["samples"], "anchor_slots": anchor["slots"],
+        "anchor_pool": anchor["pool"],
     }
+    row["anchor_agree"], row["anchor_path"] = anchor["agree"]()
     fast, ref = fishers["fisher"], fishers["fisher_torch"]
     row["fisher_agree"] = max(
         float((fast[f] - ref[f]).abs().max() / ref[f].abs().max().clamp_min(1e-30)) for f in ref)
@@ -235,7 +248,7 @@ def _print(rows: list[dict[str, Any]], args: argparse.Namespace) -> None:
                   "rounds (peak GPU MB above the map)")
     cols = ["N", "px", "fwd", "fwd+bwd", "fisher", "moments", "fisher torch", "agree",
             "gsplat fwd", "gsplat f+b", "gsplat step", "mapper step", "mapper / gsplat step",
-            "gsplat agree max|mean"]
+            "gsplat agree max|mean", "ψ pool", "ψ grad", "ψ torch pool|grad", "ψ agree"]
     for c in cols:
         table.add_column(c, justify="right")
     for r in rows:
@@ -252,8 +265,11 @@ def _print(rows: list[dict[str, Any]], args: argparse.Namespace) -> None:
             cell("gsplat_fwd"), cell("gsplat_fwd_bwd"), cell("gsplat_step"),
             cell("mapper_step") + ("" if r["mapper_rasterizer"] == "gsplat" else " builtin"),
             f"{r['mapper_over_gsplat_step']:.2f}×" if "mapper_over_gsplat_step" in r else "-",
-            "-" if agree is None else f"{agree['rgb_max_abs']:.3f}|{agree['rgb_mean_abs']:.1e}")
-    console = Console(file=sys.stdout, width=200)
+            "-" if agree is None else f"{agree['rgb_max_abs']:.3f}|{agree['rgb_mean_abs']:.1e}",
+            cell("anchor_pool") + f" {r['anchor_path']}", cell("anchor_grad"),
+            f"{ms['anchor_pool_torch']:.1f}|{ms['anchor_grad_torch']:.1f}",
+            f"{r['anchor_agree']:.1e}")
+    console = Console(file=sys.stdout, width=240)
     console.print(table)
     missing = next((r["gsplat_unavailable"] for r in rows if not r["gsplat"]), None)
     if missing:

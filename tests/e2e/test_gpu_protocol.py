@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -52,3 +53,15 @@ def test_the_gpu_protocol_script_runs_every_step(tmp_path: Path) -> None:
     for name in ("spot", "skull_photos"):
         results = json.loads((out / f"run-{name}" / "results.json").read_text())
         assert not results["invocation"]["missing"], results["invocation"]
+
+
+def test_every_test_file_the_script_names_exists_and_loads_its_conftest() -> None:
+    # a moved test file makes pytest exit 4 on the GPU, and the script then turns the
+    # Triton kernels off for the whole run; the tests import helpers from tests/conftest.py
+    script = (ROOT / "deploy/gpu/protocol.sh").read_text()
+    named = set(re.findall(r"tests/[\w/]+\.py", script))
+    assert "tests/nbv/kernels/test_gpu_kernel.py" in named
+    assert "tests/nbv/kernels/test_gpu_proxy.py" in named
+    for path in named:
+        assert (ROOT / path).is_file(), path
+    assert "--noconftest" not in script

@@ -149,8 +149,14 @@ def test_the_kernels_environment_goes_through_the_settings(
     assert (kernel_settings().kernels, kernel_settings().kernel_threads) == ("torch", 3)
     monkeypatch.setenv("AGILEGS_KERNELS", "")
     assert kernel_settings().kernels == "auto"
+    monkeypatch.delenv("AGILEGS_GPU_ANCHOR", raising=False)
+    assert kernel_settings().gpu_anchor
+    monkeypatch.setenv("AGILEGS_GPU_ANCHOR", "0")
+    assert not kernel_settings().gpu_anchor
+    monkeypatch.setenv("AGILEGS_GPU_ANCHOR", " ")
+    assert kernel_settings().gpu_anchor
     for var, bad in (("AGILEGS_KERNELS", "fast"), ("AGILEGS_KERNEL_THREADS", "0"),
-                     ("AGILEGS_KERNEL_THREADS", "two")):
+                     ("AGILEGS_KERNEL_THREADS", "two"), ("AGILEGS_GPU_ANCHOR", "maybe")):
         monkeypatch.setenv(var, bad)
         with pytest.raises(ValueError, match=f"{var}: .*got '{bad}'"):
             kernel_settings()

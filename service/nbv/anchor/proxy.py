@@ -27,7 +27,7 @@ from agilegs.config.selection import POINT_ZBUFFER
 
 from ..camera import Intrinsics
 from ..gaussians import GaussianMap
-from ..kernels import backend
+from ..kernels import backend, gpu_proxy
 from ..projection import covariance_3d
 from ..rotations import quat_to_rotmat
 from .visibility import OpacityMaps
@@ -254,7 +254,8 @@ class ProxyPsi:
             return False
         if self.rate is not None and self.rate.ndim == 2 and self.axes is None:
             return False
-        return backend.resolve(None, (c2w, self.means))
+        return (gpu_proxy.gpu_proxy_applies(None, c2w, self.means)  # CUDA: Triton's
+                or backend.resolve(None, (c2w, self.means)))
 
     def __call__(self, c2w: Tensor, per_sample: bool = False) -> Tensor:
         """psi for poses [B, 4, 4] -> [B] (differentiable in the poses, but for visibility).
@@ -351,6 +352,8 @@ class ProxyPsi:
         and ``axes`` [S, 3, 3], the terms and their sum over the poses times each direction
         factor [S, 7] (:meth:`terms_and_factors`). ``part`` > 0: the poses in ranges of that
         many, ``between()`` called before each."""
+        if gpu_proxy.gpu_proxy_applies(None, c2w, self.means):  # Triton's, all poses at once
+            return gpu_proxy.proxy_kernel(self, c2w, want_grad, per_sample, axes, between)
         kin = self._kernel_inputs()
         b = c2w.shape[0]
         pose = c2w.detach().to(torch.float64).cpu()
