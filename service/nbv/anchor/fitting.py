@@ -328,9 +328,9 @@ def directional_rates(
         counts = torch.cat([kept["counts"].to(torch.float64), counts])
         f_typ = weighted_lower_median(quantiles, counts)
         age = int(kept["age"]) + 1
-    carry = None if refit_every <= 1 else {"count": n, "views": int(poses.shape[0]), "poses": poses.detach().cpu().clone(),
-             "w_sum": w_sum.detach().clone(), "quantiles": quantiles, "counts": counts,
-             "age": age}
+    carry = None if refit_every <= 1 else {
+        "count": n, "views": int(poses.shape[0]), "poses": poses.detach().cpu().clone(),
+        "w_sum": w_sum.detach().clone(), "quantiles": quantiles, "counts": counts, "age": age}
     # the floor of each factor: a quarter of a typical view, at the factor's mean over a
     # uniform direction (2/3 for 1 - c^2)
     floor = 0.25 * f_typ * torch.tensor([1.0] + [2.0 / 3.0] * 6, dtype=dt, device=dev)
