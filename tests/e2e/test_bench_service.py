@@ -39,7 +39,8 @@ def test_bench_service_prints_overhead_and_load(server: ServerProcess, tmp_path:
     # a 1 ms deadline: the methods that take longer answer 504, none anything but 200 or 504
     dl = res["deadline"]
     assert "deadline: X-Deadline-Ms 1" in proc.stdout and dl["deadline_ms"] == 1
-    assert set(dl["methods"]) == {"random", "fisherrf", "cover", "full_eig", "agile", "agile_plus"}
+    assert set(dl["methods"]) == {"random", "spread", "fisherrf", "cover", "full_eig", "agile",
+                                  "agile_plus"}
     for m in dl["methods"].values():
         assert set(m["statuses"]) <= {"200", "504"} and sum(m["statuses"].values()) == 2
         assert m["overshoot_ms"]["max"] >= m["overshoot_ms"]["p50"] > -1
