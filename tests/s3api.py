@@ -4,17 +4,11 @@ made, and the ``AWS_*`` variables a client of it needs."""
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 
-import httpx
-
-from agilegs.service.launch import free_port
+from agilegs.lab.bench.fleet import s3_server
 
 __all__ = ["S3Api", "s3_api"]
 
@@ -37,29 +31,7 @@ class S3Api:
 
 @contextmanager
 def s3_api(bucket: str = "agilegs-test") -> Iterator[S3Api]:
-    """moto's S3 server on 127.0.0.1 (stopped on exit) with ``bucket`` made."""
-    port = free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p",
-                             str(port)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                            env={**os.environ, "MOTO_PORT": str(port)})
-    endpoint = f"http://127.0.0.1:{port}"
-    try:
-        deadline = time.monotonic() + 30
-        while True:
-            try:
-                # a bucket is made by PUT /<bucket> (moto does not check signatures)
-                if httpx.put(f"{endpoint}/{bucket}", timeout=2).status_code in (200, 409):
-                    break
-            except httpx.HTTPError:
-                pass
-            if proc.poll() is not None or time.monotonic() > deadline:
-                raise RuntimeError("moto's S3 server did not start")
-            time.sleep(0.1)
+    """moto's S3 server on 127.0.0.1 (stopped on exit) with ``bucket`` made: the benchmark's
+    own (:func:`agilegs.lab.bench.fleet.s3_server`)."""
+    with s3_server(bucket) as endpoint:
         yield S3Api(endpoint, bucket)
-    finally:
-        proc.terminate()
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()

@@ -42,7 +42,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-__all__ = ["add_arguments", "run"]
+__all__ = ["add_arguments", "run", "s3_server"]
 
 INTRINSICS = {"fx": 28.0, "fy": 28.0, "cx": 16.0, "cy": 16.0, "width": 32, "height": 32}
 BOUNDS = {"min": [-0.5] * 3, "max": [0.5] * 3}
@@ -77,19 +77,22 @@ def _pct(values: list[float], q: float) -> float:
 
 @contextmanager
 def s3_server(bucket: str) -> Iterator[str]:
-    """moto's S3 server on 127.0.0.1 and a free port, with ``bucket`` made; its endpoint."""
+    """moto's S3 server (its server mode, which boto3 and s3fs test against) on 127.0.0.1 and
+    a free port, with ``bucket`` made; its endpoint. Stopped on exit."""
     import httpx
 
     from agilegs.service.launch import free_port
 
     port = free_port()
     proc = subprocess.Popen([sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p",
-                             str(port)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                             str(port)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            env={**os.environ, "MOTO_PORT": str(port)})
     endpoint = f"http://127.0.0.1:{port}"
     try:
         deadline = time.monotonic() + 30
         while True:
             try:
+                # a bucket is made by PUT /<bucket> (moto does not check signatures)
                 if httpx.put(f"{endpoint}/{bucket}", timeout=2).status_code in (200, 409):
                     break
             except httpx.HTTPError:
@@ -100,7 +103,11 @@ def s3_server(bucket: str) -> Iterator[str]:
         yield endpoint
     finally:
         proc.terminate()
-        proc.wait(timeout=10)
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
 
 
 class Fleet:
