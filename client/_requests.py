@@ -26,6 +26,7 @@ from agilegs.schemas import (
 from agilegs.schemas.codec import GAUSSIAN_FILE_TYPES
 from agilegs.schemas.config import SelectConfigPatch
 from agilegs.schemas.geometry import trusted_poses
+from agilegs.schemas.requests import new_request_id
 from agilegs.schemas.views import InitialFrame
 
 from .errors import ValidationError
@@ -65,6 +66,14 @@ class Call:
     body: BaseModel | None = None
     params: dict[str, str] | None = None  # query parameters (HTTP) / selector (Zenoh)
     file: str | None = None  # answered as this file (get_gaussians: ply / splat), as bytes
+    request_id: str | None = None  # a write's request id: its retries apply it once
+
+    def with_request_id(self) -> Call:
+        """This call with a fresh request id when it is a write without one
+        (:mod:`agilegs.schemas.requests`): every retry of it then carries the same id."""
+        if self.op.http_method == "GET" or self.request_id is not None:
+            return self
+        return replace(self, request_id=new_request_id())
 
 
 def call(name: str, session: str | None = None, body: BaseModel | None = None) -> Call:

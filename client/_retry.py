@@ -3,11 +3,14 @@
 ``retry_window``.
 
 A fleet's instances say ``retry_after`` when the session's owner is gone and a live instance
-is taking it over (or it moved while the request ran), and only when the request changed
-nothing (no owner received it, or a stale owner's commit was fenced), so retrying it applies
-it once. Without ``retry_after`` (a cluster whose instances keep their own state folders, a
-session that does not exist, a write whose owner died while answering it) the error is raised
-at once.
+is taking it over (or it moved while the request ran), when the request changed nothing (no
+owner received it, or a stale owner's commit was fenced), and when it is a write with a
+request id (every write the SDK sends has one: :mod:`agilegs.schemas.requests`), which the
+session's record makes apply once however often it is sent. Without ``retry_after`` (a
+cluster whose instances keep their own state folders, a session that does not exist, a write
+without a request id whose owner died while answering it) the error is raised at once. A
+``delete_session`` retried after a lost answer finds the session gone: that answer is its
+``Deleted``.
 """
 
 from __future__ import annotations
@@ -17,7 +20,10 @@ import time
 from collections.abc import Awaitable, Callable
 from typing import TypeVar
 
-from .errors import SessionUnavailableError
+from agilegs.schemas import Deleted
+
+from ._requests import Call
+from .errors import NotFoundError, SessionUnavailableError
 
 __all__ = ["RETRY_WINDOW", "backoff", "retry_async", "retry_sync"]
 
@@ -37,9 +43,19 @@ def _retryable(exc: SessionUnavailableError) -> bool:
     return exc.retry_after is not None
 
 
-def retry_sync(send: Callable[[], T], window: float) -> T:
-    """``send()``, retried while it raises a retryable :class:`SessionUnavailableError` and
-    ``window`` seconds are not spent (then the last error is raised)."""
+def _gone(call: Call | None, attempt: int, exc: NotFoundError) -> Deleted | None:
+    """The answer of a retried ``delete_session`` that finds its session gone (the attempt
+    before deleted it, and its answer was lost)."""
+    if (attempt and call is not None and call.op.name == "delete_session"
+            and call.session is not None and not isinstance(exc, SessionUnavailableError)):
+        return Deleted(id=call.session)
+    return None
+
+
+def retry_sync(send: Callable[[], T], window: float, call: Call | None = None) -> T:
+    """``send()`` (of ``call``), retried while it raises a retryable
+    :class:`SessionUnavailableError` and ``window`` seconds are not spent (then the last
+    error is raised)."""
     deadline = time.monotonic() + window
     attempt = 0
     while True:
@@ -49,11 +65,16 @@ def retry_sync(send: Callable[[], T], window: float) -> T:
             delay = backoff(attempt, exc.retry_after)
             if not _retryable(exc) or time.monotonic() + delay > deadline:
                 raise
+        except NotFoundError as exc:
+            if (gone := _gone(call, attempt, exc)) is not None:
+                return gone  # type: ignore[return-value]
+            raise
         time.sleep(delay)
         attempt += 1
 
 
-async def retry_async(send: Callable[[], Awaitable[T]], window: float) -> T:
+async def retry_async(send: Callable[[], Awaitable[T]], window: float,
+                      call: Call | None = None) -> T:
     """:func:`retry_sync` for a coroutine."""
     deadline = time.monotonic() + window
     attempt = 0
@@ -64,5 +85,9 @@ async def retry_async(send: Callable[[], Awaitable[T]], window: float) -> T:
             delay = backoff(attempt, exc.retry_after)
             if not _retryable(exc) or time.monotonic() + delay > deadline:
                 raise
+        except NotFoundError as exc:
+            if (gone := _gone(call, attempt, exc)) is not None:
+                return gone  # type: ignore[return-value]
+            raise
         await asyncio.sleep(delay)
         attempt += 1

@@ -10,6 +10,7 @@ from pydantic import ValidationError as PydanticValidationError
 
 from agilegs.schemas import codec
 from agilegs.schemas.codec import GAUSSIAN_FILE_TYPES
+from agilegs.schemas.requests import REQUEST_ID_HEADER
 
 from ._ops import AsyncOperations, SyncOperations
 from ._requests import Call, query_params
@@ -37,6 +38,8 @@ class _HTTPBase:
         if call.session is not None:
             path = path.replace("{session}", call.session)
         headers = dict(self.headers)
+        if call.request_id is not None:
+            headers[REQUEST_ID_HEADER] = call.request_id
         if call.file is not None:  # the file, else (an error) the body in our encoding
             headers["accept"] = f"{GAUSSIAN_FILE_TYPES[call.file]}, {self.kind};q=0.5"
         content = None
@@ -95,7 +98,8 @@ class Client(_HTTPBase, SyncOperations):
         self.retry_window = retry_window
 
     def _send(self, call: Call) -> BaseModel | bytes:
-        return retry_sync(lambda: self._send_once(call), self.retry_window)
+        call = call.with_request_id()
+        return retry_sync(lambda: self._send_once(call), self.retry_window, call)
 
     def _send_once(self, call: Call) -> BaseModel | bytes:
         try:
@@ -134,7 +138,8 @@ class AsyncClient(_HTTPBase, AsyncOperations):
         self.retry_window = retry_window
 
     async def _send(self, call: Call) -> BaseModel | bytes:
-        return await retry_async(lambda: self._send_once(call), self.retry_window)
+        call = call.with_request_id()
+        return await retry_async(lambda: self._send_once(call), self.retry_window, call)
 
     async def _send_once(self, call: Call) -> BaseModel | bytes:
         try:

@@ -23,6 +23,7 @@ from pydantic import ValidationError as PydanticValidationError
 
 from agilegs import schemas as m
 from agilegs.schemas import ErrorBody, codec, keys
+from agilegs.schemas.requests import REQUEST_ID_PARAM
 
 from . import _requests as rq
 from ._ops import ObservationLike, PoolLike, SyncOperations
@@ -151,7 +152,8 @@ class ZenohClient(SyncOperations):
             raise ValidationError(422, "invalid", str(exc), "session") from None
 
     def _send(self, call: Call, parameters: str | None = None) -> BaseModel | bytes:
-        return retry_sync(lambda: self._send_once(call, parameters), self.retry_window)
+        call = call.with_request_id()
+        return retry_sync(lambda: self._send_once(call, parameters), self.retry_window, call)
 
     def _send_once(self, call: Call, parameters: str | None = None) -> BaseModel | bytes:
         if parameters is None:
@@ -159,6 +161,8 @@ class ZenohClient(SyncOperations):
             params = {**(call.params or {}), "deadline_ms": f"{self.timeout * 1e3:.0f}"}
             if call.file is not None:
                 params["format"] = call.file
+            if call.request_id is not None:
+                params[REQUEST_ID_PARAM] = call.request_id
             parameters = ";".join(f"{k}={v}" for k, v in params.items())
         key = self._key(call)
         payload = codec.dump(call.body, codec.MSGPACK) if call.body is not None else None
@@ -185,8 +189,9 @@ class ZenohClient(SyncOperations):
             raise RequestTimeout(f"{call.op.name}: no reply on {key} within {self.timeout} s")
         if call.op.scope == "session" and self._any_server():
             # in a fleet, a live instance takes a dead owner's sessions over: a read is worth
-            # a retry (a write may have been applied by an owner that died answering it)
-            read = call.op.http_method == "GET"
+            # a retry, and so is a write with a request id (applied once however often sent;
+            # without one it may have been applied by an owner that died answering it)
+            read = call.op.http_method == "GET" or call.request_id is not None
             raise SessionUnavailableError(
                 404, "session_unavailable",
                 f"{call.op.name}: no instance answers for session {call.session!r}: it does not "

@@ -34,6 +34,7 @@ __all__ = [
     "TF_MESSAGE",
     "CdrError",
     "deserialize",
+    "field_names",
     "interface_definitions",
     "msg",
     "request_type",
@@ -105,6 +106,11 @@ def typestore() -> Any:
         # the parser files every type under <pkg>/msg/: keep a service half's own name
         store.register({name: fields})
     return store
+
+
+def field_names(typename: str) -> list[str]:
+    """The field names of ``typename``, in order."""
+    return [name for name, _ in typestore().fielddefs[typename][1]]
 
 
 def msg(typename: str, **fields: Any) -> Any:

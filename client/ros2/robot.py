@@ -27,6 +27,9 @@ from typing import Any
 
 import numpy as np
 
+from agilegs.schemas.requests import new_request_id
+
+from .._retry import RETRY_WINDOW, backoff
 from . import messages as m
 from .frames import (
     axes_of_frame,
@@ -65,13 +68,18 @@ class Ros2Robot:
         timeout: seconds a service call may take.
         wait: seconds the first message on a topic (or call of a service) waits for agilegs
             to be reachable on its key, as a ROS 2 publisher waits for its subscriber.
+        retry_window: seconds a service call answered with a ``Status.retry_after`` (a fleet
+            handing the session over) is sent again, with its ``request_id`` and backoff, as
+            the SDK's clients do (:mod:`agilegs.client._retry`); 0: never.
     """
 
     def __init__(self, namespace: str, connect: Sequence[str] = (), *, session: Any = None,
                  world_frame: str = "map", camera_frame: str = "camera_optical_frame",
                  timeout: float = 120.0, wait: float = 10.0,
-                 credentials: str | Path | None = None) -> None:
+                 credentials: str | Path | None = None,
+                 retry_window: float = RETRY_WINDOW) -> None:
         self.ns = Namespace(namespace)
+        self.retry_window = retry_window
         self.world_frame = world_frame
         self.camera_frame = camera_frame
         self.timeout = timeout
@@ -153,11 +161,23 @@ class Ros2Robot:
 
     def call(self, leaf: str, **fields: Any) -> Any:
         """Call the service ``leaf`` with ``fields`` (the rest take their zero values) and
-        return the response message."""
+        return the response message; sent again while its status says ``retry_after`` and
+        ``retry_window`` seconds are not spent (a service with a ``request_id`` field gets a
+        fresh one unless given, and every retry carries it: applied once)."""
         service = SERVICES[leaf]
-        request = m.msg(m.request_type(service), **fields)
-        return m.deserialize(self.call_raw(leaf, m.serialize(request)),
-                             m.response_type(service))
+        if "request_id" in m.field_names(m.request_type(service)):
+            fields.setdefault("request_id", new_request_id())
+        payload = m.serialize(m.msg(m.request_type(service), **fields))
+        deadline = time.monotonic() + self.retry_window
+        attempt = 0
+        while True:
+            resp = m.deserialize(self.call_raw(leaf, payload), m.response_type(service))
+            hint = float(resp.status.retry_after)
+            delay = backoff(attempt, hint)
+            if hint <= 0 or time.monotonic() + delay > deadline:
+                return resp
+            time.sleep(delay)
+            attempt += 1
 
     def subscribe(self, leaf: str, callback: Callable[[Any], None]) -> None:
         """Call ``callback`` with each message agilegs publishes on ``leaf`` (decision,

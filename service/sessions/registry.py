@@ -25,8 +25,9 @@ import torch
 from pydantic import BaseModel, ValidationError
 
 from agilegs import schemas as m
-from agilegs.schemas import DecisionsOut, DecisionsRequest
+from agilegs.schemas import OPERATIONS, DecisionsOut, DecisionsRequest
 from agilegs.schemas.config import patch_dict
+from agilegs.schemas.requests import session_id_for
 
 from ..errors import (
     ServiceError,
@@ -46,6 +47,7 @@ from ..store.integrity import Damage, FileProblem
 from ..store.objects import AnyStore, Fenced, ObjectSessionStore, open_store
 from ..store.records import SessionRecord
 from ..store.write import StoreError
+from . import requests as rq
 from .convert import (
     empty_map,
     gaussians_from_depth,
@@ -153,18 +155,22 @@ class SessionRegistry:
 
     # ------------------------------------------------------------------ dispatch
     def execute(self, op: str, session: str | None, req: BaseModel | None, *,
-                check: Callable[[], None] | None = None) -> BaseModel:
+                check: Callable[[], None] | None = None, request_id: str | None = None
+                ) -> BaseModel:
         """Run operation ``op`` with its validated request; a :class:`ServiceError` for
         anything refused (the session is then unchanged). ``check`` is the request's
         cancellation check (:mod:`agilegs.service.nbv.cancel`): called while waiting for the
-        session's lock and between the steps of a selection, it raises to stop there."""
+        session's lock and between the steps of a selection, it raises to stop there.
+        ``request_id``: a write's request id (:mod:`agilegs.service.sessions.requests`): a
+        write the session applied under it already is answered again, not applied."""
         handler = HANDLERS.get(op)
         if handler is None:
             raise not_found("op", f"unknown operation {op!r}")
-        if check is None:
-            return handler(self, session, req)
-        with cancel.scope(check):
-            return handler(self, session, req)
+        with rq.serving(op, request_id if OPERATIONS[op].http_method != "GET" else None):
+            if check is None:
+                return handler(self, session, req)
+            with cancel.scope(check):
+                return handler(self, session, req)
 
     def session(self, sid: str | None) -> Session:
         sid = self._checked_id(sid)
@@ -383,7 +389,13 @@ class SessionRegistry:
         with s.lock:
             if s.closed:
                 raise not_found("session", f"session {sid!r} does not exist")
-            self.store.delete(s.id)
+            try:
+                self.store.delete(s.id)
+            except Fenced as exc:  # another instance holds it now: it deletes it
+                self.drop_lost(s, str(exc))
+                raise ServiceError(404, "session_unavailable", f"session {sid!r} moved to "
+                                   "another instance (nothing was deleted): retry",
+                                   "path.session", retry_after=0.2) from None
             s.closed = True
             with self.lock:
                 self.sessions.pop(s.id, None)
@@ -402,7 +414,10 @@ class SessionRegistry:
 
     def create_session(self, req: m.SessionCreate) -> m.SessionInfo:
         settings = self.settings
-        sid = req.id or f"s-{uuid.uuid4().hex[:12]}"
+        rid = rq.current()
+        sid = req.id or (session_id_for(rid) if rid is not None else f"s-{uuid.uuid4().hex[:12]}")
+        if (done := self._created_already(sid)) is not None:
+            return done
         with self.lock:
             self._check_new_id(sid)
         intr = req.intrinsics.model_dump()
@@ -461,8 +476,10 @@ class SessionRegistry:
         with self.lock:
             self._check_new_id(sid)
             try:
-                rec = self.store.create(rec, blobs)
+                rec = self.store.create(rq.remember(rec, None), blobs)
             except FileExistsError:
+                if (done := self._created_already(sid)) is not None:
+                    return done
                 raise conflict("body.id", f"session {sid!r} already exists") from None
             except BlobError as exc:
                 raise store_unavailable(exc) from None
@@ -474,6 +491,24 @@ class SessionRegistry:
         if frames:
             s.on_observation(list(rec.views), frames)
         return s.info()
+
+    def _created_already(self, sid: str) -> m.SessionInfo | None:
+        """The session ``sid`` when the create being served carries a request id and created
+        it already (held here, or in a fleet's store); None otherwise."""
+        if rq.current() is None:
+            return None
+        held = self.sessions.get(sid)
+        if held is not None:
+            with held.locked():
+                return held.replayed(m.SessionInfo, held.info)
+        if not self.fleet:
+            return None
+        got = self.store.inspect(sid) if self.in_store(sid) else None
+        if not isinstance(got, SessionRecord) or rq.applied(got) is None:
+            return None
+        log.info("session %s: created already under request %s (held by another instance)",
+                 sid, rq.current())
+        return Session(got, self.env).info()
 
     def _check_new_id(self, sid: str) -> None:
         if sid in self.sessions:

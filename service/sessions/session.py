@@ -21,21 +21,23 @@ The mapper (:mod:`agilegs.service.sessions.trainer`) plugs in as ``Session.mappe
 from __future__ import annotations
 
 import io
+import logging
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
+from pydantic import BaseModel
 from torch import Tensor
 
 from agilegs import schemas as m
 from agilegs.schemas import Intrinsics as WireIntrinsics
 
-from ..errors import ServiceError, not_found, session_damaged
+from ..errors import ServiceError, conflict, not_found, session_damaged
 from ..nbv import GaussianMap
 from ..nbv.cancel import checkpoint
 from ..settings import Settings
@@ -43,6 +45,7 @@ from ..store.blobs import BlobError
 from ..store.integrity import DamagedFile, FileProblem
 from ..store.objects import AnyStore, Fenced
 from ..store.records import SessionRecord, ViewRecord
+from . import requests as rq
 from . import transitions as tr
 from .convert import (
     Frame,
@@ -58,6 +61,11 @@ from .mapper_state import mapper_options, mapper_status
 from .selection import select_response, select_step
 
 __all__ = ["MapperHook", "Session", "SessionEnv", "changed_roles", "store_unavailable"]
+
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T", bound=BaseModel)
 
 
 def store_unavailable(exc: BaseException) -> ServiceError:
@@ -162,6 +170,31 @@ class Session:
             raise store_unavailable(exc) from None
         self.record = saved
         return saved
+
+    def write(self, new: SessionRecord, blobs: dict[str, bytes] | None = None,
+              answer: BaseModel | None = None) -> SessionRecord:
+        """:meth:`apply` for a request's write: the request id it carries, if any, is
+        recorded in the same commit with ``answer`` (:mod:`~agilegs.service.sessions.requests`)."""
+        if new is not self.record:
+            new = rq.remember(new, answer)
+        return self.apply(new, blobs)
+
+    def replayed(self, response: type[T], remake: Callable[[], T] | None = None) -> T | None:
+        """The answer to the request being served when its request id names a write this
+        session applied already (the lock is held): the answer kept, else ``remake()``; None
+        when the write is new. 409 when it was applied and its answer is no longer kept."""
+        found = rq.applied(self.record)
+        if found is None:
+            return None
+        got = rq.replay(found, response)
+        if got is None and remake is not None:
+            got = remake()
+        if got is None:
+            raise conflict("request_id", f"request {found.id!r} was applied already (version "
+                           f"{found.version}); its answer is no longer kept: read the session")
+        log.info("session %s: request %s (%s) was applied already (version %d): answered "
+                 "again, nothing applied", self.id, found.id, found.op, found.version)
+        return got  # type: ignore[return-value]
 
     @contextmanager
     def locked(self) -> Iterator[None]:
@@ -310,7 +343,9 @@ class Session:
                                tmp_dir=self.env.tmp_dir)
         with self.locked():
             self.check_open()
-            self.replace_map(gmap)
+            if (done := self.replayed(m.SessionInfo, self.info)) is not None:
+                return done
+            self.write(tr.replace_map(self.record, gmap, self.limits))
         return self.info()
 
     def replace_map(self, gmap: GaussianMap, *, src: Tensor | None = None,
@@ -331,21 +366,28 @@ class Session:
         poses = poses_array(req.poses)
         with self.locked():
             self.check_open()
+            if (done := self.replayed(m.PoolOut)) is not None:
+                return done
             new = tr.set_pool(self.record, poses, req.ids, self.limits, "body",
                               replace_pool=replace_pool)
-            return pool_out(self.apply(new))
+            out = pool_out(new)
+            self.write(new, answer=out)
+            return out
 
     # ------------------------------------------------------------------ views
     def commit(self, req: m.CommitRequest) -> m.View:
         pose = req.pose.to_matrix() if req.pose is not None else None
         with self.locked():
             self.check_open()
+            if (done := self.replayed(m.View)) is not None:
+                return done
             new, view = tr.commit_view(self.record, self.limits, candidate_id=req.candidate_id,
                                        pose=pose, keep_in_pool=req.keep_in_pool,
                                        pending=self.pending)
-            self.apply(new)
+            out = view_out(view)
+            self.write(new, answer=out)
             self.pending = None
-            return view_out(view)
+            return out
 
     def add_observations(self, req: m.ObservationsIn) -> m.ViewsOut:
         frames = [parse_frame(o, i, "body.observations", self.record.intrinsics,
@@ -353,13 +395,16 @@ class Session:
                   for i, o in enumerate(req.observations)]
         with self.locked():
             self.check_open()
+            if (done := self.replayed(m.ViewsOut)) is not None:
+                return done
             new, blobs, touched = tr.integrate_frames(self.record, frames, "body.observations",
                                                       self.limits, pending=self.pending)
-            saved = self.apply(new, blobs)
+            out = m.ViewsOut(views=[view_out(v) for v in touched], version=new.version)
+            self.write(new, blobs, answer=out)
             if any(f.obs.view_id is None for f in frames):
                 self.pending = None
             self.on_observation(touched, frames)
-            return m.ViewsOut(views=[view_out(v) for v in touched], version=saved.version)
+            return out
 
     def on_observation(self, views: list[ViewRecord], frames: Sequence[Frame] = ()) -> None:
         """Hook: where the mapper integrates new frames.
@@ -398,8 +443,12 @@ class Session:
         kept for the next acquisition to take its warm state."""
         with self.locked():
             self.check_open()
+            if (done := self.replayed(m.SelectResponse)) is not None:
+                return done
             t_core = time.perf_counter()
             out = select_step(self.record, req, self.limits)
-            saved = self.apply(out.record)
+            answer = select_response(out.record, out, t_core)
+            self.write(out.record, answer=answer)
             self.pending = out.pending
-            return select_response(saved, out, t_core)
+            answer.core_ms = (time.perf_counter() - t_core) * 1e3
+            return answer

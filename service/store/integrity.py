@@ -24,6 +24,8 @@ from pathlib import Path
 from typing import Any
 
 __all__ = [
+    "is_tombstone",
+    "lease_of",
     "FORMAT",
     "Damage",
     "DamagedFile",
@@ -197,3 +199,24 @@ class Damage:
             steps.append(f"drop the damaged images / depth of views {ids} (the views, their "
                          "poses and Ĥ stay)")
         return "; then ".join(steps) or "rewrite the manifest"
+
+
+def lease_of(manifest: bytes | None) -> dict[str, Any] | None:
+    """The lease a manifest's bytes record (None: none, or they do not decode)."""
+    if manifest is None:
+        return None
+    try:
+        lease = decode_manifest(manifest).get("lease")
+    except ManifestError:
+        return None
+    return lease if isinstance(lease, dict) else None
+
+
+def is_tombstone(manifest: bytes | None) -> bool:
+    """Whether a manifest's bytes are a deletion's tombstone (the session is gone)."""
+    if manifest is None:
+        return False
+    try:
+        return decode_manifest(manifest).get("deleted") is True
+    except ManifestError:
+        return False

@@ -64,17 +64,28 @@ import torch
 
 from .blobs import Blobs, PreconditionFailed, open_blobs
 from .integrity import (
+    FORMAT,
     Damage,
     DamagedFile,
     FileProblem,
-    ManifestError,
     checksum,
     decode_manifest,
     encode_manifest,
+    is_tombstone,
+    lease_of,
     read_checked,
 )
 from .read import inspect_session
-from .records import MANIFEST, PREVIOUS, ROLES, SESSION_NAME, VIEWS, SessionRecord, ViewRecord
+from .records import (
+    MANIFEST,
+    PREVIOUS,
+    ROLES,
+    SESSION_NAME,
+    VIEWS,
+    SessionRecord,
+    ViewRecord,
+    named_in,
+)
 from .write import Repair, SessionStore, StoreError, role_payload, without_files
 
 __all__ = ["LEFTOVER_AGE", "AnyStore", "Fenced", "ObjectSessionStore", "folder_of", "open_store"]
@@ -125,6 +136,9 @@ class _Source:
             if rel == MANIFEST:
                 self.manifest_seen = True
             raise
+        if rel == MANIFEST and is_tombstone(data):
+            self.manifest_seen = True
+            raise FileNotFoundError(rel)  # deleted: its objects are being removed
         if rel == MANIFEST and self.manifest is None:
             self.manifest = (data, etag)
             self.manifest_seen = True
@@ -137,31 +151,6 @@ def _key(sid: str, rel: str) -> str:
 
 def _token() -> str:
     return uuid.uuid4().hex[:10]
-
-
-def lease_of(manifest: bytes | None) -> dict[str, Any] | None:
-    """The lease a manifest's bytes record (None: none, or they do not decode)."""
-    if manifest is None:
-        return None
-    try:
-        lease = decode_manifest(manifest).get("lease")
-    except ManifestError:
-        return None
-    return lease if isinstance(lease, dict) else None
-
-
-def _named_in(manifest: bytes | None) -> set[str]:
-    """The files a manifest's bytes name (none when they do not decode)."""
-    if manifest is None:
-        return set()
-    try:
-        m = decode_manifest(manifest)
-    except ManifestError:
-        return set()
-    out = set(dict(m.get("files") or {}).values())
-    for v in m.get("views") or []:
-        out.update(f"{VIEWS}/{n}" for n in (v.get("image_file"), v.get("depth_file")) if n)
-    return out
 
 
 class ObjectSessionStore:
@@ -241,7 +230,7 @@ class ObjectSessionStore:
             new = self._write_files(record, ROLES, blobs or {}, written)
             lease = self._new_lease(1)
             data = self._encode(new, lease)
-            etag = self.blobs.put_if_absent(_key(record.id, MANIFEST), data)
+            etag = self._put_new(record.id, data)
         except PreconditionFailed:
             self._remove(written)
             raise FileExistsError(record.id) from None
@@ -251,6 +240,21 @@ class ObjectSessionStore:
         with self._lock:
             self._heads[record.id] = _Head(etag, data, new.named_files(), set(), lease)
         return new
+
+    def _put_new(self, sid: str, data: bytes) -> str | None:
+        """Create the manifest of ``sid`` if none is there (or a deletion's tombstone, left
+        by a deleter that died: replaced conditionally); PreconditionFailed otherwise."""
+        key = _key(sid, MANIFEST)
+        try:
+            return self.blobs.put_if_absent(key, data)
+        except PreconditionFailed:
+            try:
+                there, etag = self.blobs.get(key)
+            except FileNotFoundError:
+                raise PreconditionFailed(key) from None
+            if not is_tombstone(there) or etag is None:
+                raise
+            return self.blobs.put_if_match(key, data, etag)
 
     def save(self, record: SessionRecord, dirty: Iterable[str],
              blobs: dict[str, bytes] | None = None) -> SessionRecord:
@@ -302,9 +306,26 @@ class ObjectSessionStore:
             raise Fenced(f"session {sid!r} was changed by another instance") from None
 
     def delete(self, sid: str) -> None:
-        """Remove the session: its manifest first (it is gone from then on), then the rest."""
-        self.blobs.delete([_key(sid, MANIFEST)])
-        self.blobs.delete(b.key for b in self.blobs.list(f"{SESSIONS}{sid}/"))
+        """Remove the session: a tombstone first, put conditionally on the manifest this
+        instance last committed (:class:`Fenced` when another instance took the session
+        over: a stale owner deletes nothing), so that the session is gone from then on;
+        then its objects, the tombstone last. A session this instance does not hold (a
+        damaged one, ``agilegs store``) loses its manifest unconditionally."""
+        key = _key(sid, MANIFEST)
+        with self._lock:
+            head = self._heads.get(sid)
+        if head is not None and head.etag is not None:
+            tomb = encode_manifest({"format": FORMAT, "id": sid, "deleted": True,
+                                    "lease": head.lease})
+            try:
+                self.blobs.put_if_match(key, tomb, head.etag)
+            except PreconditionFailed:
+                raise Fenced(f"session {sid!r} was changed by another instance") from None
+            except FileNotFoundError:
+                pass
+        self.blobs.delete(b.key for b in self.blobs.list(f"{SESSIONS}{sid}/")
+                          if b.key != key)
+        self.blobs.delete([key])
         with self._lock:
             self._heads.pop(sid, None)
 
@@ -360,10 +381,10 @@ class ObjectSessionStore:
         holder = (lease_of(data) or {}).get("owner")
         if holder is not None and holder != self.owner and holder in set(unless):
             raise Fenced(f"session {sid!r} is owned by live instance {holder!r}")
-        prev = _named_in(self._previous_manifest(sid))
+        prev = named_in(self._previous_manifest(sid))
         if isinstance(got, Damage):
             with self._lock:
-                self._heads[sid] = _Head(etag, data, _named_in(data), prev, lease_of(data))
+                self._heads[sid] = _Head(etag, data, named_in(data), prev, lease_of(data))
             return got
         old = lease_of(data) or {}
         lease = self._new_lease(int(old.get("epoch", 0)) + 1)
@@ -385,12 +406,12 @@ class ObjectSessionStore:
         """Whether session ``sid`` has a manifest in the store (True when that cannot be
         read: the store, not the session, failed)."""
         try:
-            self.blobs.get(_key(sid, MANIFEST))
+            data, _ = self.blobs.get(_key(sid, MANIFEST))
         except FileNotFoundError:
             return False
         except OSError:
             return True
-        return True
+        return not is_tombstone(data)
 
     def still_owned(self, sid: str) -> bool:
         """Whether the manifest of ``sid`` is still the one this instance last read or wrote
@@ -479,7 +500,7 @@ class ObjectSessionStore:
             head = known
         else:
             data, etag = src.manifest if src.manifest is not None else (None, None)
-            head = _Head(etag, data, _named_in(data), _named_in(self._previous_manifest(sid)))
+            head = _Head(etag, data, named_in(data), named_in(self._previous_manifest(sid)))
         bad = set(got.frame_files)
         views = tuple(without_files(v, bad) for v in target.views)
         seen = [target.version, got.version or 0, *self._object_versions(sid)]

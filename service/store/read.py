@@ -24,7 +24,16 @@ import torch
 
 from ..nbv import GaussianMap
 from .integrity import Damage, FileProblem, ManifestError, checksum, decode_manifest, read_checked
-from .records import MANIFEST, PREVIOUS, REQUIRED, VIEWS, SessionRecord, ViewRecord, view_id
+from .records import (
+    MANIFEST,
+    PREVIOUS,
+    REQUIRED,
+    VIEWS,
+    AppliedRequest,
+    SessionRecord,
+    ViewRecord,
+    view_id,
+)
 
 __all__ = ["FolderSource", "Source", "Version", "inspect_folder", "inspect_session",
            "read_version"]
@@ -111,6 +120,8 @@ def read_version(source: Source | Path, name: str) -> Version:
         files: dict[str, str] = dict(m["files"])
         views = tuple(ViewRecord.from_json(v) for v in m["views"])
         version = int(m["version"])
+        for r in m.get("requests") or ():
+            AppliedRequest.from_json(r)
     except ManifestError as exc:
         return Version(problems=[FileProblem(name, exc.problem)])
     except (KeyError, TypeError, ValueError) as exc:
@@ -182,6 +193,7 @@ def _record(m: dict[str, Any], version: int, views: tuple[ViewRecord, ...],
         files=files,
         mapper=m.get("mapper"),
         checksums=sums,
+        requests=tuple(AppliedRequest.from_json(r) for r in m.get("requests") or ()),
     )
 
 

@@ -12,10 +12,10 @@ import numpy as np
 from torch import Tensor
 
 from ..nbv import GaussianMap
-from .integrity import FORMAT
+from .integrity import FORMAT, ManifestError, decode_manifest
 
 __all__ = ["MANIFEST", "PREVIOUS", "REQUIRED", "ROLES", "ROLE_FILE", "SESSION_NAME", "VIEWS",
-           "SessionRecord", "ViewRecord", "view_id"]
+           "AppliedRequest", "SessionRecord", "ViewRecord", "named_in", "view_id"]
 
 ROLES = ("gaussians", "information", "pool", "warm")
 """The tensor files of a version, one per role."""
@@ -78,6 +78,27 @@ class ViewRecord:
 
 
 @dataclass(frozen=True)
+class AppliedRequest:
+    """A write applied to the session under a request id (:mod:`agilegs.schemas.requests`):
+    the operation, the version it made, and its answer as JSON-able data (None: not kept;
+    the answer is made again from the session, or the request is too old)."""
+
+    id: str
+    op: str
+    version: int
+    answer: dict[str, Any] | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        return {"id": self.id, "op": self.op, "version": self.version, "answer": self.answer}
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> AppliedRequest:
+        answer = d.get("answer")
+        return cls(id=str(d["id"]), op=str(d["op"]), version=int(d["version"]),
+                   answer=dict(answer) if answer is not None else None)
+
+
+@dataclass(frozen=True)
 class SessionRecord:
     """Everything a session holds. Never mutated in place: a change builds a new record."""
 
@@ -100,6 +121,7 @@ class SessionRecord:
     files: dict[str, str] = field(default_factory=dict)
     mapper: dict[str, Any] | None = None  # mapper options and progress (JSON, in the manifest)
     checksums: dict[str, str] = field(default_factory=dict)  # path in the folder -> checksum
+    requests: tuple[AppliedRequest, ...] = ()  # the last writes applied under a request id
 
     def named_files(self) -> set[str]:
         """Every file this version names: role files, and ``views/<name>`` of its frames."""
@@ -125,5 +147,20 @@ class SessionRecord:
             "views": [v.to_json() for v in self.views],
             "files": self.files,
             "mapper": self.mapper,
+            "requests": [r.to_json() for r in self.requests],
             "checksums": {k: v for k, v in sorted(self.checksums.items()) if k in named},
         }
+
+
+def named_in(manifest: bytes | None) -> set[str]:
+    """The files a manifest's bytes name (none when they do not decode)."""
+    if manifest is None:
+        return set()
+    try:
+        m = decode_manifest(manifest)
+    except ManifestError:
+        return set()
+    out = set(dict(m.get("files") or {}).values())
+    for v in m.get("views") or []:
+        out.update(f"{VIEWS}/{n}" for n in (v.get("image_file"), v.get("depth_file")) if n)
+    return out

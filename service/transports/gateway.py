@@ -57,6 +57,7 @@ from agilegs.schemas.codec import GAUSSIAN_FILE_TYPES
 from agilegs.schemas.errors import ErrorCode
 
 from ..errors import ServiceError, insufficient_storage, invalid, is_disk_full
+from ..sessions import requests as applied_requests
 from ..sessions.convert import gaussians_file
 from ..sessions.registry import SessionRegistry
 from ..settings import Settings
@@ -112,6 +113,9 @@ class Request:
         local: run it here whatever the cluster holds (queries on this instance's keys).
         deadline_ms: the client's own deadline in ms from arrival (HTTP ``X-Deadline-Ms``,
             Zenoh ``deadline_ms`` parameter); the server's ``request_deadline`` caps it.
+        request_id: a write's request id (HTTP ``Idempotency-Key``, Zenoh ``request_id``
+            parameter, :mod:`agilegs.schemas.requests`): a write applied under it already
+            is answered again, not applied.
         ticket: its deadline and cancellation (set by :meth:`Gateway.submit`, or here).
     """
 
@@ -128,6 +132,7 @@ class Request:
     authenticated: bool = False
     local: bool = False
     deadline_ms: float | None = None
+    request_id: str | None = None
     ticket: Ticket | None = None
 
 
@@ -184,18 +189,19 @@ class Router(Protocol):
     (:class:`agilegs.service.transports.zenoh.cluster.ClusterNode`)."""
 
     def route(self, op: str, session: str | None, req: BaseModel | None, *,
-              run_local: Callable[[], BaseModel], instance: str | None, local: bool
-              ) -> BaseModel: ...
+              run_local: Callable[[], BaseModel], instance: str | None, local: bool,
+              request_id: str | None = None) -> BaseModel: ...
 
     def owned_elsewhere(self, op: str, session: str | None) -> bool:
         """Whether ``op`` is a session operation on a session this instance does not hold,
         in a cluster (its request may go to the owner as it came)."""
 
-    def forward_bytes(self, op: str, session: str, body: bytes | None, kind: str
-                      ) -> Forwarded | None:
+    def forward_bytes(self, op: str, session: str, body: bytes | None, kind: str,
+                      request_id: str | None = None) -> Forwarded | None:
         """Forward a request as it came (``body`` in media type ``kind``, or none: the answer
-        comes in ``kind``) to the instance that owns the session; None when no instance
-        answers and this one is not in a cluster (it runs the request itself)."""
+        comes in ``kind``; with its ``request_id``) to the instance that owns the session;
+        None when no instance answers and this one is not in a cluster (it runs the request
+        itself)."""
 
 
 class Gateway:
@@ -400,7 +406,7 @@ class Gateway:
             if as_it_came is not None:
                 assert self.router is not None and req.session is not None
                 got = self.router.forward_bytes(req.op, req.session, req.body or None,
-                                                as_it_came)
+                                                as_it_came, request_id=req.request_id)
                 if got is not None:
                     return self._forwarded_reply(req, got, kind)
                 local = True  # no instance answers, and this one is alone: it answers
@@ -410,7 +416,8 @@ class Gateway:
             ticket.check()
             with self.admission.decoded(request_decoded_bytes(req.op, model)):
                 result = self.dispatch(req.op, req.session, model, t0=req.t0,
-                                       instance=req.params.get("instance"), local=local)
+                                       instance=req.params.get("instance"), local=local,
+                                       request_id=req.request_id)
             if fmt is not None:  # the owner of the session answers the arrays, made a file here
                 assert isinstance(result, GaussiansOut)
                 body, kind = gaussians_file(result, fmt), GAUSSIAN_FILE_TYPES[fmt]
@@ -474,26 +481,27 @@ class Gateway:
         return data
 
     def dispatch(self, op: str, session: str | None, req: BaseModel | None, *,
-                 t0: float | None = None, instance: str | None = None, local: bool = False
-                 ) -> BaseModel:
+                 t0: float | None = None, instance: str | None = None, local: bool = False,
+                 request_id: str | None = None) -> BaseModel:
         """Run a validated request where it belongs: through the router in a cluster, here
         otherwise."""
 
         def run_local() -> BaseModel:
-            return self.execute(op, session, req, t0=t0)
+            return self.execute(op, session, req, t0=t0, request_id=request_id)
 
         if self.router is None:
             return run_local()
         return self.router.route(op, session, req, run_local=run_local, instance=instance,
-                                 local=local)
+                                 local=local, request_id=request_id)
 
     def execute(self, op: str, session: str | None, req: BaseModel | None, *,
-                t0: float | None = None) -> BaseModel:
+                t0: float | None = None, request_id: str | None = None) -> BaseModel:
         """Run it here; a selection gets its ``server_ms``, is counted and goes to the hooks."""
         ticket: Ticket | None = getattr(self._encoded, "ticket", None)
         result = self.registry.execute(op, session, req,
-                                       check=ticket.check if ticket is not None else None)
-        if isinstance(result, SelectResponse):
+                                       check=ticket.check if ticket is not None else None,
+                                       request_id=request_id)
+        if isinstance(result, SelectResponse) and not applied_requests.was_replayed():
             if t0 is not None:
                 result.server_ms = (time.perf_counter() - t0) * 1e3
             if self.metrics is not None:

@@ -9,10 +9,12 @@ from typing import Any
 from pydantic import BaseModel, ValidationError
 
 from agilegs.schemas import OPERATIONS
+from agilegs.schemas.errors import ErrorCode
+from agilegs.schemas.requests import check_request_id
 
-from ..errors import invalid, not_found, validation_error
+from ..errors import ServiceError, invalid, not_found, validation_error
 
-__all__ = ["QueryParams", "parse_request"]
+__all__ = ["QueryParams", "parse_request", "parse_request_id"]
 
 
 class QueryParams(dict[str, str]):
@@ -36,3 +38,14 @@ def parse_request(op: str, payload: Any) -> BaseModel | None:
     except ValidationError as exc:
         raise validation_error(exc, "query" if isinstance(payload, QueryParams) else "body"
                                ) from None
+
+
+def parse_request_id(text: str | None, field: str) -> str | None:
+    """A write's request id (:mod:`agilegs.schemas.requests`) from ``text`` (None: none
+    given); 400 naming ``field`` when it is not one."""
+    if text is None:
+        return None
+    try:
+        return check_request_id(text)
+    except ValueError as exc:
+        raise ServiceError(400, ErrorCode.BAD_REQUEST, f"{field}: {exc}", field) from None

@@ -11,7 +11,7 @@ import httpx
 import numpy as np
 import pytest
 
-from agilegs.client import AsyncClient, Client, SessionUnavailableError
+from agilegs.client import AsyncClient, Client, NotFoundError, SessionUnavailableError
 from agilegs.client._retry import backoff
 from agilegs.schemas import codec
 
@@ -86,3 +86,44 @@ def test_the_async_client_retries_alike() -> None:
 def test_backoff_doubles_up_to_a_second_and_honours_the_hint() -> None:
     assert [backoff(i, None) for i in range(7)] == [0.05, 0.1, 0.2, 0.4, 0.8, 1.0, 1.0]
     assert backoff(0, 0.3) == 0.3
+
+
+def test_every_write_carries_a_request_id_and_its_retries_the_same() -> None:
+    keys: list[tuple[str, str | None]] = []
+    view = {"id": 0, "candidate_id": 7, "pose": {"matrix": np.eye(4).tolist()},
+            "intrinsics": None, "has_image": False, "has_depth": False, "created_at": 1.0}
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        keys.append((request.method, request.headers.get("idempotency-key")))
+        if request.method == "POST" and len(keys) < 3:
+            return unavailable(0.01)
+        body = view if request.method == "POST" else POOL
+        return httpx.Response(200, content=codec.dump(body, codec.JSON),
+                              headers={"content-type": codec.JSON})
+
+    with Client("http://x", transport=httpx.MockTransport(handler)) as c:
+        c.get_pool("s")
+        c.commit("s", candidate_id=7)
+        c.commit("s", candidate_id=7)
+    assert keys[0] == ("GET", None)  # reads carry none
+    first, second, third = (k for _, k in keys[1:])
+    assert first is not None and first == second  # a retry: the same id
+    assert third is not None and third != first  # another call: another id
+
+
+def test_a_delete_whose_answer_was_lost_is_done() -> None:
+    plan: list[httpx.Response] = []
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        return plan.pop(0)
+
+    gone = {"error": {"status": 404, "code": "not_found", "message": "gone",
+                      "field": "path.session", "errors": []}}
+    not_found = httpx.Response(404, content=codec.dump(gone, codec.JSON),
+                               headers={"content-type": codec.JSON})
+    with Client("http://x", transport=httpx.MockTransport(handler)) as c:
+        plan[:] = [unavailable(0.01), not_found]  # deleted by the attempt whose answer was lost
+        assert c.delete_session("s").id == "s"
+        plan[:] = [not_found]  # no such session from the start: an error
+        with pytest.raises(NotFoundError):
+            c.delete_session("s")

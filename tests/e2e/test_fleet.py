@@ -120,7 +120,12 @@ def test_a_killed_owners_sessions_are_taken_over_and_a_paused_one_is_fenced(
                                   init_gaussians=20, instance="i0",
                                   pool=ring_poses(6))
                 ca.commit(f"s{k}", candidate_id=1)
-        acked = {f"s{k}": 2 for k in range(4)}
+        # a commit whose answer is lost, sent again after its owner died: applied once
+        key = {"Idempotency-Key": "fleet-commit-0001"}
+        first = httpx.post(f"{a.url}/v1/sessions/s0/views", json={"candidate_id": 3},
+                           headers=key, timeout=30)
+        assert first.status_code == 200, first.text
+        acked = {f"s{k}": 3 if k == 0 else 2 for k in range(4)}
         with Client(b.url) as cb:  # what the store does not hold fails at once: no retries
             t0 = time.monotonic()
             with pytest.raises(NotFoundError) as missing:
@@ -138,6 +143,10 @@ def test_a_killed_owners_sessions_are_taken_over_and_a_paused_one_is_fenced(
                 assert {sid: cb.get_session(sid).version for sid in acked} == acked
             assert {sid: zc.get_session(sid).version for sid in acked} == acked
             assert time.monotonic() - t0 < 10
+        again = httpx.post(f"{b.url}/v1/sessions/s0/views", json={"candidate_id": 3},
+                           headers=key, timeout=30)
+        assert again.status_code == 200 and again.json() == first.json(), again.text
+        assert version_on(c.url, "s0") == acked["s0"]  # the new owner applied nothing
         owners = {sid: _owner(api, sid) for sid in acked}
         assert set(owners.values()) <= {"i1", "i2"}, owners  # taken over, epoch 2
         assert all(_epoch(api, sid) == 2 for sid in acked)

@@ -263,6 +263,52 @@ def test_a_stale_owner_is_fenced_and_drops_the_session(caplog: pytest.LogCapture
     new.close()
 
 
+def test_a_stale_owner_deletes_nothing() -> None:
+    blobs = MemoryBlobs()
+    old = SessionRegistry(Settings(zenoh=False, workers=2, mapper=False),
+                          store=ObjectSessionStore(blobs))
+    old.load()
+    create(old)
+    new = SessionRegistry(Settings(zenoh=False, workers=2, mapper=False),
+                          store=ObjectSessionStore(blobs))
+    new.load()  # takes the session over
+    before = dict(blobs.objects)
+    with pytest.raises(ServiceError) as exc:
+        call(old, "delete_session", "s", None)
+    assert (exc.value.status, exc.value.code) == (404, "session_unavailable")
+    assert exc.value.retry_after is not None  # the owner deletes it, when asked again
+    assert blobs.objects == before and "s" not in old.sessions
+    assert call(new, "delete_session", "s", None).deleted
+    assert not blobs.objects
+    old.close()
+    new.close()
+
+
+def test_a_delete_cut_short_leaves_a_tombstone_that_reads_as_gone() -> None:
+    blobs = MemoryBlobs()
+    core = SessionRegistry(Settings(zenoh=False, workers=2, mapper=False),
+                           store=ObjectSessionStore(blobs))
+    core.load()
+    create(core)
+    store = core.store
+    assert isinstance(store, ObjectSessionStore)
+    real_delete = blobs.delete
+    blobs.delete = lambda keys: None  # type: ignore[method-assign]  # it dies after the tombstone
+    store.delete("s")
+    blobs.delete = real_delete  # type: ignore[method-assign]
+    assert decode_manifest(blobs.get("sessions/s/manifest.json")[0])["deleted"] is True
+    assert not store.exists("s")
+    with pytest.raises(FileNotFoundError):
+        store.take_over("s")
+    core.close()
+    again = SessionRegistry(Settings(zenoh=False, workers=2, mapper=False),
+                            store=ObjectSessionStore(blobs))
+    assert again.load() == 0  # not a damaged session: a deleted one
+    create(again)  # the id is free again
+    assert call(again, "get_session", "s", None).version == 1
+    again.close()
+
+
 def test_open_store_reads_the_url() -> None:
     assert isinstance(open_store("file:///tmp/x"), SessionStore)
     assert open_store("file:///tmp/x").root == Path("/tmp/x")  # type: ignore[union-attr]

@@ -342,15 +342,16 @@ def test_reads_and_other_sessions_never_wait_behind_a_held_session(api_factory: 
 
 
 def test_a_short_deadline_stops_every_method(api_factory: Any) -> None:
-    """A 50 ms deadline answers 504 for every method that takes longer (the anchor checks it
-    between its stages and ascent steps, scoring between candidates); nothing is committed."""
+    """A 20 ms deadline answers 504 for every method that takes longer (the anchor checks it
+    between its stages and ascent steps, scoring between candidates); nothing is committed.
+    (AGILE-GS with warm kernels can select on this map within 50 ms.)"""
     api = api_factory(max_select_seconds=1e6)
     sid = _session(api, n=3000, pool=200)
     before = _state(api, sid)
     with api.http(timeout=60) as h:
         for method in ("fisherrf", "cover", "full_eig", "agile", "agile_plus"):
             r = h.post(f"/v1/sessions/{sid}/select", json={"method": method, "commit": True},
-                       headers={"x-deadline-ms": "50"})
+                       headers={"x-deadline-ms": "20"})
             assert r.status_code == 504, (method, r.text)
             assert r.json()["error"]["code"] == "deadline_exceeded"
     assert _state(api, sid) == before

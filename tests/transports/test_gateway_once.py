@@ -27,17 +27,19 @@ class Router:
         self.answer = answer
         self.sent: list[tuple[str, str, bytes | None, str]] = []
         self.routed: list[tuple[str, bool]] = []
+        self.request_ids: list[str | None] = []
 
     def owned_elsewhere(self, op: str, session: str | None) -> bool:
         return session == "remote"
 
-    def forward_bytes(self, op: str, session: str, body: bytes | None, kind: str
-                      ) -> Forwarded | None:
+    def forward_bytes(self, op: str, session: str, body: bytes | None, kind: str,
+                      request_id: str | None = None) -> Forwarded | None:
         self.sent.append((op, session, body, kind))
+        self.request_ids.append(request_id)
         return self.answer
 
     def route(self, op: str, session: str | None, req: Any, *, run_local: Any,
-              instance: str | None, local: bool) -> Any:
+              instance: str | None, local: bool, request_id: str | None = None) -> Any:
         self.routed.append((op, local))
         return run_local()
 
@@ -59,9 +61,11 @@ def test_a_request_for_another_instance_s_session_goes_and_comes_back_as_it_came
     gateway.router = router = Router(Forwarded(True, answer, codec.MSGPACK))
     body = b"\xc1 not even msgpack"  # the owner decodes it, not this instance
     reply = gateway.handle(Request(op="commit", session="remote", body=body,
-                                   content_type=codec.MSGPACK, accept=codec.MSGPACK))
+                                   content_type=codec.MSGPACK, accept=codec.MSGPACK,
+                                   request_id="r-0123456789"))
     assert reply.status == 200 and reply.body is answer and reply.media_type == codec.MSGPACK
     assert router.sent == [("commit", "remote", body, codec.MSGPACK)] and router.routed == []
+    assert router.request_ids == ["r-0123456789"]  # the owner applies it once
     assert reply.model == VIEW  # decoded only for a caller that reads it
     # no body: the answer is asked in the type the caller accepts
     reply = gateway.handle(Request(op="get_session", session="remote", accept=codec.JSON))

@@ -13,6 +13,7 @@ from agilegs.schemas import OPERATIONS, ErrorBody, Operation, codec
 from agilegs.schemas.codec import GAUSSIAN_FILE_TYPES
 from agilegs.schemas.forms import RULES_KEY
 from agilegs.schemas.keys import INSTANCE_ID_PATTERN
+from agilegs.schemas.requests import REQUEST_ID_HEADER, REQUEST_ID_PATTERN
 
 from ...settings import Settings
 
@@ -108,9 +109,19 @@ def route_openapi(op: Operation) -> dict[str, Any]:
         content["text/event-stream"] = {"schema": {
             "type": "string", "description": "server-sent events (Accept: text/event-stream): "
             "feed, decision (id <epoch>:<seq>, data a DecisionEvent), missed, closed, error"}}
+    extra = _request_body(op)
+    if op.http_method != "GET":
+        extra = extra or {}
+        extra["parameters"] = [*extra.get("parameters", []), {
+            "name": REQUEST_ID_HEADER, "in": "header", "required": False,
+            "description": "this write's request id: sent again (a retry after a lost answer, "
+                           "or after the session moved), it is answered from the session's "
+                           "record and applies nothing (agilegs.schemas.requests)",
+            "schema": {"type": "string", "pattern": REQUEST_ID_PATTERN},
+        }]
     return {
         "responses": {200: {"content": content, "links": links(op)}, **_error_responses(op)},
-        "openapi_extra": _request_body(op),
+        "openapi_extra": extra,
     }
 
 

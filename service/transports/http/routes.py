@@ -27,11 +27,13 @@ from starlette.requests import ClientDisconnect
 
 from agilegs.schemas import OPERATIONS, SESSION_ID_PATTERN, Operation, codec
 from agilegs.schemas.errors import ErrorCode
+from agilegs.schemas.requests import REQUEST_ID_HEADER
 
 from ...errors import ServiceError
 from ..admission import CLIENT_CLOSED, CLIENT_GONE, Ticket, parse_deadline_ms
 from ..gateway import Gateway, Reply
 from ..gateway import Request as GatewayRequest
+from ..requests import parse_request_id
 from .decisions import decisions_endpoint
 from .edge import TIMED_OUT, release_memory
 from .openapi import route_openapi
@@ -153,6 +155,8 @@ def build_router(gateway: Gateway) -> APIRouter:
                                        "with Accept: application/x-ply or application/x-splat",
                                        "query.format")
                 deadline_ms = deadline_header(request)
+                request_id = parse_request_id(request.headers.get(REQUEST_ID_HEADER),
+                                              f"header.{REQUEST_ID_HEADER.lower()}")
                 if op.request is not None and not op.query:
                     body = await read_body(request, gateway, reserved)
             except ServiceError as err:
@@ -169,7 +173,7 @@ def build_router(gateway: Gateway) -> APIRouter:
                 op=op.name, session=session, body=body,
                 content_type=request.headers.get("content-type"), accept=accept,
                 params=dict(request.query_params), transport="http", t0=t0,
-                authenticated=True, deadline_ms=deadline_ms,
+                authenticated=True, deadline_ms=deadline_ms, request_id=request_id,
             )
             del body
             return response(await run_pipeline(gateway, req, request))

@@ -46,6 +46,7 @@ from agilegs.schemas.errors import ErrorCode
 
 from ...errors import ServiceError
 from ..gateway import Gateway, Reply, Request
+from ..requests import parse_request_id
 from .assembler import Dropped, FrameAssembler
 from .convert import (
     Binding,
@@ -307,7 +308,8 @@ class Ros2Adapter:
 
     def _create(self, space: _Space, req: Any, t0: float) -> Any:
         body = create_body(req, space.camera)
-        reply = self._handle("create_session", None, body, t0, authenticated=True)
+        reply = self._handle("create_session", None, body, t0, authenticated=True,
+                             request_id=_request_id(req))
         if not reply.ok:
             return self._refusal(space, "create_session", reply)
         assert isinstance(reply.model, SessionInfo)
@@ -333,7 +335,7 @@ class Ros2Adapter:
     def _select(self, space: _Space, req: Any, t0: float) -> Any:
         binding = self._bound(space)
         reply = self._handle("select", binding.session, select_body(req, binding), t0,
-                             authenticated=True)
+                             authenticated=True, request_id=_request_id(req))
         if not reply.ok:
             return self._refusal(space, "select", reply)
         resp = reply.model
@@ -360,7 +362,7 @@ class Ros2Adapter:
         if err is None:
             return status_msg(session=session, topic=topic)
         return status_msg(err.status, err.code, err.message, err.field, session=session,
-                          topic=topic)
+                          topic=topic, retry_after=err.retry_after)
 
     # ------------------------------------------------------------------ helpers
     @staticmethod
@@ -381,11 +383,11 @@ class Ros2Adapter:
         return space.binding
 
     def _handle(self, op: str, session: str | None, body: dict[str, Any] | None, t0: float,
-                *, authenticated: bool) -> Reply:
+                *, authenticated: bool, request_id: str | None = None) -> Reply:
         return self.gateway.handle(Request(
             op=op, session=session, body=codec.dump(body, codec.MSGPACK) if body is not None
             else None, content_type=codec.MSGPACK, accept=codec.MSGPACK, transport=TRANSPORT,
-            t0=t0, authenticated=authenticated))
+            t0=t0, authenticated=authenticated, request_id=request_id))
 
     def _pool_poses(self, session: str) -> dict[int, np.ndarray]:
         try:
@@ -443,3 +445,9 @@ def _cdr() -> Any:
     import zenoh
 
     return zenoh.Encoding.APPLICATION_CDR
+
+
+def _request_id(req: Any) -> str | None:
+    """The ``request_id`` of a service request ("" : none; 400 naming it when malformed)."""
+    text = str(req.request_id).strip()
+    return parse_request_id(text, "request_id") if text else None

@@ -169,11 +169,13 @@ def select_body(req: Any, binding: Binding) -> dict[str, Any]:
 
 # ----------------------------------------------------------------------------- answers
 def status_msg(status: int = 200, code: str = "", message: str = "", field: str | None = None,
-               *, session: str = "", topic: str = "", stamp: Any = None) -> Any:
+               *, session: str = "", topic: str = "", stamp: Any = None,
+               retry_after: float | None = None) -> Any:
     """An ``agilegs_interfaces/msg/Status``."""
     return m.msg(m.STATUS, status=int(status), code=str(code), message=message,
                  field=field or "", session=session, topic=topic,
-                 stamp=stamp if stamp is not None else m.stamp_msg(0))
+                 stamp=stamp if stamp is not None else m.stamp_msg(0),
+                 retry_after=float(retry_after or 0.0))
 
 
 def _header(binding: Binding, t: float) -> Any:

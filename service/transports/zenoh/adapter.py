@@ -34,11 +34,13 @@ from agilegs.client.zenoh_rpc import open_session
 from agilegs.schemas import SelectResponse, codec, keys
 from agilegs.schemas.codec import GAUSSIAN_FILE_TYPES
 from agilegs.schemas.errors import ErrorCode
+from agilegs.schemas.requests import REQUEST_ID_PARAM
 
 from ...errors import ServiceError
 from ...settings import Settings
 from ..admission import parse_deadline_ms
 from ..gateway import Gateway, Reply, Request
+from ..requests import parse_request_id
 from .cluster import ClusterNode
 from .security import zenoh_settings
 
@@ -167,6 +169,8 @@ class ZenohAdapter:
         if op == "create_session" and query.parameters.get("instance") is not None:
             params["instance"] = query.parameters.get("instance")
         deadline_ms = parse_deadline_ms(query.parameters.get("deadline_ms"), "query.deadline_ms")
+        request_id = parse_request_id(query.parameters.get(REQUEST_ID_PARAM),
+                                      f"query.{REQUEST_ID_PARAM}")
         accept = kind
         fmt = query.parameters.get("format") if op == "get_gaussians" else None
         if fmt is not None:  # the file, as Accept asks for it over HTTP; errors in ``kind``
@@ -181,7 +185,7 @@ class ZenohAdapter:
             credentials=query.attachment.to_bytes() if query.attachment is not None
             else None,
             credentials_field="attachment", params=params, transport="zenoh", t0=t0,
-            local=local, deadline_ms=deadline_ms,
+            local=local, deadline_ms=deadline_ms, request_id=request_id,
         )
 
     def _answer(self, query: Any, req: Request, reply_key: str | None = None) -> Reply:

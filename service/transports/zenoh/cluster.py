@@ -53,13 +53,8 @@ HTTP on any instance
     instance only.
 
 Topology
-    Instances (and clients) must reach each other through Zenoh. With a router (``zenohd``),
-    run the instances as Zenoh clients of it (``--zenoh-mode client --zenoh-connect
-    tcp/<router>:7447``): the router routes between them and the robots. Without a router,
-    run them as peers connected to each other (peers do not route for other peers: every
-    instance must connect to every other one); a Zenoh *client* (``mode="client"``) connected
-    to one peer instance reaches the others through it, while a Zenoh *peer* reaches only the
-    instances it connects to.
+    Instances reach each other through Zenoh: as clients of a router, or as peers each
+    connected to every other one (peers do not route for peers); docs/deploy.md says how.
 
 A fleet (the sessions in an object store, ``--state-url s3://...``): an instance owns the
 sessions whose lease it holds, not those it created, and a live instance takes over the
@@ -77,9 +72,8 @@ from __future__ import annotations
 
 import logging
 import re
-import socket
 import threading
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from pydantic import BaseModel, ValidationError
@@ -96,10 +90,18 @@ from agilegs.schemas.keys import (
     instances_wildcard,
     parse_instance_key,
 )
+from agilegs.schemas.requests import REQUEST_ID_PARAM, session_id_for
 
 from ...errors import ServiceError
 from ..gateway import Forwarded
 from .fleet import Fleet
+from .placement import (
+    default_instance_id,
+    instance_unavailable,
+    placement_order,
+    session_queryable_key,
+    session_unavailable,
+)
 
 if TYPE_CHECKING:
     from concurrent.futures import Executor
@@ -113,19 +115,15 @@ __all__ = [
     "INSTANCE_OPS",
     "ClusterNode",
     "check_instance_id",
-    "default_instance_id",
     "instance_key",
     "instances_wildcard",
     "parse_instance_key",
-    "placement_order",
 ]
 
 log = logging.getLogger(__name__)
 
 PROBE_TIMEOUT = 2.0
 """Seconds to wait for the live instances' health replies (they answer inline)."""
-
-HANDOVER_RETRY = 0.2  # the retry_after of a fleet's session_unavailable (s)
 
 SYNC_INTERVAL = 1.0
 """Seconds between two checks that the declared sessions match the loaded ones."""
@@ -134,48 +132,6 @@ _SESSION_RE = re.compile(m.SESSION_ID_PATTERN)
 
 # on_query(query, op, session, local, reply_key): the Zenoh adapter's answering entry point
 QueryHandler = Callable[[Any, str, "str | None", bool, "str | None"], None]
-
-
-# ============================================================================ keys and policy
-def session_queryable_key(session: str) -> str:
-    """``agilegs/<session>/*``: every operation of one session."""
-    if not _SESSION_RE.match(session):
-        raise ValueError(f"session id {session!r} must match {m.SESSION_ID_PATTERN}")
-    return f"{keys.PREFIX}/{session}/*"
-
-
-def default_instance_id(hostname: str | None = None, port: int = 8000) -> str:
-    """``<hostname>-<port>`` with the characters an instance id may not hold replaced by
-    ``-`` (the hostname's domain part dropped); a valid id in every case."""
-    host = (hostname if hostname is not None else socket.gethostname()).split(".", 1)[0]
-    host = re.sub(r"[^A-Za-z0-9_-]", "-", host)[:50] or "agilegs"
-    return f"{host}-{int(port)}"
-
-
-def placement_order(loads: Mapping[str, int]) -> list[str]:
-    """The instances to try for a new session, best first: fewest sessions, then smallest id.
-
-    Args:
-        loads: instance id -> number of sessions it holds.
-    """
-    return sorted(loads, key=lambda iid: (int(loads[iid]), iid))
-
-
-def session_unavailable(session: str, instances: list[str], *, fleet: bool = False
-                        ) -> ServiceError:
-    """404 ``session_unavailable``; in a fleet with ``retry_after`` (a live instance takes a
-    dead owner's sessions over: the client retries)."""
-    live = ", ".join(sorted(instances))
-    return ServiceError(
-        404, "session_unavailable",
-        f"no instance answers for session {session!r}: it does not exist, or the instance that "
-        f"owns it is down (live instances: {live})", "path.session",
-        retry_after=HANDOVER_RETRY if fleet else None)
-
-
-def instance_unavailable(instance: str) -> ServiceError:
-    return ServiceError(404, "instance_unavailable", f"no instance {instance!r} answers",
-                        "query.instance")
 
 
 # ============================================================================ the node
@@ -351,7 +307,7 @@ class ClusterNode:
     # ------------------------------------------------------------------ dispatch
     def route(self, op: str, session: str | None, req: BaseModel | None, *,
               run_local: Callable[[], BaseModel], instance: str | None = None,
-              local: bool = False) -> BaseModel:
+              local: bool = False, request_id: str | None = None) -> BaseModel:
         """Run a validated request where it belongs: ``run_local`` here, or forwarded to the
         instance that owns the session (the owner's refusal is re-raised with its status,
         code, message and field).
@@ -359,6 +315,8 @@ class ClusterNode:
         Args:
             instance: for ``create_session``, the instance to create it on (else the policy).
             local: run it here whatever the cluster holds (queries on ``@instances/<me>``).
+            request_id: a write's request id, forwarded with it (a ``create_session``
+                without ``id`` creates :func:`~agilegs.schemas.requests.session_id_for` it).
         """
         spec = OPERATIONS[op]
         if local:
@@ -372,17 +330,22 @@ class ClusterNode:
             if (self._z is None or session is None or not _SESSION_RE.match(session)
                     or self.registry.holds(session)):
                 return self._local(op, run_local)
-            return self._forward_session(spec, session, req, run_local)
+            return self._forward_session(spec, session, req, run_local, request_id)
         if op == "list_sessions" and self._z is not None:
             return self._merged_list()
         if op == "create_session" and self._z is not None:
             assert isinstance(req, m.SessionCreate)
+            derived = request_id is not None and req.id is None
+            if request_id is not None and req.id is None:
+                req.id = session_id_for(request_id)
             body = codec.dump(req, codec.MSGPACK)
+            if derived and req.id and (mine := self._created_elsewhere(req.id)) is not None:
+                return mine
             self._check_id_free(req.id)
             if instance is None:
-                return self._place(body, run_local)
+                return self._place(body, run_local, request_id)
             if instance != self.instance_id:
-                return self._create_on(instance, body)
+                return self._create_on(instance, body, request_id)
         elif op == "create_session" and instance not in (None, self.instance_id):
             raise instance_unavailable(str(instance))
         return self._local(op, run_local)
@@ -400,40 +363,43 @@ class ClusterNode:
                 and session is not None and _SESSION_RE.match(session) is not None
                 and not self.registry.holds(session))
 
-    def forward_bytes(self, op: str, session: str, body: bytes | None, kind: str
-                      ) -> Forwarded | None:
+    def forward_bytes(self, op: str, session: str, body: bytes | None, kind: str,
+                      request_id: str | None = None) -> Forwarded | None:
         """The owner's answer to ``op`` with ``body`` (media type ``kind``; without a body the
         answer comes in ``kind``), as it came; None when no instance answers and this one is
         not in a cluster (a lone server: the session does not exist, and it says so)."""
         spec = OPERATIONS[op]
         sent_to_owner = self.fleet is not None and self.fleet.owned(session)
-        ans = self._ask(keys.session_key(session, op), body, spec, kind)
+        ans = self._ask(keys.session_key(session, op), body, spec, kind, request_id)
         if ans is not None:
             return Forwarded(ans.ok, ans.payload, ans.kind)
         live = sorted(self.instances())
         if not self.in_cluster or not self._may_exist(session):
             return None
-        raise self._unanswered(spec, session, live, sent_to_owner)
+        raise self._unanswered(spec, session, live, sent_to_owner, request_id)
 
     def _forward_session(self, spec: Operation, session: str, req: BaseModel | None,
-                         run_local: Callable[[], BaseModel]) -> BaseModel:
+                         run_local: Callable[[], BaseModel], request_id: str | None
+                         ) -> BaseModel:
         body = codec.dump(req, codec.MSGPACK) if req is not None else None
         sent_to_owner = self.fleet is not None and self.fleet.owned(session)
-        got = self._forward(keys.session_key(session, spec.name), body, spec)
+        got = self._forward(keys.session_key(session, spec.name), body, spec, request_id)
         if got is not None:
             return got
         live = sorted(self.instances())
         if not self.in_cluster or not self._may_exist(session):  # it simply does not exist
             return self._local(spec.name, run_local)
-        raise self._unanswered(spec, session, live, sent_to_owner)
+        raise self._unanswered(spec, session, live, sent_to_owner, request_id)
 
-    def _unanswered(self, spec: Operation, session: str, live: list[str], sent_to_owner: bool
-                    ) -> ServiceError:
+    def _unanswered(self, spec: Operation, session: str, live: list[str], sent_to_owner: bool,
+                    request_id: str | None = None) -> ServiceError:
         """The error of an operation no instance answered. In a fleet it is retryable
-        (``retry_after``) unless it may have changed the session: a write that went to an
-        owner that then went away may have been committed (503, no ``retry_after``: read the
-        session to know)."""
-        if self.fleet is not None and sent_to_owner and spec.http_method != "GET":
+        (``retry_after``) unless it may have changed the session and carries no request id:
+        a write that went to an owner that then went away may have been committed (503, no
+        ``retry_after``: read the session to know). With a request id its retry applies it
+        once (the new owner finds the id in the committed record when it was applied)."""
+        if (self.fleet is not None and sent_to_owner and spec.http_method != "GET"
+                and request_id is None):
             return ServiceError(
                 503, "unavailable", f"{spec.name}: the instance that owned session "
                 f"{session!r} went away while answering; the change may or may not have been "
@@ -444,9 +410,10 @@ class ClusterNode:
         """Whether a session no instance answers for may exist (in a fleet: in the store)."""
         return self.fleet is None or self.registry.in_store(session)
 
-    def _create_on(self, instance: str, body: bytes | None) -> BaseModel:
+    def _create_on(self, instance: str, body: bytes | None, request_id: str | None
+                   ) -> BaseModel:
         got = self._forward(instance_key(instance, "create_session"), body,
-                            OPERATIONS["create_session"])
+                            OPERATIONS["create_session"], request_id)
         if got is None:
             raise instance_unavailable(instance)
         return got
@@ -457,7 +424,17 @@ class ClusterNode:
                 keys.session_key(sid, "get_session"), PROBE_TIMEOUT)):
             raise ServiceError(409, "conflict", f"session {sid!r} already exists", "body.id")
 
-    def _place(self, body: bytes, run_local: Callable[[], BaseModel]) -> BaseModel:
+    def _created_elsewhere(self, sid: str) -> BaseModel | None:
+        """The session ``sid`` as another live instance answers it, when one holds it: a
+        create whose id comes from its request id finds there the session it created
+        already (an earlier attempt whose answer was lost); None when none holds it."""
+        if self.registry.holds(sid):
+            return None
+        return self._forward(keys.session_key(sid, "get_session"), None,
+                             OPERATIONS["get_session"])
+
+    def _place(self, body: bytes, run_local: Callable[[], BaseModel], request_id: str | None
+               ) -> BaseModel:
         spec = OPERATIONS["create_session"]
         loads = {iid: h.sessions for iid, h in self.instances().items()}
         refusal: ServiceError | None = None
@@ -465,7 +442,8 @@ class ClusterNode:
             try:
                 if target == self.instance_id:
                     return self._local(spec.name, run_local)
-                got = self._forward(instance_key(target, "create_session"), body, spec)
+                got = self._forward(instance_key(target, "create_session"), body, spec,
+                                    request_id)
             except ServiceError as err:
                 if err.status != 429:
                     raise
@@ -512,18 +490,19 @@ class ClusterNode:
             log.warning("cluster: get on %s failed", key, exc_info=True)
         return out
 
-    def _ask(self, key: str, body: bytes | None, spec: Operation, kind: str = codec.MSGPACK
-             ) -> Answer | None:
+    def _ask(self, key: str, body: bytes | None, spec: Operation, kind: str = codec.MSGPACK,
+             request_id: str | None = None) -> Answer | None:
         """The first answer of another instance to ``spec`` on ``key`` (``body`` in media
-        type ``kind``); None when no instance answers; 502 / 504 when the get fails or times
-        out."""
+        type ``kind``, ``request_id`` as its parameter); None when no instance answers;
+        502 / 504 when the get fails or times out."""
         z = self._z
         if z is None:
             return None
+        params = f"{REQUEST_ID_PARAM}={request_id}" if request_id is not None else None
         try:
             ans, timed_out = first_answer(z, key, payload=body, attachment=self._attachment,
                                           timeout=self.forward_timeout, remote_only=True,
-                                          every_reply=True, encoding=kind)
+                                          every_reply=True, encoding=kind, parameters=params)
         except Exception as exc:
             raise ServiceError(502, "bad_gateway", f"{spec.name}: forwarding on {key} failed "
                                f"({type(exc).__name__}: {exc})") from exc
@@ -532,10 +511,11 @@ class ClusterNode:
                                f"owns it did not answer within {self.forward_timeout:g} s")
         return ans
 
-    def _forward(self, key: str, body: bytes | None, spec: Operation) -> BaseModel | None:
+    def _forward(self, key: str, body: bytes | None, spec: Operation,
+                 request_id: str | None = None) -> BaseModel | None:
         """The owner's answer to ``spec`` on ``key`` (a msgpack ``body``), validated; None
         when no instance answers."""
-        ans = self._ask(key, body, spec)
+        ans = self._ask(key, body, spec, codec.MSGPACK, request_id)
         if ans is None:
             return None
         if ans.ok:

@@ -249,3 +249,21 @@ def test_raw_splat_upload(api: InProcess, tmp_path: object) -> None:
         r = _raw(api, "PUT", f"/v1/sessions/{sid}/gaussians?format=ply", content=b"junk",
                  headers={"content-type": "application/octet-stream"})
         assert r.status_code == 422 and _error(r)["field"] == "body.data"
+
+
+def test_a_write_sent_again_with_its_idempotency_key_is_applied_once(api: InProcess) -> None:
+    with api.client() as c:
+        sid = c.create_session(SMALL_INTRINSICS, bounds={"min": [-0.5] * 3, "max": [0.5] * 3},
+                               init_gaussians=50, pool=ring_poses(6)).id
+    with api.http(timeout=30) as h:
+        url = f"/v1/sessions/{sid}/views"
+        key = {"Idempotency-Key": "http-commit-0001"}
+        first = h.post(url, json={"candidate_id": 2}, headers=key)
+        again = h.post(url, json={"candidate_id": 2}, headers=key)
+        assert first.status_code == again.status_code == 200, again.text
+        assert again.json() == first.json()
+        assert h.get(f"/v1/sessions/{sid}").json()["num_views"] == 1
+        bad = h.post(url, json={"candidate_id": 3}, headers={"Idempotency-Key": "no good"})
+        assert bad.status_code == 400, bad.text
+        assert bad.json()["error"]["field"] == "header.idempotency-key"
+        assert h.get(f"/v1/sessions/{sid}").json()["num_views"] == 1

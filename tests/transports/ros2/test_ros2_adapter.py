@@ -233,3 +233,41 @@ def test_the_token_guards_every_service_and_binds_the_topics(tmp_path: Path) -> 
             assert _state(srv, "t1") == before
             robot.token = "s3cret"
             assert robot.select(method="random", commit=True).view_id == 0
+
+
+def test_a_select_sent_again_with_its_request_id_commits_once(
+        served: tuple[Server, str]) -> None:
+    srv, ep = served
+    with _robot(ep) as robot:
+        robot.publish_camera_info(SMALL_INTRINSICS)
+        assert robot.create_session(bounds=BOUNDS, session="r2").status.status == 200
+        robot.publish_candidates(ring_poses(8))
+        first = robot.call("select", token="", method="random", commit=True,
+                           request_id="ros2-select-01")
+        _until(lambda: _state(srv, "r2")[2] == 1)
+        again = robot.call("select", token="", method="random", commit=True,
+                           request_id="ros2-select-01")
+        assert again.status.status == 200 and again.view_id == first.view_id >= 0
+        assert again.chosen_id == first.chosen_id and _state(srv, "r2")[2] == 1
+        bad = robot.call("select", token="", method="random", request_id="bad id")
+        assert (bad.status.status, bad.status.field) == (400, "request_id")
+
+
+def test_the_robot_rides_through_a_handover_with_one_request_id() -> None:
+    sent: list[bytes] = []
+    answers = [m.msg(m.response_type(m.SELECT), chosen_id=-1, status=m.msg(
+        m.STATUS, status=404, code="session_unavailable", retry_after=0.01)),
+        m.msg(m.response_type(m.SELECT), chosen_id=3, status=m.msg(m.STATUS, status=200))]
+    robot = Ros2Robot(NS, session=object())
+
+    def call_raw(leaf: str, payload: bytes) -> bytes:
+        sent.append(payload)
+        return m.serialize(answers[len(sent) - 1])
+
+    robot.call_raw = call_raw  # type: ignore[method-assign]
+    assert robot.select(method="random", commit=True).chosen_id == 3
+    ids = [m.deserialize(p, m.request_type(m.SELECT)).request_id for p in sent]
+    assert len(ids) == 2 and ids[0] == ids[1] and len(ids[0]) == 32
+    sent.clear()
+    robot.retry_window = 0.0  # off: the refusal is the answer
+    assert robot.select(method="random").status.status == 404 and len(sent) == 1

@@ -14,11 +14,8 @@ from agilegs import schemas as m
 from agilegs.schemas.keys import instance_key, instances_wildcard, parse_instance_key
 from agilegs.service.errors import ServiceError
 from agilegs.service.settings import Settings
-from agilegs.service.transports.zenoh.cluster import (
-    ClusterNode,
-    default_instance_id,
-    placement_order,
-)
+from agilegs.service.transports.zenoh.cluster import ClusterNode
+from agilegs.service.transports.zenoh.placement import default_instance_id, placement_order
 
 
 def test_placement_prefers_the_fewest_sessions_then_the_smallest_id() -> None:
