@@ -15,6 +15,7 @@ import pytest
 from conftest import SMALL_INTRINSICS, ServerProcess, ring_poses
 
 from agilegs.client import (
+    BadRequestError,
     Client,
     ConflictError,
     NotFoundError,
@@ -284,3 +285,28 @@ def test_zenoh_saves_the_map_as_http_does(server: ServerProcess, zc: ZenohClient
                           parameters="format=obj", timeout=30)
     assert ans is not None and not ans.ok
     assert ErrorBody.model_validate(ans.load()).error.field == "query.format"
+
+
+def test_a_write_sent_again_over_zenoh_with_its_request_id_is_applied_once(
+        server: ServerProcess, zc: ZenohClient) -> None:
+    from dataclasses import replace
+
+    from agilegs.client import _requests as rq
+
+    with Client(server.url) as c:
+        sid = _session(c, 6)
+        deadline = time.monotonic() + 20
+        while True:  # the session's queryable reaches this client
+            try:
+                zc.get_session(sid)
+                break
+            except NotFoundError:
+                assert time.monotonic() < deadline
+                time.sleep(0.05)
+        once = replace(rq.commit(sid, 2), request_id="zenoh-commit-01")
+        first = zc._send(once)
+        assert zc._send(once) == first
+        assert c.get_session(sid).num_views == 1
+        with pytest.raises(BadRequestError) as bad:
+            zc._send(replace(rq.commit(sid, 3), request_id="bad id"))
+        assert bad.value.field == "query.request_id" and bad.value.status == 400
