@@ -53,6 +53,7 @@ DISPLAY = {
     "agile_plus@single": "AGILE-GS+ (one anchor)",
     "full_eig@target": "Full-pool target objective",
     "agile_plus@target": "AGILE-GS+ (target objective)",
+    "agile@target": "AGILE-GS (target objective)",
 }
 SHORTLIST_DISPLAY = {
     "leverage": "Ridge leverage",
@@ -139,8 +140,10 @@ OPTIONS: dict[str, tuple[str, Callable[[SelectConfig], SelectConfig]]] = {
                   lambda c: dataclasses.replace(c, probes=0)),
     "probes3": ("AGILE-GS+ gives at least 3 of the N reranked slots to uniform probes",
                 lambda c: dataclasses.replace(c, probes=3)),
-    "target": ("full_eig scores and AGILE-GS+ reranks by the target objective: the fall of "
-               "the pool's predicted render variance (T from 8 farthest-point pool views)",
+    "target": ("the target objective: the fall of the pool's predicted render variance; "
+               "full_eig scores and AGILE-GS+ reranks by it (T from 8 farthest-point pool "
+               "views), and the anchor of AGILE-GS and AGILE-GS+ weights its samples by their "
+               "information at the pool's views",
                lambda c: dataclasses.replace(c, objective="target")),
     "target16": ("the target objective with T from 16 farthest-point pool views",
                  lambda c: dataclasses.replace(c, objective="target", target_views=16)),

@@ -148,6 +148,25 @@ def test_agile_plus_reranks_by_the_objective() -> None:
         assert s == pytest.approx(want[sel.shortlist.index(v)], rel=1e-9)
 
 
+def test_the_anchor_weighs_its_samples_by_the_targets() -> None:
+    gmap, pool, h = tiny()
+    cands = pool[[1, 2, 3, 4, 6, 7, 8, 9]]
+    base = dict(acquired=pool[[0, 5]], lam=1e-3)
+    eig = select("agile", gmap, h, cands, INTR, **base)
+    assert "anchor.targets" not in eig.latency_ms
+    for targets in (pool[[0]], pool[[5]], None):  # the request's, else the pool's
+        cfg = SelectConfig(objective="target")
+        sel = select("agile", gmap, h, cands, INTR, config=cfg, targets=targets, **base)
+        assert sel.latency_ms["anchor.targets"] >= 0 and 0 <= sel.index < len(cands)
+        assert sel.anchor_c2w is not None
+    # targets on opposite sides move the anchor
+    a = select("agile", gmap, h, cands, INTR, config=SelectConfig(objective="target"),
+               targets=pool[[0]], **base).anchor_c2w
+    b = select("agile", gmap, h, cands, INTR, config=SelectConfig(objective="target"),
+               targets=pool[[5]], **base).anchor_c2w
+    assert a is not None and b is not None and not torch.allclose(a, b)
+
+
 def test_targets_are_checked() -> None:
     gmap, pool, h = tiny()
     cfg = SelectConfig(objective="target")

@@ -31,6 +31,7 @@ from .fitting import (
 )
 from .proxy import ProxyPsi, pick_occluders
 from .records import AnchorInputs, ModelDiagnostics
+from .targeted import target_weighted
 from .unexplored import unexplored_space
 from .visibility import OpacityMaps
 
@@ -90,13 +91,24 @@ def assemble_proxy(inputs: AnchorInputs, radius: float,
         if reused is not None:
             for stage in ("visibility", "rates", "unexplored"):
                 lap(stage)
-            return AssembledProxy(reused[0], reused[1], carried=True, carry=inputs.carried,
-                                  rates_carry=inputs.rates_carried)
+            return AssembledProxy(_targeted(reused[0], inputs, lap), reused[1], carried=True,
+                                  carry=inputs.carried, rates_carry=inputs.rates_carried)
     proxy, model, rates = build_proxy(inputs, prox_intr, radius, lap)
     carry = pack(proxy, model.as_dict(), now, key) if now is not None else None
-    return AssembledProxy(proxy, model, carried=False, carry=carry,
+    return AssembledProxy(_targeted(proxy, inputs, lap), model, carried=False, carry=carry,
                           rates_carry=None if rates is None else rates.carry,
                           rates_carried=rates is not None and rates.carried)
+
+
+def _targeted(proxy: ProxyPsi, inputs: AnchorInputs, lap: Callable[[str], None]
+              ) -> ProxyPsi:
+    """``proxy`` weighted by the targets' information when ``inputs.targets`` are given
+    (:mod:`.targeted`; stage ``targets``)."""
+    if inputs.targets is None:
+        return proxy
+    out = target_weighted(proxy, inputs.targets)
+    lap("targets")
+    return out
 
 
 def build_proxy(inputs: AnchorInputs, prox_intr: Intrinsics, radius: float,

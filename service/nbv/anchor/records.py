@@ -61,6 +61,9 @@ class AnchorInputs:
             <agilegs.service.nbv.anchor.ascent.AnchorResult.rates_carry>`), extended by the
             new views while ``config.refit_every`` allows
             (:func:`~agilegs.service.nbv.anchor.fitting.directional_rates`).
+        targets: views of interest [T, 4, 4] of the ``target`` objective: the proxy's
+            samples are weighted by their information at these views (:mod:`.targeted`);
+            None: the EIG.
     """
 
     gmap: GaussianMap
@@ -79,6 +82,7 @@ class AnchorInputs:
     background: Tensor | None = None
     carried: Any = None
     rates_carried: Any = None
+    targets: Tensor | None = None
 
     def checked(self) -> AnchorInputs:
         """These inputs with ``config`` validated (a ``ValueError`` naming the field)."""

@@ -65,6 +65,15 @@ def _typical(ctx: SelectionContext, out: dict[str, Any]) -> dict[str, Tensor] | 
     return typical
 
 
+def _anchor_targets(ctx: SelectionContext) -> Tensor | None:
+    """The views the anchor's samples are weighted by under the ``target`` objective: the
+    request's targets, else the whole pool (a proxy evaluation each; None for ``eig``)."""
+    if ctx.config.objective != "target":
+        return None
+    targets = ctx.targets if ctx.targets is not None else ctx.pool
+    return targets.to(ctx.gmap.dtype)
+
+
 def _warm(ctx: SelectionContext) -> Tensor | None:
     """The warm state's anchor [4, 4] when ``warm_start`` and it is a proper one, else None."""
     warm = ctx.state.get("anchor_c2w") if ctx.config.anchor.warm_start else None
@@ -108,6 +117,7 @@ def _anchor(ctx: SelectionContext, lat: dict[str, float], out: dict[str, Any]) -
             rates_carried=terms_from_state(
                 {k[len("anchor_"):]: v for k, v in ctx.state.items()
                  if isinstance(k, str) and k.startswith("anchor_rates_")}),
+            targets=_anchor_targets(ctx),
         ))
         out["state"]["anchor_c2w"] = res.c2w.clone()
         if res.carry is not None:
