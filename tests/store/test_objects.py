@@ -238,15 +238,23 @@ def test_one_of_two_instances_creating_one_id_wins() -> None:
         c.close()
 
 
-def test_a_stale_owner_is_fenced_and_drops_the_session(caplog: pytest.LogCaptureFixture) -> None:
+def on_store(blobs: MemoryBlobs) -> SessionRegistry:
+    core = SessionRegistry(Settings(zenoh=False, workers=2, mapper=False),
+                           store=ObjectSessionStore(blobs))
+    core.load()
+    return core
+
+
+def taken_over() -> tuple[MemoryBlobs, SessionRegistry, SessionRegistry]:
+    """A store, the instance that created session ``s``, and the one that took it over."""
     blobs = MemoryBlobs()
-    old = SessionRegistry(Settings(zenoh=False, workers=2, mapper=False),
-                          store=ObjectSessionStore(blobs))
-    old.load()
+    old = on_store(blobs)
     create(old)
-    new = SessionRegistry(Settings(zenoh=False, workers=2, mapper=False),
-                          store=ObjectSessionStore(blobs))
-    new.load()  # takes the session over
+    return blobs, old, on_store(blobs)
+
+
+def test_a_stale_owner_is_fenced_and_drops_the_session(caplog: pytest.LogCaptureFixture) -> None:
+    blobs, old, new = taken_over()
     call(new, "commit", "s", {"candidate_id": 1})
     taken = snapshot(new)
     before = dict(blobs.objects)
@@ -264,14 +272,7 @@ def test_a_stale_owner_is_fenced_and_drops_the_session(caplog: pytest.LogCapture
 
 
 def test_a_stale_owner_deletes_nothing() -> None:
-    blobs = MemoryBlobs()
-    old = SessionRegistry(Settings(zenoh=False, workers=2, mapper=False),
-                          store=ObjectSessionStore(blobs))
-    old.load()
-    create(old)
-    new = SessionRegistry(Settings(zenoh=False, workers=2, mapper=False),
-                          store=ObjectSessionStore(blobs))
-    new.load()  # takes the session over
+    blobs, old, new = taken_over()
     before = dict(blobs.objects)
     with pytest.raises(ServiceError) as exc:
         call(old, "delete_session", "s", None)
@@ -286,9 +287,7 @@ def test_a_stale_owner_deletes_nothing() -> None:
 
 def test_a_delete_cut_short_leaves_a_tombstone_that_reads_as_gone() -> None:
     blobs = MemoryBlobs()
-    core = SessionRegistry(Settings(zenoh=False, workers=2, mapper=False),
-                           store=ObjectSessionStore(blobs))
-    core.load()
+    core = on_store(blobs)
     create(core)
     store = core.store
     assert isinstance(store, ObjectSessionStore)
