@@ -17,6 +17,7 @@ Johnson-Lindenstrauss matrix Pi [K, d] with N(0, 1/d) entries, so ``B = M Pi``.
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -202,6 +203,102 @@ def coverage_matrix(
     rho = pos * orient * cover
     m = rho.pow(gamma).unsqueeze(1) * kappa
     return CoverageResult(m=m, rho=rho, chi=chi, samples=samples)
+
+
+def coverage_blocks(
+    samples: list[Tensor],
+    candidates: Tensor,
+    anchors: list[tuple[Tensor, float]],
+    intrinsics: Intrinsics,
+    *,
+    sigma_p: float,
+    gamma: float = 1.0,
+    eps: float = 1e-3,
+    near: float = 0.01,
+) -> tuple[Tensor, Tensor]:
+    """The coverage matrices of several anchors side by side, the block of every anchor
+    after the first scaled by the square root of its weight: ``[M_0 | sqrt(w_1) M_1 | ...]``
+    [D, K_0 + K_1 + ...], and rho of the first anchor [D].
+
+    With the kernels: one compiled pass over the candidates and every anchor's samples
+    (:func:`agilegs.service.nbv.kernels.coverage.coverage_blocks`), skipping each block of a
+    row whose weight is zero, then rho and the weights applied in torch; the same numbers as
+    :func:`coverage_matrix` per anchor (the reference, and the path without the kernels).
+
+    Args:
+        samples: each anchor's support samples [K_a, 3] (one dtype).
+        candidates: candidate poses c2w [D, 4, 4].
+        anchors: (pose [4, 4], weight) of each anchor, the first one's weight unused.
+        intrinsics, sigma_p, gamma, eps, near: as :func:`coverage_matrix`.
+    """
+    if sigma_p <= 0 or gamma <= 0 or eps <= 0:
+        raise ValueError("sigma_p, gamma and eps must be positive")
+    if len(samples) != len(anchors) or not anchors:
+        raise ValueError("one block of samples per anchor, at least one")
+    dt = samples[0].dtype
+    c = candidates.detach().to(dt)
+    if not backend.resolve(None, (*samples, c)):
+        return _coverage_blocks_reference(samples, c, anchors, intrinsics, sigma_p=sigma_p,
+                                          gamma=gamma, eps=eps, near=near)
+    r, p = c[:, :3, :3], c[:, :3, 3]
+    pre = []  # rho's position and orientation factors, as coverage_matrix computes them
+    for pose, _ in anchors:
+        anchor = pose.detach().to(dt)
+        pos = torch.exp(-((p - anchor[:3, 3]) ** 2).sum(-1) / (2.0 * sigma_p**2))
+        orient = (r[:, :, 2] @ anchor[:3, 2]).clamp(0.0, 1.0) ** 2
+        pre.append(pos * orient)
+    scales = [1.0] + [math.sqrt(max(w, 0.0)) for _, w in anchors[1:]]
+    live = torch.stack([(f != 0) & (s != 0.0) for f, s in zip(pre, scales)])
+    kappa, cover = _coverage_blocks_kernel(samples, c, live, intrinsics, near, eps)
+    seg = [0]
+    for x in samples:
+        seg.append(seg[-1] + x.shape[0])
+    rho0 = pre[0] * cover[0]
+    for a in range(len(anchors)):
+        block = kappa[:, seg[a]:seg[a + 1]]
+        block.mul_((rho0 if a == 0 else pre[a] * cover[a]).pow(gamma).unsqueeze(1))
+        if a > 0:
+            block.mul_(scales[a])
+    return kappa, rho0
+
+
+def _coverage_blocks_reference(samples: list[Tensor], c: Tensor,
+                               anchors: list[tuple[Tensor, float]], intrinsics: Intrinsics,
+                               **kw: float) -> tuple[Tensor, Tensor]:
+    """:func:`coverage_blocks` as one :func:`coverage_matrix` per anchor."""
+    blocks: list[Tensor] = []
+    rho: Tensor | None = None
+    for a, (x, (pose, weight)) in enumerate(zip(samples, anchors)):
+        cov = coverage_matrix(x, c, pose, intrinsics, **kw)
+        blocks.append(cov.m if a == 0 else cov.m * math.sqrt(max(weight, 0.0)))
+        rho = cov.rho if rho is None else rho
+    assert rho is not None
+    return (blocks[0] if len(blocks) == 1 else torch.cat(blocks, dim=1)), rho
+
+
+def _coverage_blocks_kernel(samples: list[Tensor], c: Tensor, live: Tensor,
+                            intrinsics: Intrinsics, near: float, eps: float
+                            ) -> tuple[Tensor, Tensor]:
+    """kappa [D, K] in the samples' dtype (every anchor's block) and the covered fraction
+    [A, D] (float64 numbers in that dtype) through the compiled kernel; ``live`` [A, D] the
+    (candidate, anchor) pairs computed."""
+    dt, dev = samples[0].dtype, samples[0].device
+    d = c.shape[0]
+    cams = torch.cat([c[:, :3, :3].reshape(d, 9), c[:, :3, 3]], dim=1).to(torch.float64)
+    cams_np = np.ascontiguousarray(cams.cpu().numpy())
+    pts = np.ascontiguousarray(torch.cat(samples).detach().to(torch.float64).T.cpu().numpy())
+    seg = np.cumsum([0] + [x.shape[0] for x in samples]).astype(np.int64)
+    live_np = np.ascontiguousarray(live.cpu().numpy().astype(np.uint8))
+    intr = np.array([intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy,
+                     float(intrinsics.width), float(intrinsics.height)])
+    kappa = np.empty((d, int(seg[-1])), dtype=np.float32 if dt == torch.float32 else np.float64)
+    cover = np.empty((len(samples), d))
+    fn = backend.kernel_module().coverage_blocks
+    backend.run_in_parts(
+        lambda d0, d1: fn(cams_np, intr, pts, seg, live_np, float(near), float(eps), d0, d1,
+                          kappa, cover), d)
+    return (torch.from_numpy(kappa).to(device=dev),
+            torch.from_numpy(cover).to(device=dev, dtype=dt))
 
 
 def _coverage_terms_kernel(samples: Tensor, c: Tensor, intrinsics: Intrinsics, near: float,

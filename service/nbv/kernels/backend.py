@@ -68,7 +68,7 @@ _COMPILED: dict[str, tuple[str, ...]] = {
     "ascent": ("envelope_project_into", "se3_exp_into", "trial_pose"),
     "binning": ("bin_count", "bin_fill", "reduce_entries", "visible_order"),
     "common": ("CAM", "FWD", "MOMENTS", "REC"),
-    "coverage": ("coverage_terms",),
+    "coverage": ("coverage_blocks", "coverage_terms"),
     "projection": ("PHI_INDEX", "fisher_chain", "jacobians", "project", "project_backward"),
     "proxy": ("proxy_psi",),
     "walks": ("composite_backward", "composite_forward", "fisher_tiles"),

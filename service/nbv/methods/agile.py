@@ -18,7 +18,6 @@ that the anchor stays in the reachable neighbourhood.
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import torch
@@ -31,7 +30,7 @@ from ..anchor.fitting import terms_from_state, terms_to_state, typical_fisher_fr
 from ..anchor.records import AnchorInputs
 from ..camera import Camera
 from ..cancel import checkpoint
-from ..coverage import coverage_matrix, jl_projection, support_samples
+from ..coverage import coverage_blocks, jl_projection, support_samples
 from ..information import fisher_diag
 from ..leverage import greedy_ridge_leverage_gains, online_ridge_leverage, topnorm_shortlist
 from ..se3 import pose_distance
@@ -185,12 +184,11 @@ def _rows(ctx: SelectionContext, anchors: list[tuple[Tensor, float]], lat: dict[
             and acquired.shape[0]
         ):
             rows = torch.cat([rows, acquired.detach().to(dt)])
-        blocks: list[Tensor] = []
-        rho: Tensor | None = None
         means, opacities = _support_map(ctx)
-        for a, (pose, weight) in enumerate(anchors):
+        samples: list[Tensor] = []
+        for a, (pose, _) in enumerate(anchors):
             checkpoint()
-            x = support_samples(
+            samples.append(support_samples(
                 means,
                 pose,
                 ctx.intrinsics,
@@ -202,24 +200,13 @@ def _rows(ctx: SelectionContext, anchors: list[tuple[Tensor, float]], lat: dict[
                 near=sc.near,
                 max_samples=sc.max_samples,
                 generator=ctx.generator(3 + 16 * a),
-            )
-            cov = coverage_matrix(
-                x,
-                rows,
-                pose,
-                ctx.intrinsics,
-                sigma_p=sigma_p,
-                gamma=sc.gamma,
-                eps=sc.eps * ctx.radius,
-                near=sc.near,
-            )
-            blocks.append(cov.m if a == 0 else cov.m * math.sqrt(max(weight, 0.0)))
-            rho = cov.rho if rho is None else rho
-        m = blocks[0] if len(blocks) == 1 else torch.cat(blocks, dim=1)
+            ))
+        checkpoint()
+        m, rho = coverage_blocks(samples, rows, anchors, ctx.intrinsics, sigma_p=sigma_p,
+                                 gamma=sc.gamma, eps=sc.eps * ctx.radius, near=sc.near)
         pi = jl_projection(m.shape[1], sc.jl_dim, seed=ctx.config.seed, dtype=dt,
                            device=m.device)
         b_all = m @ pi
-    assert rho is not None
     details["support_samples"] = int(m.shape[1])
     details["rho"] = {v: float(r) for v, r in zip(ctx.eligible, rho[:n_elig])}
     return b_all[:n_elig], b_all[n_elig:]
