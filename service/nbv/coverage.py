@@ -361,5 +361,31 @@ def jl_projection(
 
 @functools.lru_cache(maxsize=16)
 def _jl_matrix(num_samples: int, dim: int, seed: int) -> Tensor:
+    """Pi [K, d] in float64: the first K rows of :func:`_jl_rows`'s draw where K d is a
+    multiple of 16 (torch's CPU normal draw then gives a matrix's entries as the prefix of
+    a larger draw's: its uniforms in order, turned into normals 16 at a time), else a draw
+    of its own."""
+    if (num_samples * dim) % 16 == 0:
+        rows = _jl_rows(dim, seed, max(4096, 1 << (num_samples - 1).bit_length()))
+        return rows[:num_samples]
+    return _jl_draw(num_samples, dim, seed)
+
+
+def _jl_draw(num_samples: int, dim: int, seed: int) -> Tensor:
     g = torch.Generator().manual_seed(seed)
     return torch.randn(num_samples, dim, generator=g, dtype=torch.float64) / dim**0.5
+
+
+_JL_ROWS: dict[tuple[int, int], Tensor] = {}
+
+
+def _jl_rows(dim: int, seed: int, least: int) -> Tensor:
+    """The largest draw of Pi's rows made so far for (dim, seed), at least ``least`` rows
+    [R, d] (a power of two: R d a multiple of 16)."""
+    rows = _JL_ROWS.get((dim, seed))
+    if rows is None or rows.shape[0] < least:
+        rows = _jl_draw(least, dim, seed)
+        if len(_JL_ROWS) >= 8:
+            _JL_ROWS.clear()
+        _JL_ROWS[(dim, seed)] = rows
+    return rows

@@ -148,6 +148,17 @@ def test_jl_projection_is_seeded_and_scaled() -> None:
     assert abs(float(ratio.mean()) - 1.0) < 0.1
 
 
+@pytest.mark.parametrize("dim", [64, 8, 5])
+def test_jl_projection_from_a_larger_draw_equals_its_own_draw(dim: int) -> None:
+    """Pi's rows cut from a larger draw are the matrix a draw of its own size gives."""
+    from agilegs.service.nbv.coverage import _jl_draw, _jl_matrix
+
+    _jl_matrix.cache_clear()
+    for k in [1, 2, 3, 7, 100, 1920, 2048, 4097, 6016, 6144, 5000, 7]:
+        assert torch.equal(jl_projection(k, dim, seed=11, dtype=torch.float64),
+                           _jl_draw(k, dim, 11)), (k, dim)
+
+
 def test_jl_projection_rejects_bad_sizes() -> None:
     with pytest.raises(ValueError, match="JL"):
         jl_projection(0, 4)
