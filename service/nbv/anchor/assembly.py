@@ -10,6 +10,7 @@ or the previous event's proxy, carried over while ``carry_over_tolerance`` allow
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -130,7 +131,9 @@ def build_proxy(inputs: AnchorInputs, prox_intr: Intrinsics, radius: float,
     # for `share` of the map's): the visibility's occluders and the rates
     sample, share = (fit_sample(inputs, cfg.fit_gaussians) if fitted
                      else (inputs, 1.0))
-    common.update(_visibility(sample, prox_intr, share))
+    # the sample's centre and 98% radius, for the visibility's grid and the unexplored space
+    extent = functools.cache(lambda: scene_center_radius(sample.gmap.means))
+    common.update(_visibility(sample, prox_intr, share, extent))
     lap("visibility")
     if not fitted or acquired is None:
         proxy, model = _typical_model(inputs, prox_intr, common)
@@ -146,7 +149,8 @@ def build_proxy(inputs: AnchorInputs, prox_intr: Intrinsics, radius: float,
         space = unexplored_space(sample.gmap, acquired, proxy, cells=cfg.unexplored_cells,
                                  shells=cfg.unexplored_shells,
                                  count_inside=cfg.unexplored_inside,
-                                 generator=inputs.generator, share=share)
+                                 generator=inputs.generator, share=share,
+                                 extent=extent())
         n = int(space.means.shape[0])
         if n:
             rates = prior_rate.to(inputs.gmap.dtype).expand(n, *prior_rate.shape)
@@ -192,14 +196,14 @@ def fit_sample(inputs: AnchorInputs, size: int) -> tuple[AnchorInputs, float]:
     return dataclasses.replace(inputs, gmap=inputs.gmap.subset(idx), h_acc=h_acc), n / size
 
 
-def _visibility(inputs: AnchorInputs, prox_intr: Intrinsics, share: float = 1.0
-                ) -> dict[str, Any]:
+def _visibility(inputs: AnchorInputs, prox_intr: Intrinsics, share: float,
+                extent: Callable[[], tuple[Tensor, float]]) -> dict[str, Any]:
     """The proxy's visibility arguments: the deep opacity maps (``grid``; each occluder's
-    mass times ``share``, the map's Gaussians each of ``inputs``' stands for), or the
-    z-buffer's occluders and its settings."""
+    mass times ``share``, the map's Gaussians each of ``inputs``' stands for; ``extent()``
+    the map's centre [3] and 98% radius), or the z-buffer's occluders and its settings."""
     cfg = inputs.config
     if cfg.visibility == "transmittance":
-        center, r98 = scene_center_radius(inputs.gmap.means)
+        center, r98 = extent()
         grid = OpacityMaps.build(
             inputs.gmap, prox_intr, center, r98, cells=cfg.transmittance_cells,
             bins=cfg.transmittance_bins, max_occluders=cfg.occluders,

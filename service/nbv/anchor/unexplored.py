@@ -79,6 +79,7 @@ def unexplored_space(
     count_inside: bool = True,
     generator: torch.Generator | None = None,
     share: float = 1.0,
+    extent: tuple[Tensor, float] | None = None,
 ) -> UnexploredSpace:
     """The unexplored part of ``gmap``'s extent seen from the acquired poses [A, 4, 4].
 
@@ -99,11 +100,13 @@ def unexplored_space(
         generator: seeds the subsample.
         share: how many of the map's Gaussians each of ``gmap``'s stands for (``gmap`` a
             uniform sample of the map: its counts per cell are scaled by it).
+        extent: the map's centre [3] and 98% radius when known
+            (:func:`~agilegs.service.nbv.candidates.scene_center_radius` of its means).
     """
     dt = gmap.dtype
     dev = gmap.means.device
     means = gmap.means.detach().to(dt)
-    centre, radius = scene_center_radius(means)
+    centre, radius = scene_center_radius(means) if extent is None else extent
     half = radius * (1.0 + margin)
     axis = torch.linspace(-half, half, cells, dtype=dt, device=dev)
     gx, gy, gz = torch.meshgrid(axis, axis, axis, indexing="ij")
