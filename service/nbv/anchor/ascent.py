@@ -9,7 +9,8 @@ psi does not decrease (after projection into the pool envelope), otherwise eta i
 stops after ``iterations`` accepted steps, when no step is accepted, when the relative gain of
 a step is below ``min_rel_gain`` or when the gradient vanishes. Starts: the ``num_starts`` best
 pool candidates under the proxy, plus the previous anchor (warm start). Several starts ascend
-at once, as one batch (:class:`Ascent`).
+at once, as one batch (:class:`Ascent`, the reference); with a proxy whose kernel serves, each
+start's step is one compiled call (:class:`.compiled_ascent.CompiledAscent`).
 
 :func:`optimize_anchor` checks its arguments into one :class:`.records.AnchorInputs`, and
 :func:`find_anchor` finds the anchor from it: the proxy (:mod:`.assembly`), the starts, the
@@ -34,6 +35,7 @@ from ..cancel import checkpoint
 from ..gaussians import GaussianMap
 from ..se3 import hat, pose_distance, project_to_se3, se3_exp
 from .assembly import assemble_proxy
+from .compiled_ascent import CompiledAscent
 from .envelope import PoolEnvelope
 from .exact import ExactPsi, exact_psi_fn
 from .line_search import CompiledLineSearch
@@ -417,7 +419,8 @@ def find_anchor(inputs: AnchorInputs) -> AnchorResult:
     """Find the anchor T* = argmax psi(T) (see the module docstring) from ``inputs``, whose
     ``config`` is taken as validated (:func:`optimize_anchor` validates it): the proxy
     (:func:`.assembly.assemble_proxy`), its psi over the pool and the starts, the ascent
-    (:class:`Ascent`) and the distinct modes."""
+    (:class:`.compiled_ascent.CompiledAscent` where it serves the proxy, else
+    :class:`Ascent`) and the distinct modes."""
     stages = _Stages()
     cfg = inputs.config
     radius = inputs.radius
@@ -426,7 +429,11 @@ def find_anchor(inputs: AnchorInputs) -> AnchorResult:
     pool, pool_psi, refined, best, starts = _starts(inputs, proxy, radius,
                                                      built.model.typical_term)
     stages.lap("starts")
-    if cfg.psi == "proxy":
+    ascent: Ascent | CompiledAscent
+    if cfg.psi == "proxy" and CompiledAscent.serves(proxy, starts):
+        ascent = CompiledAscent(proxy, starts, config=cfg, envelope=inputs.envelope,
+                                radius=radius).run()
+    elif cfg.psi == "proxy":
         ascent = Ascent(proxy, starts, config=cfg, envelope=inputs.envelope, radius=radius,
                         batched=True).run()
     else:

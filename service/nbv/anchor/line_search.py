@@ -19,7 +19,23 @@ from ..kernels import backend
 from .envelope import PoolEnvelope
 from .proxy import ProxyPsi
 
-__all__ = ["CompiledLineSearch"]
+__all__ = ["CompiledLineSearch", "envelope_vector"]
+
+
+def envelope_vector(envelope: PoolEnvelope | None, dt: torch.dtype) -> np.ndarray:
+    """The envelope as the kernels' vector [15] (:mod:`agilegs.service.nbv.kernels.ascent`),
+    its bounds as the torch path holds them in ``dt``; zeros without an envelope."""
+    if envelope is None:
+        return np.zeros(15)
+
+    def r(x: float) -> float:  # a bound the torch path applies in the poses' dtype
+        return float(torch.tensor(x, dtype=dt)) if dt == torch.float32 else x
+
+    vec = torch.cat([envelope.centre.to(dt), envelope.up.to(dt), envelope.aim.to(dt)])
+    return np.concatenate([
+        vec.detach().cpu().to(torch.float64).numpy(),
+        [r(envelope.r_min), r(envelope.r_max), r(envelope.elev_min), r(envelope.elev_max),
+         r(envelope.max_off_aim), 1.0]])
 
 
 class CompiledLineSearch:
@@ -36,18 +52,7 @@ class CompiledLineSearch:
         self.radius = radius
         self.dt = dt
         self.single = dt == torch.float32
-
-        def r(x: float) -> float:  # a bound the torch path applies in the poses' dtype
-            return float(torch.tensor(x, dtype=dt)) if self.single else x
-
-        if envelope is None:
-            self.env = np.zeros(15)
-        else:
-            vec = torch.cat([envelope.centre.to(dt), envelope.up.to(dt), envelope.aim.to(dt)])
-            self.env = np.concatenate([
-                vec.detach().cpu().to(torch.float64).numpy(),
-                [r(envelope.r_min), r(envelope.r_max), r(envelope.elev_min),
-                 r(envelope.elev_max), r(envelope.max_off_aim), 1.0]])
+        self.env = envelope_vector(envelope, dt)
         self.kernels = backend.kernel_module()
 
     @staticmethod

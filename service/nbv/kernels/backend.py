@@ -65,7 +65,8 @@ _kernels: Any = None
 _import_error: str | None = None
 _XY_CACHE: dict[tuple[int, str], np.ndarray] = {}
 _COMPILED: dict[str, tuple[str, ...]] = {
-    "ascent": ("envelope_project_into", "se3_exp_into", "trial_pose"),
+    "ascent": ("envelope_project_into", "projected_tangents", "se3_exp_into", "trial_pose"),
+    "ascent_loop": ("CLOCK", "ascent_step"),
     "binning": ("bin_count", "bin_fill", "reduce_entries", "visible_order"),
     "common": ("CAM", "FWD", "MOMENTS", "REC"),
     "coverage": ("coverage_blocks", "coverage_terms"),
