@@ -27,6 +27,7 @@ from .visibility import OpacityMaps
 __all__ = [
     "FIELD_KINDS",
     "lower_median",
+    "slot_medians",
     "DirectionalRates",
     "FittedRates",
     "directional_rates",
@@ -52,6 +53,31 @@ def lower_median(x: Tensor) -> Tensor:
         return x.median()
     k = (a.size - 1) // 2
     return torch.as_tensor(np.partition(a, k)[k], dtype=x.dtype)
+
+
+def slot_medians(g: Tensor, seen: Tensor) -> Tensor:
+    """Each column's :func:`lower_median` of ``g`` [N, Q] over its ``seen`` [N, Q] (bool)
+    rows, 0 where none is seen -> [Q]; on the CPU the columns are cut by numpy (the same
+    elements, so the same medians, at a fraction of torch's boolean indexing)."""
+    dt, dev = g.dtype, g.device
+    cols = g.detach().T.contiguous()
+    mask = seen.T.contiguous()
+    if dev.type != "cpu" or dt not in (torch.float32, torch.float64):
+        return torch.stack([lower_median(cols[q][mask[q]]) if bool(mask[q].any())
+                            else torch.zeros((), dtype=dt, device=dev)
+                            for q in range(cols.shape[0])])
+    a, m = cols.numpy(), mask.numpy()
+    out = []
+    for q in range(a.shape[0]):
+        x = a[q][m[q]]
+        if x.size == 0:
+            out.append(torch.zeros((), dtype=dt))
+        elif np.isnan(x).any():
+            out.append(torch.from_numpy(x).median())
+        else:
+            k = (x.size - 1) // 2
+            out.append(torch.as_tensor(np.partition(x, k)[k], dtype=dt))
+    return torch.stack(out)
 
 
 def prior_floor(flat: Tensor, lam: float | None) -> Tensor:
@@ -342,12 +368,7 @@ def directional_rates(
     w_slot = w_sum[:, kinds]  # [N, Q]
     seen_slot = w_slot >= floor[kinds]
     g = excess / w_slot.clamp_min(1e-30)
-    g_rows, seen_rows = g.T.contiguous(), seen_slot.T.contiguous()  # a slot per row [Q, N]
-    g_med = torch.stack([
-        lower_median(g_rows[q][seen_rows[q]]) if bool(seen_rows[q].any())
-        else torch.zeros((), dtype=dt, device=dev)
-        for q in range(flat.shape[1])
-    ])
+    g_med = slot_medians(g, seen_slot)
     g = torch.where(seen_slot, g, g_med.unsqueeze(0))
     rate = g / flat.clamp_min(1e-30)
     return DirectionalRates(rate=rate, kinds=kinds, accumulated=w_sum, typical=f_typ,
