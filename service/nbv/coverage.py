@@ -356,7 +356,13 @@ def jl_projection(
     """
     if num_samples < 1 or dim < 1:
         raise ValueError(f"JL projection needs K >= 1 and d >= 1, got K={num_samples}, d={dim}")
-    return _jl_matrix(int(num_samples), int(dim), int(seed)).to(dtype=dtype, device=device)
+    return _jl_typed(int(num_samples), int(dim), int(seed), dtype).to(device=device)
+
+
+@functools.lru_cache(maxsize=16)
+def _jl_typed(num_samples: int, dim: int, seed: int, dtype: torch.dtype) -> Tensor:
+    """:func:`_jl_matrix` in ``dtype`` (on the CPU), kept."""
+    return _jl_matrix(num_samples, dim, seed).to(dtype=dtype)
 
 
 @functools.lru_cache(maxsize=16)

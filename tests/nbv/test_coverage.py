@@ -151,9 +151,10 @@ def test_jl_projection_is_seeded_and_scaled() -> None:
 @pytest.mark.parametrize("dim", [64, 8, 5])
 def test_jl_projection_from_a_larger_draw_equals_its_own_draw(dim: int) -> None:
     """Pi's rows cut from a larger draw are the matrix a draw of its own size gives."""
-    from agilegs.service.nbv.coverage import _jl_draw, _jl_matrix
+    from agilegs.service.nbv.coverage import _jl_draw, _jl_matrix, _jl_typed
 
     _jl_matrix.cache_clear()
+    _jl_typed.cache_clear()
     for k in [1, 2, 3, 7, 100, 1920, 2048, 4097, 6016, 6144, 5000, 7]:
         assert torch.equal(jl_projection(k, dim, seed=11, dtype=torch.float64),
                            _jl_draw(k, dim, 11)), (k, dim)
