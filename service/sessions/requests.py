@@ -61,7 +61,7 @@ def was_replayed() -> bool:
 
 def applied(rec: SessionRecord) -> AppliedRequest | None:
     """The write of the current request id that ``rec`` records as applied; None when there
-    is no request id or it was not applied. 422 when the id was applied to another
+    is no request id or it was not applied. 409 when the id was applied to another
     operation."""
     got = _current.get()
     if got is None:
@@ -70,7 +70,7 @@ def applied(rec: SessionRecord) -> AppliedRequest | None:
     for r in reversed(rec.requests):
         if r.id == rid:
             if r.op != op:
-                raise ServiceError(422, "invalid", f"request id {rid!r} was used for {r.op}, "
+                raise ServiceError(409, "conflict", f"request id {rid!r} was used for {r.op}, "
                                    f"not {op}: a request id names one write", "request_id")
             _replayed.set(True)
             return r

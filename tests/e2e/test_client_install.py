@@ -90,7 +90,7 @@ def test_the_wheel_installs_the_client_without_torch(tmp_path: Path) -> None:
     scenes = sorted(n for n in names if n.endswith((".splat", ".ply", ".png")))
     assert scenes == ["agilegs/lab/scenes/spot/spot_10k.splat",
                       "agilegs/lab/scenes/teapot/teapot_10k.splat"], scenes
-    assert wheel.stat().st_size < 2**20  # the benchmark's 9 MB of scenes stay out
+    assert wheel.stat().st_size < 2 * 2**20  # the benchmark's 9 MB of scenes stay out
     py = _fresh_venv(tmp_path / "robot")
     _run([str(py), "-m", "pip", "install", "-q", f"{wheel}[zenoh]"], timeout=400)
     _check_client_only(py, tmp_path)

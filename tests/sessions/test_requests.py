@@ -77,7 +77,7 @@ def test_an_id_names_one_write(tmp_path: Path) -> None:
     before = core.session("s").record
     with pytest.raises(ServiceError) as err:
         run(core, "set_pool", "s", POOL, "one-write-01")
-    assert err.value.status == 422 and err.value.field == "request_id"
+    assert err.value.status == 409 and err.value.field == "request_id"
     assert core.session("s").record is before
     core.close()
 
