@@ -161,6 +161,10 @@ HOW: dict[tuple[str, str], How] = {
      "runs/cpu-spread \\"): BENCH,
     ("docs/benchmarks.md", "agilegs bench run $(for s in skull_photos tankard flowerpot "
      "caliterra; do echo --scene $S/$s; \\"): BENCH,
+    ("docs/benchmarks.md", "agilegs bench run --profile cpu --seeds 0,1 --threads 1 --out "
+     "runs/cpu-target \\"): BENCH,
+    ("docs/benchmarks.md", "agilegs bench run --profile capture --seeds 0,1 --threads 1 --out "
+     "runs/capture-spread \\"): BENCH,
     ("docs/benchmarks.md", "agilegs bench latency --scene $S/plant/plant.splat --max-gaussians "
      "1000000 --width 512 \\"): BENCH,
     ("docs/benchmarks.md", "agilegs bench render --scene $S/plant/plant.splat --sizes 128,256 "
