@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 from numba import njit
 
-from .ascent import projected_tangents, trial_pose
+from .ascent import _r32, projected_tangents, trial_pose
 from .proxy import proxy_psi
 
 _jit = njit(cache=False, nogil=True, error_model="numpy")
@@ -54,13 +54,6 @@ def _now(ts: np.ndarray) -> float:
     """The monotonic clock in seconds (``ts`` [2] int64 scratch)."""
     _clock_gettime(CLOCK, ts.ctypes.data)
     return ts[0] + 1e-9 * ts[1]
-
-
-@_jit
-def _r32(x: float, single: bool) -> float:
-    if single:
-        return float(np.float32(x))
-    return x
 
 
 @_jit
