@@ -39,17 +39,21 @@ def backoff(attempt: int, hint: float | None) -> float:
     return max(hint or 0.0, min(1.0, 0.05 * 2 ** attempt))
 
 
-def _retryable(exc: SessionUnavailableError) -> bool:
-    return exc.retry_after is not None
-
-
-def _gone(call: Call | None, attempt: int, exc: NotFoundError) -> Deleted | None:
-    """The answer of a retried ``delete_session`` that finds its session gone (the attempt
-    before deleted it, and its answer was lost)."""
+def _next_step(exc: NotFoundError, attempt: int, deadline: float, call: Call | None
+               ) -> float | Deleted:
+    """After attempt ``attempt`` (0, 1, ...) of ``call`` failed with ``exc``: the seconds
+    to wait before the next one, or the :class:`Deleted` a retried ``delete_session`` that
+    finds its session gone has earned (the attempt before deleted it, and its answer was
+    lost); ``exc`` is raised when it is final (no ``retry_after``, or past ``deadline``)."""
+    if isinstance(exc, SessionUnavailableError):
+        delay = backoff(attempt, exc.retry_after)
+        if exc.retry_after is None or time.monotonic() + delay > deadline:
+            raise exc
+        return delay
     if (attempt and call is not None and call.op.name == "delete_session"
-            and call.session is not None and not isinstance(exc, SessionUnavailableError)):
+            and call.session is not None):
         return Deleted(id=call.session)
-    return None
+    raise exc
 
 
 def retry_sync(send: Callable[[], T], window: float, call: Call | None = None) -> T:
@@ -61,15 +65,11 @@ def retry_sync(send: Callable[[], T], window: float, call: Call | None = None) -
     while True:
         try:
             return send()
-        except SessionUnavailableError as exc:
-            delay = backoff(attempt, exc.retry_after)
-            if not _retryable(exc) or time.monotonic() + delay > deadline:
-                raise
         except NotFoundError as exc:
-            if (gone := _gone(call, attempt, exc)) is not None:
-                return gone  # type: ignore[return-value]
-            raise
-        time.sleep(delay)
+            step = _next_step(exc, attempt, deadline, call)
+        if isinstance(step, Deleted):
+            return step  # type: ignore[return-value]
+        time.sleep(step)
         attempt += 1
 
 
@@ -81,13 +81,9 @@ async def retry_async(send: Callable[[], Awaitable[T]], window: float,
     while True:
         try:
             return await send()
-        except SessionUnavailableError as exc:
-            delay = backoff(attempt, exc.retry_after)
-            if not _retryable(exc) or time.monotonic() + delay > deadline:
-                raise
         except NotFoundError as exc:
-            if (gone := _gone(call, attempt, exc)) is not None:
-                return gone  # type: ignore[return-value]
-            raise
-        await asyncio.sleep(delay)
+            step = _next_step(exc, attempt, deadline, call)
+        if isinstance(step, Deleted):
+            return step  # type: ignore[return-value]
+        await asyncio.sleep(step)
         attempt += 1

@@ -265,19 +265,29 @@ class ObjectSessionStore:
         sid = record.id
         head = self._head(sid)
         dirty = [r for r in ROLES if r in set(dirty)]
-        written: list[str] = []
-        try:
-            new = self._write_files(record, dirty, blobs or {}, written)
-            data = self._encode(new, head.lease)
-            etag = self._commit(sid, head, data, keep_previous=True)
-        except BaseException:
-            self._remove(written)
-            raise
+        new, etag, data = self._write_version(sid, head, record, dirty, blobs or {}, head.lease,
+                                              keep_previous=True)
         named = new.named_files()
         with self._lock:
             self._heads[sid] = _Head(etag, data, named, head.named, head.lease)
         self._remove(_key(sid, n) for n in head.previous - named - head.named)
         return new
+
+    def _write_version(self, sid: str, head: _Head, record: SessionRecord,
+                       roles: Iterable[str], blobs: dict[str, bytes],
+                       lease: dict[str, Any] | None, *, keep_previous: bool
+                       ) -> tuple[SessionRecord, str | None, bytes]:
+        """Write ``record``'s ``roles`` and ``blobs`` as new objects and commit its manifest
+        (with ``lease``) over ``head`` (:meth:`_commit`): the record with its file names, the
+        manifest's ETag and bytes. On failure the objects written are removed."""
+        written: list[str] = []
+        try:
+            new = self._write_files(record, roles, blobs, written)
+            data = self._encode(new, lease)
+            return new, self._commit(sid, head, data, keep_previous=keep_previous), data
+        except BaseException:
+            self._remove(written)
+            raise
 
     def _head(self, sid: str) -> _Head:
         with self._lock:
@@ -505,14 +515,9 @@ class ObjectSessionStore:
         views = tuple(without_files(v, bad) for v in target.views)
         seen = [target.version, got.version or 0, *self._object_versions(sid)]
         new = replace(target, version=max(seen) + 1, updated_at=time.time(), views=views)
-        written: list[str] = []
-        try:
-            new = self._write_files(new, ("warm",), {}, written)
-            data = self._encode(new, head.lease or lease_of(head.manifest))
-            etag = self._commit(sid, head, data, keep_previous=False)
-        except BaseException:
-            self._remove(written)
-            raise
+        new, etag, data = self._write_version(sid, head, new, ("warm",), {},
+                                              head.lease or lease_of(head.manifest),
+                                              keep_previous=False)
         named = new.named_files()
         with self._lock:
             self._heads[sid] = _Head(etag, data, named, head.previous, head.lease)

@@ -101,7 +101,6 @@ def test_old_answers_are_dropped_and_their_ids_kept(tmp_path: Path) -> None:
                       "quats": np.tile([1.0, 0, 0, 0], (4, 1)), "opacity_logits": np.zeros(4),
                       "sh": np.zeros((4, 1, 3))})
     run(core, "set_gaussians", "s", g, "set-gauss-001")
-    version = core.session("s").record.version
     for k in range(rq.KEEP_ANSWERS + 1):
         run(core, "commit", "s", {"candidate_id": k % 12, "keep_in_pool": True}, f"more-{k:04d}")
     version = core.session("s").record.version

@@ -69,8 +69,7 @@ def _anchor_targets(ctx: SelectionContext) -> Tensor | None:
     request's targets, else the whole pool (a proxy evaluation each; None for ``eig``)."""
     if ctx.config.objective != "target":
         return None
-    targets = ctx.targets if ctx.targets is not None else ctx.pool
-    return targets.to(ctx.gmap.dtype)
+    return ctx.targets if ctx.targets is not None else ctx.pool
 
 
 def _warm(ctx: SelectionContext) -> Tensor | None:

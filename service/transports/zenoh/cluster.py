@@ -335,12 +335,11 @@ class ClusterNode:
             return self._merged_list()
         if op == "create_session" and self._z is not None:
             assert isinstance(req, m.SessionCreate)
-            derived = request_id is not None and req.id is None
-            if request_id is not None and req.id is None:
+            if request_id is not None and req.id is None:  # named by its request id
                 req.id = session_id_for(request_id)
+                if (mine := self._created_elsewhere(req.id)) is not None:
+                    return mine
             body = codec.dump(req, codec.MSGPACK)
-            if derived and req.id and (mine := self._created_elsewhere(req.id)) is not None:
-                return mine
             self._check_id_free(req.id)
             if instance is None:
                 return self._place(body, run_local, request_id)
