@@ -206,6 +206,10 @@ class AnchorConfig:
         "evaluated and among which the starts are chosen (with start_samples > 0)")
     num_gaussians: Count = Field(default=2000,
         description="Gaussians importance-sampled for the proxy (0: all)")
+    target_poses: Count = Field(default=32,
+        description="objective 'target': the proxy's samples are weighted by their "
+        "information at this many of the targets, a farthest-point subsample of them (one "
+        "proxy evaluation each, once per selection; 0: every target)")
     fit_gaussians: Count = Field(default=16384,
         description="the fitted and directional models read a seeded uniform sample of this "
         "many of the map's Gaussians, each standing for N / fit_gaussians of them: the "
@@ -371,6 +375,12 @@ class SelectConfig:
         default=8,
         description="objective 'target': the targets' Fisher T is summed over this many of "
         "them, a farthest-point subsample (one Fisher pass each, once per selection)")
+    target_scale: Annotated[float, Strict(), Field(gt=0, le=1, allow_inf_nan=False)] = Field(
+        default=0.5,
+        description="objective 'target': the targets' Fisher T is computed on images this "
+        "fraction of the candidates' width and height (same field of view); T's scale does "
+        "not change which view is best, its shape over the parameters does, and a quarter "
+        "of the pixels costs about a quarter of the time")
     anchor: AnchorConfig = Field(default_factory=AnchorConfig)
     scoring: ScoringConfig = Field(default_factory=ScoringConfig)
     cover_bins: Dim = Field(default=128, description="COVER's direction bins per Gaussian")

@@ -81,7 +81,7 @@ from agilegs.service.nbv.rotations import quat_to_rotmat
 from agilegs.service.nbv.selectors import SelectInputs, select_from
 
 from .options import add_latency_arguments, use_threads
-from .stages import ANCHOR_STAGES
+from .stages import TABLE_STAGES
 from .variants import parse_variant
 
 log = logging.getLogger(__name__)
@@ -553,14 +553,14 @@ def _print_table(methods: dict[str, Any]) -> None:
     if split:
         out = [
             "",
-            "| method | anchor ms | " + " | ".join(ANCHOR_STAGES) + " | ascent: gradient "
+            "| method | anchor ms | " + " | ".join(TABLE_STAGES) + " | ascent: gradient "
             "evaluations | ms | ms each | ascent: value evaluations | ms | ms each |",
-            "|---|---|" + "---|" * (len(ANCHOR_STAGES) + 6),
+            "|---|---|" + "---|" * (len(TABLE_STAGES) + 6),
         ]
         for name, m in split:
             s = m["stages_ms"]
-            cells = " | ".join(f"{s.get('anchor.' + k, float('nan')):.1f}"
-                               for k in ANCHOR_STAGES)
+            cells = " | ".join(f"{s['anchor.' + k]:.1f}" if f"anchor.{k}" in s else "–"
+                               for k in TABLE_STAGES)
             parts = []
             for kind, key in (("gradient", "anchor.ascent.gradients"),
                               ("value", "anchor.ascent.values")):

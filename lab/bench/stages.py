@@ -12,7 +12,10 @@ ANCHOR_STAGES = ("envelope", "visibility", "rates", "unexplored", "starts", "asc
 the opacity maps), the model's rates (fitted over the acquired views, the new ones' terms
 added to the carried ones between refits, and the importance sample), unexplored space, the
 starts (the coarse psi of the pool, the full psi of the refined candidates), the ascent."""
-RUN_STAGES = ANCHOR_STAGES + ("ascent.gradients", "ascent.values")
+TABLE_STAGES = ("envelope", "visibility", "rates", "unexplored", "targets", "starts", "ascent")
+"""The stages of the tables: :data:`ANCHOR_STAGES` and, under the ``target`` objective only,
+the samples' weighting by their information at the targets (after unexplored space)."""
+RUN_STAGES = TABLE_STAGES + ("ascent.gradients", "ascent.values")
 """The same and, within the ascent, its evaluations with their gradient and of values alone."""
 
 
@@ -42,7 +45,8 @@ def anchor_split_table(results: Mapping[str, Any], keys: list[str],
         "",
         "The anchor's stages, ms per event (means over events, then scenes): the pool's "
         "envelope, the visibility (the map's sample, opacity maps), the model's rates (fitted "
-        "over the acquired views), unexplored space, the starts (the coarse ψ of the pool, "
+        "over the acquired views), unexplored space, the targets' weighting (the `target` "
+        "objective only), the starts (the coarse ψ of the pool, "
         "the full ψ of the best), the ascent, and within it the "
         "evaluations with their gradient and those of values alone.",
         "",

@@ -142,9 +142,14 @@ OPTIONS: dict[str, tuple[str, Callable[[SelectConfig], SelectConfig]]] = {
                 lambda c: dataclasses.replace(c, probes=3)),
     "target": ("the target objective: the fall of the pool's predicted render variance; "
                "full_eig scores and AGILE-GS+ reranks by it (T from 8 farthest-point pool "
-               "views), and the anchor of AGILE-GS and AGILE-GS+ weights its samples by their "
-               "information at the pool's views",
+               "views at half the width and height), and the anchor of AGILE-GS and AGILE-GS+ "
+               "weights its samples by their information at 32 farthest-point pool views",
                lambda c: dataclasses.replace(c, objective="target")),
+    "target_full": ("the target objective with T at the candidates' resolution and the "
+                    "anchor's samples weighted at every pool view",
+                    lambda c: dataclasses.replace(
+                        c, objective="target", target_scale=1.0,
+                        anchor=dataclasses.replace(c.anchor, target_poses=0))),
     "target16": ("the target objective with T from 16 farthest-point pool views",
                  lambda c: dataclasses.replace(c, objective="target", target_views=16)),
     "target4": ("the target objective with T from 4 farthest-point pool views",

@@ -11,7 +11,8 @@ variance falls by
 which counts a parameter as much as the targets' pixels depend on it: a parameter no target
 sees is worth nothing, however little Hhat knows of it (the EIG sum_q log(1 + H_v,q/Hhat_q)
 values every parameter alike). T is computed once per selection from a farthest-point
-subsample of the targets (:func:`target_subsample`), never per candidate.
+subsample of the targets (:func:`target_subsample`), never per candidate, on images smaller
+than the candidates' (:func:`target_intrinsics`): T's scale does not change which view is best.
 
 :func:`target_gain_bruteforce` is the reference: the targets' per-pixel Jacobians by autograd
 (one backward per pixel and channel) and the variance before and after the view's brute-force
@@ -37,6 +38,7 @@ __all__ = [
     "target_gain",
     "target_gain_bruteforce",
     "target_information",
+    "target_intrinsics",
     "target_scores_keeping_best",
     "target_subsample",
 ]
@@ -46,6 +48,15 @@ def target_subsample(targets: Tensor, rot_weight: float, count: int) -> list[int
     """``count`` of the target poses [T, 4, 4] spread over them: their farthest-point order
     (SE(3) distance, ``rot_weight`` world units per radian), first target first."""
     return farthest_point_order(targets, None, rot_weight, count)
+
+
+def target_intrinsics(intrinsics: Intrinsics, scale: float) -> Intrinsics:
+    """The targets' images: ``intrinsics`` with width and height times ``scale`` (at least
+    one pixel, rounded; the same field of view), ``intrinsics`` itself at scale 1."""
+    if scale >= 1.0:
+        return intrinsics
+    return intrinsics.scaled(max(1, round(intrinsics.width * scale)),
+                             max(1, round(intrinsics.height * scale)))
 
 
 def target_information(

@@ -99,7 +99,7 @@ def select_estimate(rec: SessionRecord, method: str, config: SelectConfig) -> Es
     """The up-front estimate (:func:`agilegs.service.nbv.budget.estimate`) of a select of
     ``method`` on ``rec``: its Gaussians, its pool (the ``embodied_k`` nearest in embodied
     mode), its views, the session's image size (COVER: ``cover_resolution``); with the
-    ``target`` objective, plus ``target_views`` Fisher passes."""
+    ``target`` objective, plus ``target_views`` Fisher passes at ``target_scale``."""
     g = rec.gmap
     intr = rec.intrinsics
     w, h = int(intr["width"]), int(intr["height"])
@@ -116,7 +116,9 @@ def select_estimate(rec: SessionRecord, method: str, config: SelectConfig) -> Es
                    shortlist=config.shortlist_size, acquired=len(rec.views), **sizes)
     if config.objective == "target" and method in ("full_eig", "agile_plus"):
         # the targets' Fisher T: one pass per target view, once per selection
-        one = estimate("fisher", len(g), w * h, **sizes)
+        scale = config.target_scale
+        one = estimate("fisher", len(g), max(1, round(w * scale)) * max(1, round(h * scale)),
+                       **sizes)
         est = dataclasses.replace(est, seconds=est.seconds + config.target_views * one.seconds)
     return est
 

@@ -9,7 +9,7 @@ import math
 import pytest
 import torch
 
-from agilegs.config.selection import SelectConfig
+from agilegs.config.selection import AnchorConfig, SelectConfig
 from agilegs.service.nbv import (
     Camera,
     GaussianMap,
@@ -25,6 +25,7 @@ from agilegs.service.nbv.targets import (
     target_gain,
     target_gain_bruteforce,
     target_information,
+    target_intrinsics,
     target_scores_keeping_best,
     target_subsample,
 )
@@ -99,9 +100,11 @@ def test_the_subsample_spreads_over_the_targets() -> None:
     assert target_subsample(pool, 1.6, 100) == target_subsample(pool, 1.6, 30)
 
 
-def _full_target_scores(gmap, h, cands, targets, fields=None):
+def _full_target_scores(gmap, h, cands, targets, fields=None, scale=None):
+    """The target scores with T on the targets' images of ``scale`` (the default's if None)."""
     fields = fields or tuple(k for k, _ in gmap.items())
-    t_info = target_information(gmap, targets, INTR, fields=fields)
+    scale = SelectConfig().target_scale if scale is None else scale
+    t_info = target_information(gmap, targets, target_intrinsics(INTR, scale), fields=fields)
     return [target_gain(fisher_diag(gmap, Camera(c2w=p, intrinsics=INTR)), h, t_info)
             for p in cands]
 
@@ -123,6 +126,13 @@ def test_full_eig_with_the_target_objective() -> None:
         assert s == pytest.approx(want[i], rel=1e-9)
     assert sel.latency_ms["scoring.targets"] > 0
     assert sel.chosen_information is not None
+    # T at the candidates' own resolution: target_scale 1
+    full = select("full_eig", gmap, h, cands, INTR, targets=targets,
+                  config=SelectConfig(objective="target", target_views=2, target_scale=1.0))
+    want_full = _full_target_scores(gmap, h, cands, targets, scale=1.0)
+    assert want_full != want
+    for i, s in full.scores.items():
+        assert s == pytest.approx(want_full[i], rel=1e-9)
     # no targets: the pool's farthest-point subsample
     cfg = SelectConfig(objective="target", target_views=3)
     sel = select("full_eig", gmap, h, cands, INTR, config=cfg)
@@ -165,6 +175,36 @@ def test_the_anchor_weighs_its_samples_by_the_targets() -> None:
     b = select("agile", gmap, h, cands, INTR, config=SelectConfig(objective="target"),
                targets=pool[[5]], **base).anchor_c2w
     assert a is not None and b is not None and not torch.allclose(a, b)
+
+
+def test_the_anchor_weighs_at_a_farthest_point_subsample_of_the_targets() -> None:
+    from agilegs.service.nbv.candidates import pool_radius, scene_center_radius
+
+    gmap, pool, h = tiny()
+    cands = pool[[1, 2, 3, 4, 6, 7, 8, 9]]
+    base = dict(acquired=pool[[0, 5]], lam=1e-3)
+
+    def anchor(targets, poses):
+        cfg = SelectConfig(objective="target", anchor=AnchorConfig(target_poses=poses))
+        sel = select("agile", gmap, h, cands, INTR, config=cfg, targets=targets, **base)
+        assert sel.latency_ms["anchor.targets"] >= 0
+        return sel.anchor_c2w
+
+    w = pool_radius(cands, scene_center_radius(gmap.means)[0])
+    sub = pool[target_subsample(pool, w, 3)]
+    assert torch.equal(anchor(pool, 3), anchor(sub, 0))  # 3 of the 10, farthest-point
+    assert torch.equal(anchor(pool, 10), anchor(pool, 0))  # as many as there are: all
+    assert torch.equal(anchor(None, 3), anchor(cands[target_subsample(cands, w, 3)], 0))
+
+
+def test_target_images_keep_the_field_of_view() -> None:
+    big = Intrinsics.from_fov(60.0, 640, 480)
+    half = target_intrinsics(big, 0.5)
+    assert (half.width, half.height) == (320, 240)
+    assert half.fx / half.width == pytest.approx(big.fx / big.width)
+    assert target_intrinsics(big, 1.0) is big
+    tiny_img = target_intrinsics(INTR, 0.01)
+    assert (tiny_img.width, tiny_img.height) == (1, 1)
 
 
 def test_targets_are_checked() -> None:

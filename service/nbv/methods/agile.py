@@ -18,6 +18,7 @@ that the anchor stays in the reachable neighbourhood.
 
 from __future__ import annotations
 
+import time
 from typing import Any
 
 import torch
@@ -64,12 +65,20 @@ def _typical(ctx: SelectionContext, out: dict[str, Any]) -> dict[str, Tensor] | 
     return typical
 
 
-def _anchor_targets(ctx: SelectionContext) -> Tensor | None:
-    """The views the anchor's samples are weighted by under the ``target`` objective: the
-    request's targets, else the whole pool (a proxy evaluation each; None for ``eig``)."""
+def _anchor_targets(ctx: SelectionContext) -> tuple[Tensor | None, float]:
+    """The views the anchor's samples are weighted by under the ``target`` objective (None
+    for ``eig``): ``anchor.target_poses`` of the request's targets, else of the pool, a
+    farthest-point subsample under ``ctx.rot_weight`` (all of them for 0); and the
+    milliseconds the subsample took."""
     if ctx.config.objective != "target":
-        return None
-    return ctx.targets if ctx.targets is not None else ctx.pool
+        return None, 0.0
+    targets = ctx.targets if ctx.targets is not None else ctx.pool
+    count = int(ctx.config.anchor.target_poses)
+    if count == 0 or count >= targets.shape[0]:
+        return targets, 0.0
+    t0 = time.perf_counter()
+    picks = farthest_point_order(targets, None, ctx.rot_weight, count)
+    return targets[picks], (time.perf_counter() - t0) * 1e3
 
 
 def _warm(ctx: SelectionContext) -> Tensor | None:
@@ -96,6 +105,7 @@ def _anchor(ctx: SelectionContext, lat: dict[str, float], out: dict[str, Any]) -
             )
         warm = _warm(ctx)
         acquired = ctx.acquired
+        targets, subsample_ms = _anchor_targets(ctx)
         res = find_anchor(AnchorInputs(
             ctx.gmap,
             dict(ctx.h_acc),
@@ -115,7 +125,7 @@ def _anchor(ctx: SelectionContext, lat: dict[str, float], out: dict[str, Any]) -
             rates_carried=terms_from_state(
                 {k[len("anchor_"):]: v for k, v in ctx.state.items()
                  if isinstance(k, str) and k.startswith("anchor_rates_")}),
-            targets=_anchor_targets(ctx),
+            targets=targets,
         ))
         out["state"]["anchor_c2w"] = res.c2w.clone()
         if res.carry is not None:
@@ -125,6 +135,8 @@ def _anchor(ctx: SelectionContext, lat: dict[str, float], out: dict[str, Any]) -
                                  for k, v in terms_to_state(res.rates_carry).items()})
     stages, details = res.report(ctx.eligible, cfg.anchor)
     lat.update(stages)  # within "anchor", not added to it
+    if subsample_ms:
+        lat["anchor.targets"] = lat.get("anchor.targets", 0.0) + subsample_ms
     out["details"].update(details)
     out["psi_trace"] = list(res.psi_trace)
     if res.modes is not None and res.modes.shape[0] > 1:

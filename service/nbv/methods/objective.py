@@ -7,7 +7,12 @@ from __future__ import annotations
 
 from torch import Tensor
 
-from ..targets import target_information, target_scores_keeping_best, target_subsample
+from ..targets import (
+    target_information,
+    target_intrinsics,
+    target_scores_keeping_best,
+    target_subsample,
+)
 from .base import SelectionContext, timed
 from .common import eig_scores_keeping_best
 
@@ -30,7 +35,8 @@ def objective_scores_keeping_best(
     as ``<stage>.targets`` (within ``stage``)."""
     if ctx.config.objective == "target":
         with timed(lat, f"{stage}.targets"):
-            t_info = target_information(ctx.gmap, target_views(ctx), ctx.intrinsics,
+            t_info = target_information(ctx.gmap, target_views(ctx),
+                                        target_intrinsics(ctx.intrinsics, ctx.config.target_scale),
                                         fields=ctx.fields, background=ctx.background)
         return target_scores_keeping_best(ctx.gmap, ctx.h_acc, poses, ctx.intrinsics, t_info,
                                           fields=ctx.fields, background=ctx.background)
