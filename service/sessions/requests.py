@@ -6,8 +6,10 @@ The transport reads a write's request id and the registry serves the write insid
 :func:`serving`; a session's write looks its id up in the record first (:func:`applied`) and
 answers from it when found, and otherwise records the id and its answer in the record it
 commits (:func:`remember`), so that the commit and its memory of the request are one.
-The record keeps the last :data:`KEEP` ids, the answers of the last :data:`KEEP_ANSWERS` of
-them, each of at most :data:`MAX_ANSWER_BYTES` as JSON.
+The record keeps the last :data:`KEEP` ids and the answers of the last :data:`KEEP_ANSWERS` of
+them, each of at most :data:`MAX_ANSWER_BYTES` as JSON and all together at most
+:data:`ANSWERS_BUDGET` (the newest first), so that a session whose writes carry ids commits a
+manifest of bounded size.
 """
 
 from __future__ import annotations
@@ -24,12 +26,13 @@ from pydantic import BaseModel
 from ..errors import ServiceError
 from ..store.records import AppliedRequest, SessionRecord
 
-__all__ = ["KEEP", "KEEP_ANSWERS", "MAX_ANSWER_BYTES", "applied", "current", "remember",
+__all__ = ["ANSWERS_BUDGET", "KEEP", "KEEP_ANSWERS", "MAX_ANSWER_BYTES", "applied", "current", "remember",
            "replay", "serving", "was_replayed"]
 
 KEEP = 256
 KEEP_ANSWERS = 16
 MAX_ANSWER_BYTES = 256 * 1024
+ANSWERS_BUDGET = 512 * 1024
 
 _current: ContextVar[tuple[str, str] | None] = ContextVar("agilegs_request", default=None)
 _replayed: ContextVar[bool] = ContextVar("agilegs_request_replayed", default=False)
@@ -87,13 +90,35 @@ def remember(rec: SessionRecord, answer: BaseModel | None) -> SessionRecord:
     data: dict[str, Any] | None = None
     if answer is not None:
         data = answer.model_dump(mode="json")
-        if len(json.dumps(data)) > MAX_ANSWER_BYTES:
+        if _size(data) > MAX_ANSWER_BYTES:
             data = None
-    cut = len(rec.requests) - (KEEP_ANSWERS - 1)  # the older ones keep their ids only
-    kept = tuple(replace(r, answer=None) if i < cut and r.answer is not None else r
-                 for i, r in enumerate(rec.requests))
-    new = (*kept, AppliedRequest(rid, op, rec.version, data))
+    new = _within_budget((*rec.requests, AppliedRequest(rid, op, rec.version, data)))
     return replace(rec, requests=new[-KEEP:])
+
+
+def _size(answer: dict[str, Any]) -> int:
+    """An answer's size as the JSON the manifest stores (bytes)."""
+    return len(json.dumps(answer))
+
+
+def _within_budget(requests: tuple[AppliedRequest, ...]) -> tuple[AppliedRequest, ...]:
+    """``requests`` (oldest first) with the answers kept only for the newest
+    :data:`KEEP_ANSWERS` that fit :data:`ANSWERS_BUDGET` together; the others keep their ids.
+    The sizes read are at most the budget's and one answer's, whatever the record holds."""
+    out = list(requests)
+    count, total = 0, 0
+    for i in range(len(out) - 1, -1, -1):
+        r = out[i]
+        if r.answer is None:
+            continue
+        if count < KEEP_ANSWERS:
+            total += _size(r.answer)
+            if total <= ANSWERS_BUDGET:
+                count += 1
+                continue
+            count = KEEP_ANSWERS  # full: every older answer is dropped unread
+        out[i] = replace(r, answer=None)
+    return tuple(out)
 
 
 def replay(found: AppliedRequest, response: type[BaseModel]) -> BaseModel | None:

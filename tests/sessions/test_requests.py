@@ -4,6 +4,7 @@ record survives a restart; an id names one write."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
@@ -106,6 +107,41 @@ def test_old_answers_are_dropped_and_their_ids_kept(tmp_path: Path) -> None:
     version = core.session("s").record.version
     info = run(core, "set_gaussians", "s", g, "set-gauss-001")
     assert info.version == version == core.session("s").record.version  # type: ignore[attr-defined]
+    core.close()
+
+
+def test_the_kept_answers_fit_a_byte_budget(tmp_path: Path,
+                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    core = make_core(tmp_path, mapper=False)
+    session(core)
+    answers = [run(core, "commit", "s", {"candidate_id": 0, "keep_in_pool": True}, "sized-0000")]
+    one = len(json.dumps(answers[0].model_dump(mode="json")))
+    monkeypatch.setattr(rq, "ANSWERS_BUDGET", int(3.5 * one))
+    for k in range(1, 7):
+        answers.append(run(core, "commit", "s", {"candidate_id": k, "keep_in_pool": True},
+                           f"sized-{k:04d}"))
+    sizes = [len(json.dumps(a.model_dump(mode="json"))) for a in answers]
+    want, total = [], 0  # the newest answers whose sizes fit the budget together
+    for k in range(6, -1, -1):
+        total += sizes[k]
+        if total > rq.ANSWERS_BUDGET:
+            break
+        want.insert(0, f"sized-{k:04d}")
+    reqs = core.session("s").record.requests
+    assert 2 <= len(want) < 7
+    assert [r.id for r in reqs if r.answer is not None] == want
+    assert [r.id for r in reqs][-7:] == [f"sized-{k:04d}" for k in range(7)]  # ids all kept
+    # a kept answer replays; one dropped is never applied twice
+    views = len(core.session("s").record.views)
+    again = run(core, "commit", "s", {"candidate_id": 6, "keep_in_pool": True}, "sized-0006")
+    assert again.model_dump(mode="json") == reqs[-1].answer
+    with pytest.raises(ServiceError) as err:
+        run(core, "commit", "s", {"candidate_id": 1, "keep_in_pool": True}, "sized-0001")
+    assert err.value.status == 409 and len(core.session("s").record.views) == views
+    # the newest answer alone over the budget: none is kept (the newest that fit: none)
+    monkeypatch.setattr(rq, "ANSWERS_BUDGET", one // 2)
+    run(core, "commit", "s", {"candidate_id": 7, "keep_in_pool": True}, "sized-0007")
+    assert all(r.answer is None for r in core.session("s").record.requests)
     core.close()
 
 
