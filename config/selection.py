@@ -10,6 +10,7 @@ field definitions give the JSON schema that OpenAPI publishes (through
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Annotated, Any, Literal, get_args
 
 from pydantic import AfterValidator, BeforeValidator, Field, Strict, WithJsonSchema
@@ -46,6 +47,7 @@ __all__ = [
     "MIXED_ZBUFFER",
     "OBJECTIVES",
     "POINT_ZBUFFER",
+    "METHOD_OBJECTIVES",
     "PRESETS",
     "SHORTLISTS",
     "AnchorConfig",
@@ -57,6 +59,8 @@ __all__ = [
     "ScoringConfig",
     "SelectConfig",
     "ShortlistStrategy",
+    "for_method",
+    "objective_of",
     "preset_config",
 ]
 
@@ -76,6 +80,25 @@ Objective = Literal["eig", "target"]
 """What the exact scoring maximises: the paper's expected information gain, or the worth of a
 view on the target views' renders."""
 OBJECTIVES: tuple[str, ...] = get_args(Objective)
+METHOD_OBJECTIVES: dict[str, Objective] = {}
+"""The objective a method maximises when ``SelectConfig.objective`` is None, where it is not
+the paper's ``eig``."""
+
+
+def objective_of(method: str, config: SelectConfig) -> Objective:
+    """The objective ``method`` maximises under ``config``: ``config.objective``, else the
+    method's default (:data:`METHOD_OBJECTIVES`, else ``eig``)."""
+    if config.objective is not None:
+        return config.objective
+    return METHOD_OBJECTIVES.get(method, "eig")
+
+
+def for_method(config: SelectConfig, method: str) -> SelectConfig:
+    """``config`` with its objective set to :func:`objective_of` ``method``."""
+    if config.objective is not None:
+        return config
+    return dataclasses.replace(config, objective=objective_of(method, config))
+
 FieldName = Literal["means", "log_scales", "quats", "opacity_logits", "sh"]
 """The parameter blocks of a Gaussian map."""
 FIELD_NAMES: tuple[str, ...] = get_args(FieldName)
@@ -358,12 +381,13 @@ class SelectConfig:
         default=0, description="seeds every random choice")
     fields: Blocks | None = Field(
         default=None, description="parameter blocks entering phi and psi (None: all five)")
-    objective: Objective = Field(
-        default="eig",
-        description="what full_eig and agile_plus's rerank maximise: 'eig' (the paper's "
-        "expected information gain sum log(1 + H_v / Hhat) over every parameter) or 'target' "
-        "(the fall of the target views' predicted render variance, sum T H_v / (Hhat (Hhat + "
-        "H_v)) with T the targets' summed Fisher: the request's target poses, else the pool)")
+    objective: Objective | None = Field(
+        default=None,
+        description="what full_eig, agile_plus's rerank and the anchor of agile and agile_plus "
+        "maximise: 'eig' (the paper's expected information gain sum log(1 + H_v / Hhat) over "
+        "every parameter) or 'target' (the fall of the target views' predicted render "
+        "variance, sum T H_v / (Hhat (Hhat + H_v)) with T the targets' summed Fisher: the "
+        "request's target poses, else the pool); None: the method's default (docs/maths.md)")
     spread_filter: UnitFloat = Field(
         default=0.0,
         description="full_eig scores only the eligible candidates whose distance to the "
@@ -405,6 +429,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "anchor": {"psi": "exact", "anchors": 1, "model": "fitted", "unexplored": False},
         "scoring": {"condition_on_acquired": False},
         "probes": 0,
+        "objective": "eig",
     },
 }
 """Named SelectConfig patches. ``paper``: AGILE-GS as the paper states it: one anchor, which

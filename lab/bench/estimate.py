@@ -8,6 +8,7 @@ from collections.abc import Sequence
 
 import torch
 
+from agilegs.config.selection import objective_of
 from agilegs.service.nbv import fisher_diag, render
 from agilegs.service.nbv.methods.base import get_method
 
@@ -70,7 +71,7 @@ def estimate_seconds(
         elif v.method == "agile_plus":
             sel += events * (0.1 + min(v.shortlist_size, d) * t_fisher)
         cfg = v.config()
-        if cfg.objective == "target" and v.method in ("full_eig", "agile_plus"):
+        if objective_of(v.method, cfg) == "target" and v.method in ("full_eig", "agile_plus"):
             sel += events * cfg.target_views * t_fisher  # the targets' Fisher T
         out[v.key] = 1.5 * len(seeds) * (base + sel)
     return out

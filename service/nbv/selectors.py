@@ -38,6 +38,7 @@ from agilegs.config.selection import (
     AnchorConfig,
     ScoringConfig,
     SelectConfig,
+    for_method,
 )
 from agilegs.config.types import validate_config
 
@@ -325,7 +326,7 @@ def select_from(inputs: SelectInputs, *, state: dict[str, Any] | None = None,
     """
     t_start = time.perf_counter() if started is None else started
     impl = get_method(inputs.method)
-    config = inputs.config
+    config = for_method(inputs.config, inputs.method)
     state = dict(state or {})
     event = int(state.get("event", 0))
     gmap = inputs.gmap

@@ -26,8 +26,8 @@ from pydantic import BaseModel
 from ..errors import ServiceError
 from ..store.records import AppliedRequest, SessionRecord
 
-__all__ = ["ANSWERS_BUDGET", "KEEP", "KEEP_ANSWERS", "MAX_ANSWER_BYTES", "applied", "current", "remember",
-           "replay", "serving", "was_replayed"]
+__all__ = ["ANSWERS_BUDGET", "KEEP", "KEEP_ANSWERS", "MAX_ANSWER_BYTES", "applied", "current",
+           "remember", "replay", "serving", "was_replayed"]
 
 KEEP = 256
 KEEP_ANSWERS = 16

@@ -19,7 +19,7 @@ from pydantic import ValidationError
 from torch import Tensor
 
 from agilegs import schemas as m
-from agilegs.config.selection import SelectConfig
+from agilegs.config.selection import SelectConfig, objective_of
 from agilegs.config.types import deep_merge, validate_config
 from agilegs.schemas.config import patch_dict
 from agilegs.schemas.errors import ErrorCode
@@ -114,7 +114,7 @@ def select_estimate(rec: SessionRecord, method: str, config: SelectConfig) -> Es
         backend="numba" if kernels else "torch", threads=torch.get_num_threads())
     est = estimate(method, len(g), w * h, pool=pool,  # type: ignore[arg-type]
                    shortlist=config.shortlist_size, acquired=len(rec.views), **sizes)
-    if config.objective == "target" and method in ("full_eig", "agile_plus"):
+    if objective_of(method, config) == "target" and method in ("full_eig", "agile_plus"):
         # the targets' Fisher T: one pass per target view, once per selection
         scale = config.target_scale
         one = estimate("fisher", len(g), max(1, round(w * scale)) * max(1, round(h * scale)),
@@ -218,10 +218,10 @@ def select_step(rec: SessionRecord, req: m.SelectRequest, limits: Limits, *,
     dt = rec.gmap.dtype
     targets = None
     if req.targets is not None:
-        if config.objective != "target":
+        if objective_of(method, config) != "target":
             raise invalid("body.targets", "targets are the views of interest of "
                           "config.objective 'target'; this select's objective is "
-                          f"{config.objective!r}")
+                          f"{objective_of(method, config)!r}")
         targets = torch.from_numpy(poses_array(req.targets)).to(dt)
     current = None
     current_pose = None

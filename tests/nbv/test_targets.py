@@ -9,7 +9,14 @@ import math
 import pytest
 import torch
 
-from agilegs.config.selection import AnchorConfig, SelectConfig
+from agilegs.config.selection import (
+    METHOD_OBJECTIVES,
+    AnchorConfig,
+    SelectConfig,
+    for_method,
+    objective_of,
+    preset_config,
+)
 from agilegs.service.nbv import (
     Camera,
     GaussianMap,
@@ -113,7 +120,7 @@ def test_full_eig_with_the_target_objective() -> None:
     gmap, pool, h = tiny()
     cands = pool[[1, 2, 3, 4, 6, 7, 8, 9]]
     default = select("full_eig", gmap, h, cands, INTR)
-    assert SelectConfig().objective == "eig"
+    assert objective_of("full_eig", SelectConfig()) == "eig"
     phi = eig_scores(gmap, h, cands, INTR)
     assert default.index == int(torch.argmax(phi))
     # the targets given: T from config.target_views of them, spread
@@ -205,6 +212,28 @@ def test_target_images_keep_the_field_of_view() -> None:
     assert target_intrinsics(big, 1.0) is big
     tiny_img = target_intrinsics(INTR, 0.01)
     assert (tiny_img.width, tiny_img.height) == (1, 1)
+
+
+def test_an_unset_objective_is_the_methods_own(monkeypatch: pytest.MonkeyPatch) -> None:
+    assert SelectConfig().objective is None
+    assert preset_config("paper").objective == "eig"  # the paper's, whatever the defaults
+    for method in ("full_eig", "agile", "agile_plus", "random"):
+        assert objective_of(method, SelectConfig()) == METHOD_OBJECTIVES.get(method, "eig")
+        assert objective_of(method, SelectConfig(objective="target")) == "target"
+        assert objective_of(method, SelectConfig(objective="eig")) == "eig"
+    monkeypatch.setitem(METHOD_OBJECTIVES, "agile_plus", "target")
+    assert for_method(SelectConfig(), "agile_plus").objective == "target"
+    assert for_method(SelectConfig(), "full_eig").objective == "eig"
+    # the selection maximises the resolved objective: the same as naming it
+    gmap, pool, h = tiny()
+    cands = pool[[1, 2, 3, 4, 6, 7, 8, 9]]
+    base = dict(acquired=pool[[0, 5]], lam=1e-3)
+    unset = select("agile_plus", gmap, h, cands, INTR, config=SelectConfig(shortlist_size=4),
+                   **base)
+    named = select("agile_plus", gmap, h, cands, INTR, **base,
+                   config=SelectConfig(shortlist_size=4, objective="target"))
+    assert unset.index == named.index and unset.scores == named.scores
+    assert unset.latency_ms["rerank.targets"] > 0
 
 
 def test_targets_are_checked() -> None:
