@@ -17,8 +17,9 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -35,8 +36,11 @@ __all__ = [
     "checksum",
     "decode_manifest",
     "encode_manifest",
+    "load_each",
     "read_checked",
 ]
+
+log = logging.getLogger(__name__)
 
 FORMAT = 2
 """The manifest format written (1: no checksums; still read)."""
@@ -220,3 +224,28 @@ def is_tombstone(manifest: bytes | None) -> bool:
         return decode_manifest(manifest).get("deleted") is True
     except ManifestError:
         return False
+
+
+def load_each(ids: Iterable[str], check: Callable[[str], Any],
+              on_intact: Callable[[str, Any], None]) -> tuple[list[Any], list[Damage]]:
+    """Every session of ``ids`` checked by ``check(sid)`` (a record, a :class:`Damage`, or None
+    to leave it out), sorted into the intact records and the damaged ones; ``on_intact(sid,
+    record)`` after each intact one. A check that raises makes its session damaged (its
+    manifest unreadable), never stops the others loading."""
+    records: list[Any] = []
+    damaged: list[Damage] = []
+    for sid in ids:
+        try:
+            got = check(sid)
+        except Exception as exc:
+            log.exception("could not check session %s", sid)
+            got = Damage(sid, (FileProblem("manifest.json", f"unreadable ({exc})"),))
+        if got is None:
+            continue
+        if isinstance(got, Damage):
+            log.error("session %s is damaged: %s (repair: %s)", sid, got.reason(), got.plan())
+            damaged.append(got)
+        else:
+            records.append(got)
+            on_intact(sid, got)
+    return records, damaged

@@ -67,12 +67,12 @@ from .integrity import (
     FORMAT,
     Damage,
     DamagedFile,
-    FileProblem,
     checksum,
     decode_manifest,
     encode_manifest,
     is_tombstone,
     lease_of,
+    load_each,
     read_checked,
 )
 from .read import inspect_session
@@ -448,30 +448,23 @@ class ObjectSessionStore:
         ones, and the damaged ones with what is wrong (none is skipped). Removes old
         leftovers of interrupted writes. (An instance of a fleet takes sessions one by one
         instead, those no live instance owns.)"""
-        records: list[SessionRecord] = []
-        damaged: list[Damage] = []
-        for sid in self.session_ids():
-            try:
-                got = self.take_over(sid)
-            except FileNotFoundError:  # a create that never committed, or a delete half done
-                self._collect(sid, set())
-                continue
-            except Fenced:
-                log.warning("session %s is being written by another instance: not loaded", sid)
-                continue
-            except Exception as exc:  # one session must never stop the others loading
-                log.exception("could not check session %s", sid)
-                got = Damage(sid, (FileProblem(MANIFEST, f"unreadable ({exc})"),))
-            if isinstance(got, Damage):
-                log.error("session %s is damaged: %s (repair: %s)", sid, got.reason(),
-                          got.plan())
-                damaged.append(got)
-            else:
-                records.append(got)
-                head = self._heads.get(sid)
-                if head is not None:
-                    self._collect(sid, head.named | head.previous)
-        return records, damaged
+        return load_each(self.session_ids(), self._taken_over, self._collect_unnamed)
+
+    def _taken_over(self, sid: str) -> SessionRecord | Damage | None:
+        """:meth:`take_over` for :meth:`load_all`: None (left out) for a session that never
+        committed or is half deleted (its leftovers collected) or another instance writes."""
+        try:
+            return self.take_over(sid)
+        except FileNotFoundError:  # a create that never committed, or a delete half done
+            self._collect(sid, set())
+        except Fenced:
+            log.warning("session %s is being written by another instance: not loaded", sid)
+        return None
+
+    def _collect_unnamed(self, sid: str, record: SessionRecord) -> None:
+        head = self._heads.get(sid)
+        if head is not None:
+            self._collect(sid, head.named | head.previous)
 
     def _previous_manifest(self, sid: str) -> bytes | None:
         try:

@@ -48,11 +48,11 @@ import torch
 from .integrity import (
     Damage,
     DamagedFile,
-    FileProblem,
     ManifestError,
     checksum,
     decode_manifest,
     encode_manifest,
+    load_each,
     read_checked,
 )
 from .read import inspect_folder
@@ -288,23 +288,9 @@ class SessionStore:
     def load_all(self) -> tuple[list[SessionRecord], list[Damage]]:
         """Every persisted session, checked: the intact ones, and the damaged ones with what
         is wrong (none is skipped). Removes leftovers of interrupted writes."""
-        records: list[SessionRecord] = []
-        damaged: list[Damage] = []
-        for sid in self.session_ids():
-            try:
-                got = self.inspect(sid)
-            except Exception as exc:  # one session must never stop the others loading
-                log.exception("could not check session %s", sid)
-                got = Damage(sid, (FileProblem(MANIFEST, f"unreadable ({exc})"),))
-            if isinstance(got, Damage):
-                log.error("session %s is damaged: %s (repair: %s)", sid, got.reason(),
-                          got.plan())
-                damaged.append(got)
-            else:
-                records.append(got)
-                self._collect(self.session_dir(sid), self._referenced(sid, got),
-                              views=self._referenced_views(sid, got))
-        return records, damaged
+        return load_each(self.session_ids(), self.inspect, lambda sid, rec: self._collect(
+            self.session_dir(sid), self._referenced(sid, rec),
+            views=self._referenced_views(sid, rec)))
 
     # ------------------------------------------------------------------ checking
     def forget(self, sid: str) -> None:
