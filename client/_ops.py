@@ -141,7 +141,8 @@ class SyncOperations:
         targets: np.ndarray | Sequence[PoseLike] | None = None,
     ) -> m.SelectResponse:
         """Choose the next view (unset arguments take the session's defaults); ``targets``:
-        the views of interest [T, 4, 4] of ``config={"objective": "target"}``."""
+        the views of interest [T, 4, 4] of the target objective (the default of ``agile`` and
+        ``agile_plus``; ``config={"objective": "target"}`` for ``full_eig``)."""
         return self._send(rq.select(  # type: ignore[no-any-return]
             session, method=method, shortlist_size=shortlist_size, shortlist=shortlist,
             embodied_k=embodied_k, seed=seed, fields=fields, config=config,

@@ -80,7 +80,7 @@ Objective = Literal["eig", "target"]
 """What the exact scoring maximises: the paper's expected information gain, or the worth of a
 view on the target views' renders."""
 OBJECTIVES: tuple[str, ...] = get_args(Objective)
-METHOD_OBJECTIVES: dict[str, Objective] = {}
+METHOD_OBJECTIVES: dict[str, Objective] = {"agile": "target", "agile_plus": "target"}
 """The objective a method maximises when ``SelectConfig.objective`` is None, where it is not
 the paper's ``eig``."""
 

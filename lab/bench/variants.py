@@ -140,6 +140,9 @@ OPTIONS: dict[str, tuple[str, Callable[[SelectConfig], SelectConfig]]] = {
                   lambda c: dataclasses.replace(c, probes=0)),
     "probes3": ("AGILE-GS+ gives at least 3 of the N reranked slots to uniform probes",
                 lambda c: dataclasses.replace(c, probes=3)),
+    "eig": ("the paper's objective: the expected information gain sum log(1 + H_v / Hhat) "
+            "in the rerank and the anchor, whatever the method's default",
+            lambda c: dataclasses.replace(c, objective="eig")),
     "target": ("the target objective: the fall of the pool's predicted render variance; "
                "full_eig scores and AGILE-GS+ reranks by it (T from 8 farthest-point pool "
                "views at half the width and height), and the anchor of AGILE-GS and AGILE-GS+ "

@@ -93,7 +93,7 @@ def test_agile_plus_returns_argmax_phi_over_the_shortlist(world) -> None:
     gmap, h, pool, acq, phi = world
     for shortlist in SHORTLISTS:
         cfg = SelectConfig(shortlist=shortlist, shortlist_size=6,  # type: ignore[arg-type]
-                           probes=0)
+                           probes=0, objective="eig")
         plain = select("agile", gmap, h, pool, INTR, acquired=acq, config=cfg)
         plus = select("agile_plus", gmap, h, pool, INTR, acquired=acq, config=cfg)
         assert plus.shortlist == plain.shortlist
@@ -107,9 +107,10 @@ def test_agile_plus_returns_argmax_phi_over_the_shortlist(world) -> None:
 def test_agile_plus_reranks_the_model_s_shortlist_and_uniform_probes(world) -> None:
     gmap, h, pool, acq, phi = world
     for probes in (1, 2):
-        cfg = SelectConfig(shortlist_size=6, probes=probes, seed=3)
+        cfg = SelectConfig(shortlist_size=6, probes=probes, seed=3, objective="eig")
         model = select("agile", gmap, h, pool, INTR, acquired=acq,
-                       config=SelectConfig(shortlist_size=6 - probes, probes=0, seed=3))
+                       config=SelectConfig(shortlist_size=6 - probes, probes=0, seed=3,
+                                           objective="eig"))
         plus = select("agile_plus", gmap, h, pool, INTR, acquired=acq, config=cfg)
         assert plus.shortlist[: 6 - probes] == model.shortlist
         drawn = plus.shortlist[6 - probes:]
@@ -452,7 +453,7 @@ def test_the_anchor_reports_under_the_wire_s_names(world) -> None:
     from agilegs.service.nbv.candidates import scene_center_radius
 
     gmap, h, pool, acq, _ = world
-    cfg = SelectConfig(anchor=AnchorConfig(carry_over_tolerance=0.01))
+    cfg = SelectConfig(anchor=AnchorConfig(carry_over_tolerance=0.01), objective="eig")
     sel = select("agile", gmap, h, pool, INTR, acquired=acq, config=cfg, lam=1e-6)
     assert [k for k in sel.latency_ms if k.startswith("anchor.")] == [
         "anchor.envelope", "anchor.visibility", "anchor.rates", "anchor.unexplored",

@@ -169,7 +169,7 @@ def test_the_anchor_weighs_its_samples_by_the_targets() -> None:
     gmap, pool, h = tiny()
     cands = pool[[1, 2, 3, 4, 6, 7, 8, 9]]
     base = dict(acquired=pool[[0, 5]], lam=1e-3)
-    eig = select("agile", gmap, h, cands, INTR, **base)
+    eig = select("agile", gmap, h, cands, INTR, config=SelectConfig(objective="eig"), **base)
     assert "anchor.targets" not in eig.latency_ms
     for targets in (pool[[0]], pool[[5]], None):  # the request's, else the pool's
         cfg = SelectConfig(objective="target")
