@@ -161,8 +161,8 @@ HOW: dict[tuple[str, str], How] = {
      "runs/cpu-spread \\"): BENCH,
     ("docs/benchmarks.md", "agilegs bench run $(for s in skull_photos tankard flowerpot "
      "caliterra; do echo --scene $S/$s; \\"): BENCH,
-    ("docs/benchmarks.md", "agilegs bench run --profile cpu --seeds 0,1 --threads 1 --out "
-     "runs/cpu-target \\"): BENCH,
+    ("docs/benchmarks.md", "agilegs bench run --profile cpu_long --seeds 0,1 --threads 1 --out "
+     "runs/objective-long \\"): BENCH,
     ("docs/benchmarks.md", "agilegs bench run --profile capture --seeds 0,1 --threads 1 --out "
      "runs/capture-spread \\"): BENCH,
     ("docs/benchmarks.md", "agilegs bench latency --scene $S/plant/plant.splat --max-gaussians "
