@@ -12,7 +12,7 @@ ANCHOR_STAGES = ("envelope", "visibility", "rates", "unexplored", "starts", "asc
 the opacity maps), the model's rates (fitted over the acquired views, the new ones' terms
 added to the carried ones between refits, and the importance sample), unexplored space, the
 starts (the coarse psi of the pool, the full psi of the refined candidates), the ascent."""
-TABLE_STAGES = ("envelope", "visibility", "rates", "unexplored", "targets", "starts", "ascent")
+TABLE_STAGES = ANCHOR_STAGES[:4] + ("targets",) + ANCHOR_STAGES[4:]
 """The stages of the tables: :data:`ANCHOR_STAGES` and, under the ``target`` objective only,
 the samples' weighting by their information at the targets (after unexplored space)."""
 RUN_STAGES = TABLE_STAGES + ("ascent.gradients", "ascent.values")

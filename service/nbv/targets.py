@@ -39,6 +39,7 @@ __all__ = [
     "target_gain_bruteforce",
     "target_information",
     "target_intrinsics",
+    "target_size",
     "target_scores_keeping_best",
     "target_subsample",
 ]
@@ -50,13 +51,20 @@ def target_subsample(targets: Tensor, rot_weight: float, count: int) -> list[int
     return farthest_point_order(targets, None, rot_weight, count)
 
 
+def target_size(width: int, height: int, scale: float) -> tuple[int, int]:
+    """The targets' image size: ``width`` and ``height`` times ``scale``, rounded, at least
+    one pixel each (the size itself at scale 1)."""
+    if scale >= 1.0:
+        return width, height
+    return max(1, round(width * scale)), max(1, round(height * scale))
+
+
 def target_intrinsics(intrinsics: Intrinsics, scale: float) -> Intrinsics:
-    """The targets' images: ``intrinsics`` with width and height times ``scale`` (at least
-    one pixel, rounded; the same field of view), ``intrinsics`` itself at scale 1."""
+    """The targets' images: ``intrinsics`` at :func:`target_size` (the same field of view),
+    ``intrinsics`` itself at scale 1."""
     if scale >= 1.0:
         return intrinsics
-    return intrinsics.scaled(max(1, round(intrinsics.width * scale)),
-                             max(1, round(intrinsics.height * scale)))
+    return intrinsics.scaled(*target_size(intrinsics.width, intrinsics.height, scale))
 
 
 def target_information(

@@ -31,6 +31,7 @@ from ..nbv.errors import InputError
 from ..nbv.kernels.backend import default_backend, kernels_available
 from ..nbv.methods.base import get_method
 from ..nbv.selectors import SelectInputs, select_from, state_to
+from ..nbv.targets import target_size
 from ..store.records import SessionRecord, ViewRecord
 from .convert import finite_float, pose_out, poses_array, view_out
 from .transitions import (
@@ -116,9 +117,8 @@ def select_estimate(rec: SessionRecord, method: str, config: SelectConfig) -> Es
                    shortlist=config.shortlist_size, acquired=len(rec.views), **sizes)
     if objective_of(method, config) == "target" and method in ("full_eig", "agile_plus"):
         # the targets' Fisher T: one pass per target view, once per selection
-        scale = config.target_scale
-        one = estimate("fisher", len(g), max(1, round(w * scale)) * max(1, round(h * scale)),
-                       **sizes)
+        tw, th = target_size(w, h, config.target_scale)
+        one = estimate("fisher", len(g), tw * th, **sizes)
         est = dataclasses.replace(est, seconds=est.seconds + config.target_views * one.seconds)
     return est
 
@@ -218,10 +218,11 @@ def select_step(rec: SessionRecord, req: m.SelectRequest, limits: Limits, *,
     dt = rec.gmap.dtype
     targets = None
     if req.targets is not None:
-        if objective_of(method, config) != "target":
+        objective = objective_of(method, config)
+        if objective != "target":
             raise invalid("body.targets", "targets are the views of interest of "
                           "config.objective 'target'; this select's objective is "
-                          f"{objective_of(method, config)!r}")
+                          f"{objective!r}")
         targets = torch.from_numpy(poses_array(req.targets)).to(dt)
     current = None
     current_pose = None
