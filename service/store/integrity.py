@@ -28,7 +28,6 @@ __all__ = [
     "is_tombstone",
     "lease_of",
     "FORMAT",
-    "MANIFEST",
     "Damage",
     "DamagedFile",
     "FileProblem",
@@ -45,8 +44,6 @@ log = logging.getLogger(__name__)
 
 FORMAT = 2
 """The manifest format written (1: no checksums; still read)."""
-MANIFEST = "manifest.json"
-"""A version's manifest, in its session's folder (or under its session's key prefix)."""
 
 
 @dataclass(frozen=True)
@@ -242,7 +239,7 @@ def load_each(ids: Iterable[str], check: Callable[[str], Any],
             got = check(sid)
         except Exception as exc:
             log.exception("could not check session %s", sid)
-            got = Damage(sid, (FileProblem(MANIFEST, f"unreadable ({exc})"),))
+            got = Damage(sid, (FileProblem("manifest.json", f"unreadable ({exc})"),))
         if got is None:
             continue
         if isinstance(got, Damage):

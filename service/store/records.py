@@ -12,7 +12,7 @@ import numpy as np
 from torch import Tensor
 
 from ..nbv import GaussianMap
-from .integrity import FORMAT, MANIFEST, ManifestError, decode_manifest
+from .integrity import FORMAT, ManifestError, decode_manifest
 
 __all__ = ["MANIFEST", "PREVIOUS", "REQUIRED", "ROLES", "ROLE_FILE", "SESSION_NAME", "VIEWS",
            "AppliedRequest", "SessionRecord", "ViewRecord", "named_in", "view_id"]
@@ -21,6 +21,7 @@ ROLES = ("gaussians", "information", "pool", "warm")
 """The tensor files of a version, one per role."""
 REQUIRED = ("gaussians", "information", "pool")
 """The roles a session cannot do without (``warm`` is a cache: losing it costs a cold start)."""
+MANIFEST = "manifest.json"
 PREVIOUS = "manifest.prev.json"
 VIEWS = "views"
 SESSION_NAME = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
